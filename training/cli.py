@@ -1,0 +1,103 @@
+"""The ``gpnarx`` console script.
+
+Each subcommand lives in its own module exposing ``add_parser(subparsers)`` which registers the
+subcommand and sets ``func`` to a callable ``run(args) -> dict | None``. A returned dict is printed as
+one JSON object on stdout when ``--json`` is given (else a short human summary). Any
+``CLIError``/``ValueError``/``OSError``/``KeyError`` raised by a command becomes one line on stderr and
+exit code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+
+import numpy as np
+
+# Subcommand modules, in the order shown by --help.
+COMMAND_MODULES = [
+    "training.cmd_simulate",
+    "training.cmd_lags",
+    "training.cmd_train",
+    "training.cmd_predict",
+    "training.cmd_novelty",
+    "training.cmd_serve",
+    "training.cmd_reproduce",
+]
+
+
+class CLIError(Exception):
+    """An error the user can fix; printed as one line, exit code 2."""
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="gpnarx",
+        description="GP-NARX surrogate of hysteretic bolted structures: simulate, train, predict, serve.",
+    )
+    parser.add_argument("--json", action="store_true", help="print one machine-readable JSON object on stdout")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for mod_name in COMMAND_MODULES:
+        try:
+            mod = importlib.import_module(mod_name)
+        except ModuleNotFoundError as exc:  # a command module not present in this build
+            if exc.name == mod_name:
+                continue
+            raise
+        mod.add_parser(sub)
+    return parser
+
+
+def _print_human(result: dict) -> None:
+    for key, value in result.items():
+        if isinstance(value, (list, np.ndarray)) and len(value) > 8:
+            continue
+        print(f"{key}: {value}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # accept --json anywhere on the line
+    as_json = "--json" in argv
+    argv = [a for a in argv if a != "--json"]
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args.json = as_json
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        result = args.func(args)
+    except KeyboardInterrupt:
+        print("gpnarx: interrupted", file=sys.stderr)
+        return 130
+    except (CLIError, ValueError, OSError, KeyError, LookupError) as exc:
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if isinstance(exc, KeyError):
+            msg = f"missing key {exc}"
+        print(f"gpnarx {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+    if result is not None:
+        if as_json:
+            json.dump(_jsonable(result), sys.stdout)
+            sys.stdout.write("\n")
+        else:
+            _print_human(result)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
