@@ -1,0 +1,254 @@
+"""Dataset config: loading, simulated records, noise, windows, errors, ranges."""
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from model.records import Record
+from training.config import ConfigError, DatasetConfig, load_config, parse_range
+from training.records import write_record
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared/data/bert-t5nm"
+
+SMALL = """
+name = "bw-small"
+description = "small Bouc-Wen config for tests"
+[system]
+fs = 750.0
+units = { u = "N", y = "m" }
+output = "displacement"
+[physics]
+mass = 2.0
+input_gain = 1.0
+[model]
+ny = 3
+nu = 2
+kernel = "rbf+cubic"
+selection = "resonance"
+[lags]
+ny = "1:6"
+nu = "2:8:3"
+[predict]
+mc_paths = 64
+[[records]]
+name = "sweep-10N"
+roles = ["train", "lags"]
+simulate = { system = "bouc-wen", excitation = "sweep", amplitude = 10.0, f0 = 5.0, f1 = 150.0, rate = 200.0 }
+noise = { fraction = 0.1, seed = 11 }
+[[records]]
+name = "sine-10N"
+roles = ["validate"]
+simulate = { system = "bouc-wen", excitation = "sine", amplitude = 10.0, freq = 35.59, duration = 1.0 }
+noise = { fraction = 0.1, reference = "sweep-10N", seed = 12 }
+window = [0.2, 0.6]
+meta = { note = "validation sine" }
+"""
+
+
+def _write(tmp_path: Path, text: str, name="cfg.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(textwrap.dedent(text))
+    return p
+
+
+def test_small_config_loads_and_materialises(tmp_path):
+    cfg = load_config(_write(tmp_path, SMALL))
+    assert isinstance(cfg, DatasetConfig)
+    assert cfg.name == "bw-small" and cfg.fs == 750.0 and cfg.units == {"u": "N", "y": "m"}
+    assert cfg.model["ny"] == 3 and cfg.model["kernel"] == "rbf+cubic" and cfg.model["mode"] == "exact"
+    assert cfg.model["max_train_points"] == 2000 and cfg.predict == {"mc_paths": 64, "confidence": 0.99}
+    assert cfg.novelty["false_alarm_rate"] == 0.01 and cfg.physics["mass"] == 2.0
+    assert parse_range(cfg.lags["nu"]) == [2, 5, 8]
+    assert [s.name for s in cfg.records] == ["sweep-10N", "sine-10N"]
+    assert cfg.records_for("damaged") == []
+
+    train = cfg.records_for("train")
+    assert len(train) == 1
+    sweep = train[0]
+    assert isinstance(sweep, Record) and sweep.fs == 750.0 and sweep.units == {"u": "N", "y": "m"}
+    assert sweep.n == round((150 - 5) / 200 * 750)
+    clean = sweep.meta["clean_y"]
+    noise = sweep.y - clean
+    # variance = 10 % of the clean response energy
+    assert np.var(noise) == pytest.approx(0.1 * np.mean(clean**2), rel=0.2)
+    assert cfg.records_for("lags")[0] is sweep  # cached
+
+    sine = cfg.records_for("validate")[0]
+    assert sine.n == 300 and sine.name == "sine-10N"
+    assert sine.meta["note"] == "validation sine" and sine.meta["window"] == [0.2, 0.6]
+    # noise level taken from the sweep's clean output, not the sine's
+    assert sine.meta["noise_std"] == pytest.approx(sweep.meta["noise_std"])
+    assert sine.meta["noise_reference"] == "sweep-10N"
+
+    # deterministic: a second load gives the same noisy samples
+    again = load_config(cfg.path).records_for("train")[0]
+    np.testing.assert_array_equal(again.y, sweep.y)
+
+
+def test_file_records_relative_path_and_units_fill(tmp_path):
+    rng = np.random.default_rng(0)
+    (tmp_path / "data").mkdir()
+    write_record(tmp_path / "data" / "a.csv", Record(rng.standard_normal(50), rng.standard_normal(50), 750.0))
+    np.save(tmp_path / "data" / "b.npy", rng.standard_normal((40, 2)))
+    text = """
+    name = "files"
+    [system]
+    fs = 750.0
+    units = { u = "N", y = "m" }
+    [[records]]
+    name = "a"
+    roles = ["train"]
+    path = "data/a.csv"
+    [[records]]
+    name = "b"
+    roles = ["verify"]
+    path = "data/b.npy"
+    """
+    cfg = load_config(_write(tmp_path, text))
+    a = cfg.records_for("train")[0]
+    assert a.n == 50 and a.units == {"u": "N", "y": "m"}  # CSV has no units: the config's apply
+    b = cfg.records_for("verify")[0]
+    assert b.n == 40 and b.fs == 750.0  # npy has no fs: system.fs applies
+
+
+def test_fs_mismatch_names_both_records(tmp_path):
+    rng = np.random.default_rng(1)
+    write_record(tmp_path / "ok.npz", Record(rng.standard_normal(20), rng.standard_normal(20), 750.0))
+    write_record(tmp_path / "fast.npz", Record(rng.standard_normal(20), rng.standard_normal(20), 1000.0))
+    text = """
+    name = "mismatch"
+    [system]
+    fs = 750.0
+    [[records]]
+    name = "slow-one"
+    roles = ["train"]
+    path = "ok.npz"
+    [[records]]
+    name = "fast-one"
+    roles = ["train"]
+    path = "fast.npz"
+    """
+    cfg = load_config(_write(tmp_path, text))
+    with pytest.raises(ConfigError) as ei:
+        cfg.records_for("train")
+    msg = str(ei.value)
+    assert "cfg.toml" in msg and "fast-one" in msg and "fast.npz" in msg and "slow-one" in msg and "ok.npz" in msg
+    assert "1000 Hz" in msg and "750 Hz" in msg and "\n" not in msg
+
+
+def test_unit_mismatch(tmp_path):
+    rng = np.random.default_rng(2)
+    write_record(tmp_path / "v.npz", Record(rng.standard_normal(20), rng.standard_normal(20), 750.0, {"u": "N", "y": "m/s"}))
+    text = """
+    name = "units"
+    [system]
+    fs = 750.0
+    units = { u = "N", y = "m" }
+    [[records]]
+    name = "vel"
+    roles = ["train"]
+    path = "v.npz"
+    """
+    with pytest.raises(ConfigError, match=r"cfg.toml: records.vel: .*'m/s' but system.units.y is 'm'"):
+        load_config(_write(tmp_path, text)).records_for("train")
+
+
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("[system]\nfs = 750.0\n[[records]]\nname='a'\nroles=['train']\npath='x.npz'\n", "name: missing required key"),
+        ("name='x'\n[system]\nunits={u='N', y='m'}\n[[records]]\nname='a'\nroles=['train']\npath='x.npz'\n",
+         "system.fs: missing required key"),
+        ("name='x'\n[system]\nfs=750.0\n", "records: missing required key"),
+        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['verify']\npath='x.npz'\n",
+         "no record has role 'train'"),
+        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train','tesst']\npath='x.npz'\n",
+         "records.a.roles: unknown role 'tesst'"),
+        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\n", "give exactly one of path or simulate"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nkernel='laplace'\n[[records]]\nname='a'\nroles=['train']\npath='x'\n",
+         "model.kernel: must be one of"),
+        ("name='x'\n[system]\nfs=750.0\n[lags]\nny='24:1'\n[[records]]\nname='a'\nroles=['train']\npath='x'\n",
+         "lags.ny"),
+        ("name='x'\n[system]\nfs=750.0\nunits={u='N', y='furlong'}\n[[records]]\nname='a'\nroles=['train']\npath='x'\n",
+         "system.units"),
+        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\npath='x'\nnoise={fraction=0.1, reference='zz'}\n",
+         "no record named 'zz'"),
+        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\nsimulate={system='duffing', amplitude=1.0}\n",
+         "records.a.simulate.system"),
+        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\npath='x'\ncolour='red'\n",
+         "unknown key(s) colour"),
+        ("name = [broken", "invalid TOML"),
+    ],
+)
+def test_config_errors(tmp_path, text, fragment):
+    p = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as ei:
+        load_config(p)
+    msg = str(ei.value)
+    assert str(p) in msg and fragment in msg, msg
+    assert "\n" not in msg
+
+
+def test_unknown_role_query_and_missing_file(tmp_path):
+    cfg = load_config(_write(tmp_path, SMALL))
+    with pytest.raises(ConfigError, match="unknown role 'test'"):
+        cfg.records_for("test")
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.toml")
+    text = "name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\npath='missing.npz'\n"
+    cfg = load_config(_write(tmp_path, text, "c2.toml"))
+    with pytest.raises(ConfigError, match=r"c2.toml: records.a.path: .*missing.npz: no such file"):
+        cfg.records_for("train")
+
+
+def test_simulate_option_errors(tmp_path):
+    text = SMALL.replace("rate = 200.0 }", "rate = 200.0, torque = 7.0 }")
+    cfg = load_config(_write(tmp_path, text))
+    with pytest.raises(ConfigError, match="records.sweep-10N.simulate: torque applies only to bert-standin"):
+        cfg.records_for("train")
+
+
+def test_bert_standin_and_real_data_records(tmp_path, monkeypatch):
+    text = """
+    name = "bert"
+    [system]
+    fs = 1024.0
+    units = { u = "V", y = "m/s" }
+    output = "velocity"
+    [[records]]
+    name = "noise-9Nm"
+    roles = ["train", "healthy"]
+    simulate = { system = "bert-standin", excitation = "noise", amplitude = 0.01, duration = 1.0, seed = 3, torque = 9.0 }
+    [[records]]
+    name = "rig-rand"
+    roles = ["verify"]
+    path = "${BERT_DATA}/Rand/Rand0p25"
+    window = [1.0, 3.0]
+    """
+    cfg = load_config(_write(tmp_path, text))
+    rec = cfg.records_for("healthy")[0]
+    assert rec.n == 1024 and rec.meta["torque"] == 9.0 and rec.units == {"u": "V", "y": "m/s"}
+    if DATA.is_dir():
+        monkeypatch.delenv("GPNARX_BERT_DATA", raising=False)
+        rig = load_config(cfg.path).records_for("verify")[0]
+        assert rig.n == 2048 and rig.fs == 1024.0 and rig.units == {"u": "V", "y": "m/s"}
+    monkeypatch.setenv("GPNARX_BERT_DATA", str(tmp_path / "elsewhere"))
+    with pytest.raises(ConfigError, match="elsewhere/Rand/Rand0p25: no such file"):
+        load_config(cfg.path).records_for("verify")
+
+
+def test_parse_range():
+    assert parse_range("1:24") == list(range(1, 25))
+    assert parse_range("1:24:2") == list(range(1, 25, 2))
+    assert parse_range(" 5 ") == [5]
+    assert parse_range(7) == [7]
+    assert parse_range("1,3,5") == [1, 3, 5]
+    assert parse_range([2, 4]) == [2, 4]
+    assert parse_range(parse_range("3:5")) == [3, 4, 5]
+    for bad in ("24:1", "1:", "a:b", "1:5:0", "", "-1:3", True, 1.5, []):
+        with pytest.raises(ConfigError):
+            parse_range(bad)
+    assert issubclass(ConfigError, ValueError)
