@@ -43,13 +43,20 @@ def _jsonable(obj):
     return obj
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse parser whose usage errors are one line on stderr and exit code 2."""
+
+    def error(self, message):  # noqa: D401
+        raise CLIError(f"{message} (see '{self.prog} --help')")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="gpnarx",
         description="GP-NARX surrogate of hysteretic bolted structures: simulate, train, predict, serve.",
     )
     parser.add_argument("--json", action="store_true", help="print one machine-readable JSON object on stdout")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for mod_name in COMMAND_MODULES:
         try:
             mod = importlib.import_module(mod_name)
@@ -74,7 +81,13 @@ def main(argv: list[str] | None = None) -> int:
     as_json = "--json" in argv
     argv = [a for a in argv if a != "--json"]
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except CLIError as exc:
+        print(f"gpnarx: error: {exc}", file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help
+        return int(exc.code or 0)
     args.json = as_json
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)

@@ -1,0 +1,199 @@
+"""The GP-NARX estimator (scikit-learn style).
+
+    >>> m = GPNARX(ny=20, nu=17).fit([record_10N, record_80N])
+    >>> run = m.simulate(u, n_paths=1024, seed=0)      # free-run mean, std, 99% band
+    >>> mean, std = m.predict_one_step(record)          # eqs. (8)-(9)
+
+Parameters are set in ``__init__``; learned attributes end in ``_``.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from . import freerun
+from .gp import ExactPosterior, SparsePosterior, choose_inducing, fit_ml2
+from .kernels import Kernel, make_kernel
+from .records import Record, RecordError
+from .regressors import check_lags, first_index, narx_regressors, stack_regressors
+from .scaling import Standardizer
+from .selection import SELECTIONS, select_rows
+
+MODES = ("exact", "sparse")
+MAX_PATHS = 65536
+
+
+def _as_pairs(records) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Accept Record objects, (u, y) tuples, or a single one of either."""
+    if isinstance(records, Record) or (isinstance(records, tuple) and len(records) == 2
+                                        and not isinstance(records[0], (Record, tuple))):
+        records = [records]
+    if not isinstance(records, (list, tuple)) or len(records) == 0:
+        raise ValueError("records must be a non-empty list of Record or (u, y) pairs")
+    pairs = []
+    for k, r in enumerate(records):
+        if not isinstance(r, Record):
+            try:
+                u, y = r
+            except (TypeError, ValueError):
+                raise ValueError(f"records[{k}] must be a Record or a (u, y) pair") from None
+            r = Record(u, y, 1.0, name=f"records[{k}]")
+        if r.y is None:
+            raise ValueError(f"records[{k}] ({r.name}) has no output y; training needs u and y")
+        pairs.append((r.u, r.y))
+    return pairs
+
+
+def _as_input(u, name: str = "u") -> np.ndarray:
+    try:
+        arr = np.asarray(u, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 1-D array of numbers") from None
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be 1-D, got shape {arr.shape}")
+    if arr.size == 0:
+        raise ValueError(f"{name} is empty")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} holds non-finite values (NaN/inf)")
+    return arr
+
+
+class GPNARX:
+    """GP-NARX model of eq. (1)-(3) with the kernel of eq. (12) by default.
+
+    ny, nu: output and input lag orders of eq. (3) (1..200 each).
+    kernel: a ``Kernel`` or a name for ``make_kernel`` (default 'matern32+cubic', eq. 12).
+    mode: 'exact' (full GP) or 'sparse' (M inducing points; hyperparameters from exact ML-II on
+        the capped training set, posterior over all rows at O(N M^2)).
+    n_inducing: M for sparse mode.
+    max_train_points: cap on GP training rows for ML-II (and the exact posterior).
+    selection: how the cap selects rows: 'stride', 'random' or 'resonance' (section 4.2).
+    n_restarts: extra seeded L-BFGS-B starts for ML-II (stops early when two agree).
+    seed: seed of the selection, restarts and inducing-point k-means.
+    include_noise: free-run samples include the likelihood noise sigma_y^2 (eq. 2).
+    """
+
+    def __init__(self, ny: int = 2, nu: int = 2, kernel: Kernel | str = "matern32+cubic", mode: str = "exact",
+                 n_inducing: int = 256, max_train_points: int | None = 2000, selection: str = "stride",
+                 n_restarts: int = 2, seed: int = 0, include_noise: bool = True,
+                 sparse_max_rows: int | None = 50000):
+        self.ny = ny
+        self.nu = nu
+        self.kernel = kernel
+        self.mode = mode
+        self.n_inducing = n_inducing
+        self.max_train_points = max_train_points
+        self.selection = selection
+        self.n_restarts = n_restarts
+        self.seed = seed
+        self.include_noise = include_noise
+        self.sparse_max_rows = sparse_max_rows
+
+    # ------------------------------------------------------------------------------------------
+    def _validate_params(self) -> None:
+        self.ny, self.nu = check_lags(self.ny, self.nu)
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.selection not in SELECTIONS:
+            raise ValueError(f"selection must be one of {SELECTIONS}, got {self.selection!r}")
+        if self.max_train_points is not None and int(self.max_train_points) < 2:
+            raise ValueError(f"max_train_points must be at least 2, got {self.max_train_points}")
+        if self.mode == "sparse" and not 1 <= int(self.n_inducing) <= 4096:
+            raise ValueError(f"n_inducing must be between 1 and 4096, got {self.n_inducing}")
+        if int(self.n_restarts) < 0:
+            raise ValueError(f"n_restarts must be >= 0, got {self.n_restarts}")
+
+    def fit(self, records, theta: np.ndarray | None = None) -> "GPNARX":
+        """Learn standardisation, hyperparameters (ML-II, eq. 13) and the posterior.
+
+        records: Record objects or (u, y) pairs; each must have more than max(ny, nu-1) samples.
+        theta: optional fixed log-hyperparameters (kernel then log sigma_y^2); skips ML-II.
+        """
+        self._validate_params()
+        t0 = time.perf_counter()
+        pairs = _as_pairs(records)
+        need = first_index(self.ny, self.nu) + 2
+        for k, (u, y) in enumerate(pairs):
+            if u.size < need:
+                raise ValueError(f"records[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} need at least {need}")
+        X, Y, rec_idx = stack_regressors(pairs, self.ny, self.nu)
+        self.x_scaler_ = Standardizer().fit(X)
+        self.y_scaler_ = Standardizer().fit(Y[:, None])
+        Xs = self.x_scaler_.transform(X)
+        Ys = (Y - self.y_scaler_.mean_[0]) / self.y_scaler_.scale_[0]
+        rows = select_rows(Ys, rec_idx, self.max_train_points, self.selection, self.seed)
+        Xt, Yt = Xs[rows], Ys[rows]
+        self.kernel_ = make_kernel(self.kernel) if isinstance(self.kernel, str) else self.kernel.clone()
+        if theta is None:
+            res = fit_ml2(self.kernel_, Xt, Yt, n_restarts=int(self.n_restarts), seed=int(self.seed))
+            self.theta_, self.nlml_, self.ml2_restarts_ = res.theta, res.nlml, res.restarts
+        else:
+            theta = np.asarray(theta, dtype=float)
+            self.kernel_.set_theta(theta[:-1])
+            self.theta_, self.nlml_, self.ml2_restarts_ = theta, float("nan"), []
+        self.noise_var_ = float(np.exp(self.theta_[-1]))
+        if self.mode == "exact":
+            self.posterior_ = ExactPosterior.fit(self.kernel_, self.noise_var_, Xt, Yt)
+        else:
+            all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed)
+            Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
+            self.posterior_ = SparsePosterior.fit(self.kernel_, self.noise_var_, Xs[all_rows], Ys[all_rows], Z)
+        self.n_train_ = int(Xt.shape[0])
+        self.n_rows_ = int(X.shape[0])
+        self.fit_seconds_ = time.perf_counter() - t0
+        return self
+
+    # ------------------------------------------------------------------------------------------
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "posterior_"):
+            raise RuntimeError("this GPNARX is not fitted yet; call fit(records) first")
+
+    @property
+    def n_features_(self) -> int:
+        return self.ny + self.nu
+
+    def predict_one_step(self, records, return_std: bool = True):
+        """One-step-ahead mean and std (eqs. 8-9) from measured lags, output units.
+
+        Returns arrays aligned with samples max(ny, nu-1) onwards of each record (concatenated).
+        The std includes the likelihood noise sigma_y^2 when ``include_noise``.
+        """
+        self._check_fitted()
+        X, _, _ = stack_regressors(_as_pairs(records), self.ny, self.nu)
+        mu, var = self.posterior_.predict(self.x_scaler_.transform(X), return_var=return_std)
+        ys, ym = self.y_scaler_.scale_[0], self.y_scaler_.mean_[0]
+        mean = mu * ys + ym
+        if not return_std:
+            return mean
+        noise = self.noise_var_ if self.include_noise else 0.0
+        return mean, np.sqrt(var + noise) * ys
+
+    def simulate(self, u, n_paths: int = 1024, seed: int | None = 0, y0=None, confidence: float = 0.99,
+                 method: str = "mc", float32: bool = False, keep_paths: bool = False, progress=None):
+        """Free-run prediction for input u (input units) with uncertainty propagation.
+
+        method: 'mc' (Monte Carlo over n_paths, seeded) or 'linear' (first-order propagation).
+        y0: optional first ny measured outputs; else the system starts from rest.
+        Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units).
+        """
+        self._check_fitted()
+        u = _as_input(u)
+        if method == "mc":
+            if isinstance(n_paths, bool) or not isinstance(n_paths, (int, np.integer)) or not 1 <= n_paths <= MAX_PATHS:
+                raise ValueError(f"n_paths must be an integer between 1 and {MAX_PATHS}, got {n_paths!r}")
+            return freerun.simulate_mc(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
+                                       n_paths=int(n_paths), seed=seed, y0=y0, confidence=confidence,
+                                       include_noise=self.include_noise, float32=float32,
+                                       keep_paths=keep_paths, progress=progress)
+        if method == "linear":
+            return freerun.simulate_linear(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
+                                           y0=y0, confidence=confidence, include_noise=self.include_noise,
+                                           progress=progress)
+        raise ValueError(f"method must be 'mc' or 'linear', got {method!r}")
+
+    def __repr__(self) -> str:
+        return f"GPNARX(ny={self.ny}, nu={self.nu}, kernel={self.kernel!r}, mode={self.mode!r})"
+
+
+__all__ = ["GPNARX", "RecordError", "narx_regressors"]

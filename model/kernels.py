@@ -1,0 +1,380 @@
+"""Covariance functions as small composable objects (GPflow style).
+
+Every kernel holds its hyperparameters in log space (``theta``), so ML-II (eq. 13) optimises an
+unconstrained vector. Each kernel returns its covariance matrix, the analytic gradient of that
+matrix with respect to each log-hyperparameter, its diagonal, and the gradient of k(x*, X) with
+respect to the test point x* (used by the linearised uncertainty propagation).
+
+Inputs are standardised NARX regressors (dimensionless). Kernels of the paper:
+
+* ``Matern32``: eq. (10), k1 = sigma_m^2 (1 + sqrt(3) r / l) exp(-sqrt(3) r / l)
+* ``CubicPolynomial``: eq. (11), k2 = sigma_p^2 (s x.x' + b)^3
+* ``Sum``: eq. (12), k = k1 + k2 (also built by ``k1 + k2``)
+
+plus ``RBF`` and ``White``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+SQRT3 = np.sqrt(3.0)
+
+
+def squared_distances(X: np.ndarray, X2: np.ndarray | None = None) -> np.ndarray:
+    """Pairwise squared Euclidean distances by the expanded-norm identity |x|^2 + |x'|^2 - 2 x.x'.
+
+    One BLAS-3 product; negatives from round-off are clipped to 0 and the diagonal of a
+    self-distance matrix is set to exactly 0.
+    """
+    if X2 is None:
+        sq = np.einsum("ij,ij->i", X, X)
+        r2 = sq[:, None] + sq[None, :] - 2.0 * (X @ X.T)
+        np.maximum(r2, 0.0, out=r2)
+        np.fill_diagonal(r2, 0.0)
+        return r2
+    sq1 = np.einsum("ij,ij->i", X, X)
+    sq2 = np.einsum("ij,ij->i", X2, X2)
+    r2 = X @ X2.T
+    r2 *= -2.0
+    r2 += sq1[:, None]
+    r2 += sq2[None, :]
+    np.maximum(r2, 0.0, out=r2)
+    return r2
+
+
+def _r2_from_gram(G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> np.ndarray:
+    r2 = G * -2.0
+    r2 += sq1[:, None]
+    r2 += sq2[None, :]
+    np.maximum(r2, 0.0, out=r2)
+    return r2
+
+
+class Kernel:
+    """Base class. Subclasses define ``param_names``, ``theta`` (log-parameters) and the methods."""
+
+    param_names: tuple[str, ...] = ()
+
+    def __init__(self) -> None:
+        self.theta = np.zeros(len(self.param_names))
+
+    # --- parameters -------------------------------------------------------------------------
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    def get_theta(self) -> np.ndarray:
+        return np.array(self.theta, dtype=float)
+
+    def set_theta(self, theta) -> None:
+        theta = np.asarray(theta, dtype=float)
+        if theta.shape != (self.n_params,):
+            raise ValueError(f"theta must have {self.n_params} entries, got shape {theta.shape}")
+        self.theta = theta.copy()
+
+    @property
+    def params(self) -> dict:
+        """Hyperparameters in natural (not log) units, by name."""
+        return {n: float(np.exp(t)) for n, t in zip(self.param_names, self.theta)}
+
+    def log_bounds(self) -> list[tuple[float, float]]:
+        """Bounds on each log-parameter for L-BFGS-B."""
+        return [(-12.0, 12.0)] * self.n_params
+
+    # --- maths --------------------------------------------------------------------------------
+    def __call__(self, X: np.ndarray, X2: np.ndarray | None = None) -> np.ndarray:
+        raise NotImplementedError
+
+    def K_and_grads(self, X: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        """K(X, X) and [dK/dtheta_j] for each log-parameter."""
+        raise NotImplementedError
+
+    def from_gram(self, G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> np.ndarray:
+        """Cross-covariance K(X1, X2) from the Gram matrix G = X1 X2^T and squared norms.
+
+        Lets a sum of kernels share one BLAS-3 product per prediction step.
+        """
+        raise NotImplementedError
+
+    def cross(self, X1: np.ndarray, X2: np.ndarray) -> np.ndarray:
+        """K(X1, X2) through one shared Gram matrix."""
+        return self.from_gram(X1 @ X2.T, np.einsum("ij,ij->i", X1, X1), np.einsum("ij,ij->i", X2, X2))
+
+    def diag(self, X: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def grad_x(self, xs: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """d k(xs, X_n) / d xs for one test point xs (D,), returned as (N, D)."""
+        raise NotImplementedError
+
+    def __add__(self, other: "Kernel") -> "Sum":
+        return Sum(self, other)
+
+    # --- serialisation ----------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {"type": type(self).__name__, "theta": [float(t) for t in self.theta]}
+
+    def clone(self) -> "Kernel":
+        return kernel_from_dict(self.to_dict())
+
+    def __repr__(self) -> str:
+        ps = ", ".join(f"{k}={v:.4g}" for k, v in self.params.items())
+        return f"{type(self).__name__}({ps})"
+
+
+class Matern32(Kernel):
+    """Matérn 3/2 kernel, eq. (10): sigma_m^2 (1 + sqrt(3) r/l) exp(-sqrt(3) r/l)."""
+
+    param_names = ("variance", "lengthscale")
+
+    def __init__(self, variance: float = 1.0, lengthscale: float = 1.0) -> None:
+        self.theta = np.log([variance, lengthscale]).astype(float)
+
+    def __call__(self, X, X2=None):
+        var, ls = np.exp(self.theta)
+        a = np.sqrt(squared_distances(X, X2))
+        a *= SQRT3 / ls
+        K = 1.0 + a
+        K *= np.exp(-a)
+        K *= var
+        return K
+
+    def K_and_grads(self, X):
+        var, ls = np.exp(self.theta)
+        a = np.sqrt(squared_distances(X)) * (SQRT3 / ls)
+        e = np.exp(-a)
+        K = var * (1.0 + a) * e
+        dls = var * a * a * e  # dk/dlog l = sigma^2 a^2 exp(-a)
+        return K, [K.copy(), dls]
+
+    def diag(self, X):
+        return np.full(X.shape[0], np.exp(self.theta[0]))
+
+    def from_gram(self, G, sq1, sq2):
+        var, ls = np.exp(self.theta)
+        a = _r2_from_gram(G, sq1, sq2)
+        np.sqrt(a, out=a)
+        a *= SQRT3 / ls
+        K = 1.0 + a
+        np.negative(a, out=a)
+        np.exp(a, out=a)
+        K *= a
+        K *= var
+        return K
+
+    def grad_x(self, xs, X):
+        var, ls = np.exp(self.theta)
+        diff = xs[None, :] - X
+        a = np.sqrt(np.maximum(np.einsum("ij,ij->i", diff, diff), 0.0)) * (SQRT3 / ls)
+        # dk/dxs = -sigma^2 (3 / l^2) exp(-a) (xs - x)
+        return (-var * 3.0 / ls**2 * np.exp(-a))[:, None] * diff
+
+
+class RBF(Kernel):
+    """Squared-exponential kernel: sigma^2 exp(-r^2 / (2 l^2))."""
+
+    param_names = ("variance", "lengthscale")
+
+    def __init__(self, variance: float = 1.0, lengthscale: float = 1.0) -> None:
+        self.theta = np.log([variance, lengthscale]).astype(float)
+
+    def __call__(self, X, X2=None):
+        var, ls = np.exp(self.theta)
+        r2 = squared_distances(X, X2)
+        r2 *= -0.5 / ls**2
+        np.exp(r2, out=r2)
+        r2 *= var
+        return r2
+
+    def K_and_grads(self, X):
+        var, ls = np.exp(self.theta)
+        r2 = squared_distances(X) / ls**2
+        K = var * np.exp(-0.5 * r2)
+        return K, [K.copy(), K * r2]
+
+    def diag(self, X):
+        return np.full(X.shape[0], np.exp(self.theta[0]))
+
+    def from_gram(self, G, sq1, sq2):
+        var, ls = np.exp(self.theta)
+        r2 = _r2_from_gram(G, sq1, sq2)
+        r2 *= -0.5 / ls**2
+        np.exp(r2, out=r2)
+        r2 *= var
+        return r2
+
+    def grad_x(self, xs, X):
+        var, ls = np.exp(self.theta)
+        diff = xs[None, :] - X
+        k = var * np.exp(-0.5 * np.einsum("ij,ij->i", diff, diff) / ls**2)
+        return (-k / ls**2)[:, None] * diff
+
+
+class CubicPolynomial(Kernel):
+    """Cubic polynomial kernel, eq. (11): sigma_p^2 (s x.x' + b)^3."""
+
+    param_names = ("variance", "scale", "bias")
+
+    def __init__(self, variance: float = 1.0, scale: float = 1.0, bias: float = 1.0) -> None:
+        self.theta = np.log([variance, scale, bias]).astype(float)
+
+    def __call__(self, X, X2=None):
+        var, s, b = np.exp(self.theta)
+        G = X @ (X if X2 is None else X2).T
+        G *= s
+        G += b
+        K = G * G
+        K *= G
+        K *= var
+        return K
+
+    def K_and_grads(self, X):
+        var, s, b = np.exp(self.theta)
+        D = X @ X.T
+        G = s * D + b
+        G2 = G * G
+        K = var * G2 * G
+        return K, [K.copy(), 3.0 * var * G2 * (s * D), 3.0 * var * G2 * b]
+
+    def diag(self, X):
+        var, s, b = np.exp(self.theta)
+        return var * (s * np.einsum("ij,ij->i", X, X) + b) ** 3
+
+    def from_gram(self, G, sq1, sq2):
+        var, s, b = np.exp(self.theta)
+        H = G * s
+        H += b
+        K = H * H
+        K *= H
+        K *= var
+        return K
+
+    def grad_x(self, xs, X):
+        var, s, b = np.exp(self.theta)
+        G = s * (X @ xs) + b
+        return (3.0 * var * s * G * G)[:, None] * X
+
+
+class White(Kernel):
+    """White-noise kernel: sigma^2 on the diagonal of K(X, X), zero between distinct sets."""
+
+    param_names = ("variance",)
+
+    def __init__(self, variance: float = 1e-2) -> None:
+        self.theta = np.log([variance]).astype(float)
+
+    def __call__(self, X, X2=None):
+        if X2 is None:
+            return np.exp(self.theta[0]) * np.eye(X.shape[0])
+        return np.zeros((X.shape[0], X2.shape[0]))
+
+    def K_and_grads(self, X):
+        K = self(X)
+        return K, [K.copy()]
+
+    def diag(self, X):
+        return np.full(X.shape[0], np.exp(self.theta[0]))
+
+    def from_gram(self, G, sq1, sq2):
+        return np.zeros_like(G)
+
+    def grad_x(self, xs, X):
+        return np.zeros_like(X)
+
+
+class Sum(Kernel):
+    """Sum of kernels, eq. (12): k = k1 + k2 (+ ...). Parameters are concatenated in order."""
+
+    def __init__(self, *parts: Kernel) -> None:
+        flat: list[Kernel] = []
+        for p in parts:
+            flat.extend(p.parts if isinstance(p, Sum) else [p])
+        self.parts = flat
+
+    @property
+    def param_names(self):  # type: ignore[override]
+        return tuple(f"{i}.{type(p).__name__}.{n}" for i, p in enumerate(self.parts) for n in p.param_names)
+
+    @property
+    def theta(self):  # type: ignore[override]
+        return np.concatenate([p.theta for p in self.parts])
+
+    @theta.setter
+    def theta(self, value):
+        self.set_theta(value)
+
+    def set_theta(self, theta) -> None:
+        theta = np.asarray(theta, dtype=float)
+        if theta.shape != (self.n_params,):
+            raise ValueError(f"theta must have {self.n_params} entries, got shape {theta.shape}")
+        i = 0
+        for p in self.parts:
+            p.set_theta(theta[i : i + p.n_params])
+            i += p.n_params
+
+    def log_bounds(self):
+        return [b for p in self.parts for b in p.log_bounds()]
+
+    def __call__(self, X, X2=None):
+        K = self.parts[0](X, X2)
+        for p in self.parts[1:]:
+            K += p(X, X2)
+        return K
+
+    def K_and_grads(self, X):
+        K = None
+        grads: list[np.ndarray] = []
+        for p in self.parts:
+            Kp, gp = p.K_and_grads(X)
+            K = Kp if K is None else K + Kp
+            grads.extend(gp)
+        return K, grads
+
+    def diag(self, X):
+        return sum(p.diag(X) for p in self.parts)
+
+    def from_gram(self, G, sq1, sq2):
+        K = self.parts[0].from_gram(G, sq1, sq2)
+        for p in self.parts[1:]:
+            K += p.from_gram(G, sq1, sq2)
+        return K
+
+    def grad_x(self, xs, X):
+        return sum(p.grad_x(xs, X) for p in self.parts)
+
+    def to_dict(self):
+        return {"type": "Sum", "parts": [p.to_dict() for p in self.parts]}
+
+    def __repr__(self):
+        return " + ".join(repr(p) for p in self.parts)
+
+
+KERNEL_TYPES = {c.__name__: c for c in (Matern32, RBF, CubicPolynomial, White)}
+
+
+def kernel_from_dict(d: dict) -> Kernel:
+    """Rebuild a kernel from ``to_dict`` output (bundle manifests). Only known types are accepted."""
+    if not isinstance(d, dict) or "type" not in d:
+        raise ValueError("kernel description must be a dict with a 'type'")
+    if d["type"] == "Sum":
+        return Sum(*[kernel_from_dict(p) for p in d["parts"]])
+    cls = KERNEL_TYPES.get(d["type"])
+    if cls is None:
+        raise ValueError(f"unknown kernel type {d['type']!r}; known: Sum, {', '.join(KERNEL_TYPES)}")
+    k = cls.__new__(cls)
+    theta = np.asarray(d["theta"], dtype=float)
+    if theta.shape != (len(cls.param_names),) or not np.all(np.isfinite(theta)):
+        raise ValueError(f"kernel {d['type']} needs {len(cls.param_names)} finite log-parameters")
+    k.theta = theta
+    return k
+
+
+def make_kernel(spec: str = "matern32+cubic") -> Kernel:
+    """Kernel from a short name: 'matern32+cubic' (the paper's eq. 12), 'rbf', 'matern32', 'rbf+cubic', ..."""
+    names = {"matern32": Matern32, "rbf": RBF, "cubic": CubicPolynomial, "white": White}
+    parts = []
+    for tok in spec.lower().replace(" ", "").split("+"):
+        if tok not in names:
+            raise ValueError(f"kernel: unknown part {tok!r} in {spec!r}; use parts of {sorted(names)} joined by '+'")
+        parts.append(names[tok]())
+    return parts[0] if len(parts) == 1 else Sum(*parts)

@@ -1,0 +1,52 @@
+"""NARX regressors, eq. (3): x_i = [y_{i-1}, ..., y_{i-ny}, u_i, u_{i-1}, ..., u_{i-nu+1}].
+
+Regressors are built per record and stacked, so no lag window straddles two records.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+MAX_LAGS = 200  # upper limit on ny and nu (each)
+
+
+def check_lags(ny, nu) -> tuple[int, int]:
+    """Validate lag orders: ny in [1, MAX_LAGS], nu in [1, MAX_LAGS]."""
+    for name, val in (("ny", ny), ("nu", nu)):
+        if isinstance(val, bool) or not isinstance(val, (int, np.integer)):
+            raise ValueError(f"{name} must be an integer between 1 and {MAX_LAGS}, got {val!r}")
+        if not 1 <= int(val) <= MAX_LAGS:
+            raise ValueError(f"{name} must be between 1 and {MAX_LAGS}, got {val}")
+    return int(ny), int(nu)
+
+
+def first_index(ny: int, nu: int) -> int:
+    """First sample index with a complete lag window: max(ny, nu - 1)."""
+    return max(ny, nu - 1)
+
+
+def narx_regressors(u: np.ndarray, y: np.ndarray, ny: int, nu: int) -> tuple[np.ndarray, np.ndarray]:
+    """Regression matrix X (n - i0, ny + nu) and targets Y (n - i0,) for one record, eq. (3)."""
+    i0 = first_index(ny, nu)
+    n = u.size
+    if n <= i0:
+        raise ValueError(
+            f"record has {n} samples; at least {i0 + 1} are needed for ny={ny}, nu={nu}"
+        )
+    rows = n - i0
+    X = np.empty((rows, ny + nu))
+    for j in range(1, ny + 1):  # y_{i-j}
+        X[:, j - 1] = y[i0 - j : n - j]
+    for j in range(nu):  # u_{i-j}
+        X[:, ny + j] = u[i0 - j : n - j]
+    return X, y[i0:].copy()
+
+
+def stack_regressors(records, ny: int, nu: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """X, Y and the record index of each row, for many records (u, y) stacked; no window straddles two."""
+    Xs, Ys, idx = [], [], []
+    for k, (u, y) in enumerate(records):
+        X, Y = narx_regressors(u, y, ny, nu)
+        Xs.append(X)
+        Ys.append(Y)
+        idx.append(np.full(Y.size, k))
+    return np.vstack(Xs), np.concatenate(Ys), np.concatenate(idx)

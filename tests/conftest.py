@@ -1,0 +1,45 @@
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+BERT_DATA = ROOT.parent / "shared" / "data" / "bert-t5nm"
+
+
+def sdof_simulate(u, fs=500.0, f_n=20.0, zeta=0.02, mass=1.0):
+    """Linear SDOF oscillator (m=1 kg, k=(2 pi 20 Hz)^2 N/m, 2% damping), exact ZOH discretisation."""
+    from scipy import signal
+
+    wn = 2 * np.pi * f_n
+    A = np.array([[0.0, 1.0], [-wn**2, -2 * zeta * wn]])
+    B = np.array([[0.0], [1.0 / mass]])
+    Ad, Bd, *_ = signal.cont2discrete((A, B, np.eye(2), np.zeros((2, 1))), 1 / fs, method="zoh")
+    x = np.zeros(2)
+    y = np.empty(len(u))
+    for i, ui in enumerate(u):
+        y[i] = x[0]
+        x = Ad @ x + Bd[:, 0] * ui
+    return y
+
+
+@pytest.fixture(scope="session")
+def sdof_data():
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=3000)
+    y = sdof_simulate(u)
+    yn = y + 0.05 * np.std(y) * rng.normal(size=y.size)  # 5% output noise (RMS ratio)
+    u2 = rng.normal(size=1500)
+    y2 = sdof_simulate(u2)
+    return {"u": u, "y": y, "yn": yn, "u2": u2, "y2": y2}
+
+
+@pytest.fixture(scope="session")
+def sdof_model(sdof_data):
+    from model.estimator import GPNARX
+
+    return GPNARX(ny=16, nu=16, max_train_points=1500, n_restarts=0).fit([(sdof_data["u"], sdof_data["yn"])])

@@ -1,0 +1,140 @@
+import numpy as np
+import pytest
+
+from model.estimator import GPNARX
+from model.metrics import band_width, coverage, fit_percent, nrmse, rmse
+from model.psd import peak_frequencies, psd
+from model.regressors import narx_regressors, stack_regressors
+from model.records import Record, RecordError
+
+
+def test_regressors_follow_eq3_and_never_straddle_records():
+    u = np.arange(10.0)
+    y = 100 + np.arange(10.0)
+    X, Y = narx_regressors(u, y, ny=2, nu=3)
+    # first complete row is i = max(ny, nu-1) = 2: [y1, y0, u2, u1, u0]
+    assert np.array_equal(X[0], [101, 100, 2, 1, 0])
+    assert Y[0] == 102
+    X2, Y2, idx = stack_regressors([(u, y), (u + 50, y + 50)], 2, 3)
+    assert X2.shape == (16, 5) and np.array_equal(np.bincount(idx), [8, 8])
+    # first row of the second record only uses the second record's samples
+    assert np.array_equal(X2[8], [151, 150, 52, 51, 50])
+
+
+def test_sdof_free_run_and_one_step(sdof_data, sdof_model):
+    m = sdof_model
+    run = m.simulate(sdof_data["u2"], n_paths=512, seed=0)
+    fit = fit_percent(sdof_data["y2"], run.mean)
+    cov = coverage(sdof_data["y2"], run.lower, run.upper)
+    print(f"SDOF free-run fit {fit:.2f}% coverage {cov:.2f}%")
+    assert fit >= 95.0
+    assert cov >= 95.0
+    mu = m.predict_one_step([(sdof_data["u2"], sdof_data["y2"])], return_std=False)
+    osa = fit_percent(sdof_data["y2"][16:], mu)
+    print(f"SDOF one-step fit {osa:.2f}%")
+    assert osa >= 99.0
+
+
+def test_free_run_is_deterministic_for_a_seed(sdof_data, sdof_model):
+    u = sdof_data["u2"][:300]
+    a = sdof_model.simulate(u, n_paths=1024, seed=7)
+    b = sdof_model.simulate(u, n_paths=1024, seed=7)
+    c = sdof_model.simulate(u, n_paths=1024, seed=8)
+    assert np.array_equal(a.mean, b.mean) and np.array_equal(a.lower, b.lower) and np.array_equal(a.std, b.std)
+    assert not np.array_equal(a.lower, c.lower)
+
+
+def test_band_widens_with_training_noise(sdof_data):
+    rng = np.random.default_rng(5)
+    u, y = sdof_data["u"][:1200], sdof_data["y"][:1200]
+    noise = rng.normal(size=y.size) * np.std(y)
+    widths = []
+    for level in (0.01, 0.05, 0.2):
+        m = GPNARX(ny=6, nu=6, max_train_points=600, n_restarts=0).fit([(u, y + level * noise)])
+        run = m.simulate(sdof_data["u2"][:400], n_paths=256, seed=0)
+        widths.append(band_width(run.lower, run.upper))
+    print("band widths", widths)
+    assert widths[0] < widths[1] < widths[2]
+
+
+def test_linearised_band_close_to_monte_carlo(sdof_data, sdof_model):
+    u = sdof_data["u2"][:600]
+    mc = sdof_model.simulate(u, n_paths=2048, seed=0)
+    lin = sdof_model.simulate(u, method="linear")
+    ratio = band_width(lin.lower, lin.upper) / band_width(mc.lower, mc.upper)
+    assert 0.8 < ratio < 1.2, ratio
+    assert fit_percent(mc.mean, lin.mean) > 98
+
+
+def test_initial_outputs_are_used(sdof_data, sdof_model):
+    y2, u2 = sdof_data["y2"], sdof_data["u2"]
+    run = sdof_model.simulate(u2[:200], n_paths=64, seed=0, y0=y2[:16])
+    assert np.array_equal(run.mean[:16], y2[:16])
+    with pytest.raises(ValueError, match="y0 must hold at least ny=16"):
+        sdof_model.simulate(u2[:200], y0=y2[:3])
+
+
+def test_sparse_mode_tracks_exact(sdof_data):
+    u, yn = sdof_data["u"], sdof_data["yn"]
+    m = GPNARX(ny=16, nu=16, mode="sparse", n_inducing=256, max_train_points=800, n_restarts=0).fit([(u, yn)])
+    run = m.simulate(sdof_data["u2"], n_paths=256, seed=0)
+    fit = fit_percent(sdof_data["y2"], run.mean)
+    print("sparse fit", fit)
+    assert fit >= 93.0
+    assert coverage(sdof_data["y2"], run.lower, run.upper) >= 95.0
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"ny": 0}, "ny must be between 1"), ({"nu": 500}, "nu must be between 1"), ({"ny": 2.5}, "ny must be an integer"),
+     ({"mode": "fast"}, "mode must be one of"), ({"selection": "best"}, "selection must be one of")],
+)
+def test_bad_parameters_name_the_argument(kwargs, match):
+    u = np.random.default_rng(0).normal(size=100)
+    with pytest.raises(ValueError, match=match):
+        GPNARX(**{"ny": 2, "nu": 2, **kwargs}).fit([(u, u)])
+
+
+def test_bad_records_are_refused():
+    u = np.ones(50)
+    with pytest.raises(RecordError, match="non-finite"):
+        GPNARX(2, 2).fit([Record(np.r_[u[:-1], np.nan], u, 100.0)])
+    with pytest.raises(ValueError, match="need at least"):
+        GPNARX(10, 2).fit([(u[:8], u[:8])])
+    with pytest.raises(RecordError, match="must match"):
+        Record(u, u[:10], 100.0)
+    with pytest.raises(RecordError, match="fs must be a finite positive"):
+        Record(u, u, -1.0)
+    with pytest.raises(RuntimeError, match="not fitted"):
+        GPNARX().simulate(u)
+
+
+def test_simulate_validates_inputs(sdof_model):
+    with pytest.raises(ValueError, match="n_paths must be an integer between 1"):
+        sdof_model.simulate(np.ones(30), n_paths=0)
+    with pytest.raises(ValueError, match="non-finite"):
+        sdof_model.simulate(np.r_[np.ones(30), np.inf])
+    with pytest.raises(ValueError, match="u must be 1-D"):
+        sdof_model.simulate(np.ones((3, 3)))
+    with pytest.raises(ValueError, match="confidence must be"):
+        sdof_model.simulate(np.ones(30), confidence=1.5)
+
+
+def test_metrics_exact_values():
+    y = np.array([1.0, -1.0, 2.0, 0.0])
+    yhat = np.array([1.0, -1.0, 1.0, 0.0])
+    assert fit_percent(y, yhat) == pytest.approx(100 * (1 - np.sqrt(1 / 6)))  # eq. (14)
+    assert rmse(y, yhat) == pytest.approx(0.5)
+    assert nrmse(y, yhat) == pytest.approx(0.5 / np.std(y))
+    assert coverage(y, y - 0.1, y + 0.1) == 100.0
+    assert coverage(y, yhat - 0.1, yhat + 0.1) == 75.0
+    assert band_width(np.zeros(3), np.full(3, 2.0)) == 2.0
+
+
+def test_psd_peak_and_windows():
+    fs = 1024.0
+    t = np.arange(8192) / fs
+    x = np.sin(2 * np.pi * 18.75 * t) + 0.1 * np.sin(2 * np.pi * 37.5 * t)
+    assert peak_frequencies(x, fs, n_peaks=2, nperseg=1024) == pytest.approx([18.75, 37.5], abs=1.0)
+    f, p = psd(x, fs, nperseg=None, window="boxcar")
+    assert f[np.argmax(p)] == pytest.approx(18.75, abs=0.2)
