@@ -152,8 +152,15 @@ def test_lag_surface_figure(tmp_path):
     p = rp.lag_surface_figure(_surface(), (8, 6), (20, 17, 92.4), tmp_path / "sub" / "lag.png")
     assert p.exists() and p.stat().st_size > 1000
     rows = [{"ny": 4, "nu": 4, "fit": float("nan")}, {"ny": 4, "nu": 6, "fit": 50.0}]
-    p2 = rp.lag_surface_figure(rows, (4, 6), None, tmp_path / "lag2.png")
+    p2 = rp.lag_surface_figure(rows, {"ny": 4, "nu": 6}, {"ny": 4, "nu": 4, "fit": 60.0}, tmp_path / "lag2.png")
     assert p2.exists()
+    # training.lags output layout ("cells", chosen as a dict, NaN fits with an error message)
+    rows.append({"ny": 6, "nu": 4, "fit": float("nan"), "error": "singular"})
+    paths = rp.write_report(tmp_path / "r", "lags", {}, [], lag_surface={"cells": rows, "chosen": {"ny": 4, "nu": 6}})
+    rep = json.loads(paths["json"].read_text())
+    assert rep["lag_surface"]["chosen"] == [4, 6] and rep["lag_surface"]["best"]["fit"] == 50.0
+    assert rep["lag_surface"]["table"][0]["fit"] is None and rep["lag_surface"]["table"][2]["error"] == "singular"
+    assert paths["lag_surface"].exists()
 
 
 def test_json_sanitiser():

@@ -352,11 +352,16 @@ def _edges(v: np.ndarray) -> np.ndarray:
 def lag_surface_figure(surface: list[dict], chosen: tuple | None, paper: tuple | None, path: Path) -> Path:
     """Heat map of fit % over ny x nu (paper Figs. 1 / 14) with the chosen (and paper's) lags marked.
 
-    ``surface``: list of {"ny", "nu", "fit"}; ``chosen``: (ny, nu); ``paper``: (ny, nu, fit) or None.
+    ``surface``: list of {"ny", "nu", "fit"}; ``chosen``: (ny, nu) or {"ny", "nu"}; ``paper``: (ny, nu, fit),
+    {"ny", "nu", "fit"} or None.
     Colour range: max(min fit, best - 30) .. best.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(paper, dict):
+        paper = (paper.get("ny"), paper.get("nu"), paper.get("fit"))
+    if isinstance(chosen, dict):
+        chosen = (chosen["ny"], chosen["nu"])
     if not surface:
         raise ValueError("lag surface is empty")
     ny = np.array(sorted({int(r["ny"]) for r in surface}), float)
@@ -389,7 +394,7 @@ def lag_surface_figure(surface: list[dict], chosen: tuple | None, paper: tuple |
         cf = next((r.get("fit") for r in surface if int(r["ny"]) == int(cy) and int(r["nu"]) == int(cu)), None)
         lab = f"chosen ny={cy}, nu={cu}" + (f" ({float(cf):.1f} %)" if _finite(cf) is not None else "")
         ax.plot([cu], [cy], "o", ms=11, mfc="none", mec="red", mew=2, label=lab)
-    if paper is not None:
+    if paper is not None and paper[0] is not None and paper[1] is not None:
         py, pu = paper[0], paper[1]
         pf = paper[2] if len(paper) > 2 else None
         lab = f"paper ny={py}, nu={pu}" + (f" ({float(pf):.1f} %)" if _finite(pf) is not None else "")
@@ -397,7 +402,7 @@ def lag_surface_figure(surface: list[dict], chosen: tuple | None, paper: tuple |
     ax.set_xlabel("nu (input lags)")
     ax.set_ylabel("ny (output lags)")
     ax.set_title("Lag selection surface ny x nu x fit")
-    if chosen is not None or paper is not None:
+    if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="lower right", fontsize=8, framealpha=0.85)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -413,12 +418,14 @@ def _norm_lag_surface(lag_surface, paper: dict | None):
     if lag_surface is None:
         return None
     if isinstance(lag_surface, dict):
-        rows = lag_surface.get("surface") or lag_surface.get("table") or lag_surface.get("grid") or []
+        rows = (lag_surface.get("surface") or lag_surface.get("cells") or lag_surface.get("table")
+                or lag_surface.get("grid") or [])
         chosen = lag_surface.get("chosen")
         pp = lag_surface.get("paper")
     else:
         rows, chosen, pp = list(lag_surface), None, None
-    rows = [{"ny": int(r["ny"]), "nu": int(r["nu"]), "fit": _finite(r.get("fit"))} for r in rows]
+    rows = [{"ny": int(r["ny"]), "nu": int(r["nu"]), "fit": _finite(r.get("fit")),
+             **({"error": r["error"]} if r.get("error") else {})} for r in rows]
     if pp is None and paper and paper.get("lags"):
         lg = paper["lags"]
         pp = (lg.get("ny"), lg.get("nu"), lg.get("fit"))
@@ -604,7 +611,8 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
                  lag_surface: dict | None = None, baselines: dict | None = None, paper: dict | None = None) -> dict:
     """Write report.json, one PNG per record, lag_surface.png (if given) and report.html to ``out_dir``.
 
-    ``lag_surface``: {"surface": [{"ny", "nu", "fit"}...], "chosen": (ny, nu), "paper": (ny, nu, fit)}
+    ``lag_surface``: {"surface" (or "cells"): [{"ny", "nu", "fit"}...], "chosen": (ny, nu) or {"ny", "nu"},
+    "paper": (ny, nu, fit) or {"ny", "nu", "fit"}} (training.lags.lag_surface output works as is)
     (a plain list of rows is accepted; ``paper["lags"]`` supplies the paper's point when absent).
     ``baselines``: {record_name: {model_name: {"fit": .., "rmse": ..}}}.
     ``paper``: {"lags": {"ny", "nu", "fit"}, "records": {record_name: {"fit": ..}}}.
