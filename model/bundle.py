@@ -124,11 +124,13 @@ def next_version(registry: Path, name: str) -> str:
 
 def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, units: dict,
                 physics: dict | None = None, novelty: dict | None = None, training: dict | None = None,
-                extra: dict | None = None, extra_files: dict | None = None) -> Path:
+                extra: dict | None = None, extra_files: dict | None = None,
+                attach_dir: Path | None = None) -> Path:
     """Write ``model`` as REGISTRY/NAME/VERSION atomically; returns the bundle folder.
 
-    extra_files: optional {filename: bytes} written next to the manifest (e.g. reports); they are
-    checksummed too.
+    extra_files: optional {filename: bytes} written next to the manifest; they are checksummed too.
+    attach_dir: optional folder copied into the bundle as ``report/`` (human-readable report; not
+    needed to load the model, so not checksummed).
     """
     if not hasattr(model, "posterior_"):
         raise BundleError("cannot save an unfitted model")
@@ -151,6 +153,8 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
                 raise BundleError(f"extra file name {fn!r} is not allowed")
             (tmp / fn).write_bytes(data)
             files[fn] = _sha256(tmp / fn)
+        if attach_dir is not None:
+            shutil.copytree(attach_dir, tmp / "report")
         manifest = {
             "schema_version": SCHEMA_VERSION,
             "name": name,

@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "training.cmd_predict",
     "training.cmd_novelty",
     "training.cmd_serve",
+    "training.cmd_build",
     "training.cmd_reproduce",
 ]
 

@@ -1,0 +1,211 @@
+"""Training pipeline, bundles, registry, lag surface and the CLI (issue 6)."""
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from model.bundle import BundleError, Registry, load_bundle, save_bundle
+from training.cli import main
+
+SMALL_CONFIG = """
+name = "bw-small"
+[system]
+fs = 750.0
+units = {{ u = "N", y = "m" }}
+output = "displacement"
+[physics]
+mass = 2.0
+[model]
+ny = {ny}
+nu = {nu}
+max_train_points = 300
+restarts = 0
+[lags]
+ny = "2:4:2"
+nu = "2:4:2"
+[predict]
+mc_paths = 32
+[novelty]
+false_alarm_rate = 0.05
+[[records]]
+name = "train-sweep"
+roles = ["train"]
+simulate = {{ system = "bouc-wen", excitation = "sweep", amplitude = 30.0, duration = 1.0, f0 = 20.0, f1 = 60.0 }}
+noise = {{ fraction = 0.01, seed = 1 }}
+[[records]]
+name = "lag-sweep"
+roles = ["lags", "verify"]
+simulate = {{ system = "bouc-wen", excitation = "sweep", amplitude = 40.0, duration = 1.0, f0 = 20.0, f1 = 60.0 }}
+[[records]]
+name = "h1"
+roles = ["healthy"]
+simulate = {{ system = "bouc-wen", excitation = "sweep", amplitude = 30.0, duration = 0.5, f0 = 20.0, f1 = 60.0 }}
+noise = {{ fraction = 0.01, seed = 2 }}
+[[records]]
+name = "h2"
+roles = ["healthy"]
+simulate = {{ system = "bouc-wen", excitation = "sweep", amplitude = 30.0, duration = 0.5, f0 = 20.0, f1 = 60.0 }}
+noise = {{ fraction = 0.01, seed = 3 }}
+"""
+
+
+@pytest.fixture(scope="module")
+def small_config(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cfg")
+    p = d / "small.toml"
+    p.write_text(SMALL_CONFIG.format(ny=4, nu=4))
+    return p
+
+
+@pytest.fixture(scope="module")
+def trained(small_config, tmp_path_factory):
+    reg = tmp_path_factory.mktemp("registry")
+    rc = main(["train", str(small_config), "--registry", str(reg), "--json"])
+    assert rc == 0
+    return reg
+
+
+def test_train_writes_bundle_and_report(trained):
+    b = load_bundle(trained / "bw-small" / "1")
+    m = b.manifest
+    assert m["lags"] == {"ny": 4, "nu": 4} and m["fs"] == 750.0 and m["units"] == {"u": "N", "y": "m"}
+    assert m["novelty"]["threshold"] > 0 and m["novelty"]["false_alarm_rate"] == 0.05
+    assert set(m["training"]["records"]) == {"lag-sweep", "h1", "h2"}
+    assert m["training"]["records"]["lag-sweep"]["fit"] > 50
+    assert all(len(v) == 64 for v in m["files"].values())
+    rep = json.loads((trained / "bw-small" / "1" / "report" / "report.json").read_text())
+    assert {r["name"] for r in rep["records"]} >= {"lag-sweep", "h1"}
+    assert (trained / "bw-small" / "1" / "report" / "report.html").is_file()
+    assert list((trained / "bw-small" / "1" / "report").glob("*.png"))
+
+
+def test_versions_increase_and_are_never_overwritten(trained):
+    b = load_bundle(trained / "bw-small" / "1")
+    p2 = save_bundle(b.model, trained, "bw-small", fs=750.0, units=b.manifest["units"])
+    assert p2.name == "2"
+    with pytest.raises(BundleError, match="already exists"):
+        save_bundle(b.model, trained, "bw-small", version="2", fs=750.0, units=b.manifest["units"])
+    shutil.rmtree(p2)
+
+
+def test_bundle_round_trip_predicts_identically(trained, tmp_path):
+    b = load_bundle(trained / "bw-small" / "1")
+    p = save_bundle(b.model, tmp_path, "copy", fs=750.0, units={"u": "N", "y": "m"})
+    b2 = load_bundle(p)
+    u = np.sin(np.linspace(0, 20, 300)) * 30
+    r1 = b.model.simulate(u, n_paths=64, seed=3)
+    r2 = b2.model.simulate(u, n_paths=64, seed=3)
+    assert np.max(np.abs(r1.mean - r2.mean)) <= 1e-12 * np.max(np.abs(r1.mean))
+    assert np.max(np.abs(r1.upper - r2.upper)) <= 1e-12 * np.max(np.abs(r1.upper))
+
+
+def test_flipped_byte_in_any_array_is_refused_and_rest_loads(trained, tmp_path):
+    src = trained / "bw-small" / "1"
+    reg = tmp_path / "reg"
+    for name in ("good", "bad"):
+        b = load_bundle(src)
+        save_bundle(b.model, reg, name, fs=750.0, units={"u": "N", "y": "m"})
+    bad = reg / "bad" / "1"
+    for npy in sorted(bad.glob("*.npy")):
+        data = bytearray(npy.read_bytes())
+        original = bytes(data)
+        data[len(data) // 2] ^= 0x01
+        npy.write_bytes(bytes(data))
+        with pytest.raises(BundleError, match=npy.name):
+            load_bundle(bad)
+        r = Registry(reg).scan()
+        assert r.names() == ["good"]
+        assert len(r.refused) == 1 and npy.name in r.refused[0]["reason"]
+        npy.write_bytes(original)
+    assert Registry(reg).scan().names() == ["bad", "good"]
+
+
+def test_changed_manifest_and_unsafe_names_are_refused(trained, tmp_path):
+    b = load_bundle(trained / "bw-small" / "1")
+    p = save_bundle(b.model, tmp_path, "m", fs=750.0, units={"u": "N", "y": "m"})
+    mf = json.loads((p / "manifest.json").read_text())
+    mf["files"]["../../etc/passwd"] = "0" * 64
+    (p / "manifest.json").write_text(json.dumps(mf))
+    with pytest.raises(BundleError, match="not allowed"):
+        load_bundle(p)
+    for bad in ("../x", "a/b", "", ".hidden"):
+        with pytest.raises(BundleError):
+            save_bundle(b.model, tmp_path, bad, fs=750.0, units={})
+
+
+def test_predict_and_novelty_cli_json(trained, small_config, tmp_path, capsys):
+    rec = tmp_path / "r.npz"
+    assert main(["simulate", "bouc-wen", "--excitation", "sweep", "--amplitude", "35", "--f0", "20", "--f1", "60",
+                 "--duration", "0.5", "--out", str(rec)]) == 0
+    capsys.readouterr()
+    assert main(["predict", "--registry", str(trained), "--model", "bw-small", str(rec), "--mc", "64", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {"mean", "lower", "upper", "std", "fit", "rmse", "coverage"} <= set(out)
+    assert len(out["mean"]) == 375 and out["fit"] > 50 and 0 <= out["coverage"] <= 100
+    assert main(["novelty", "--registry", str(trained), "--model", "bw-small:1", str(rec), "--mc", "64", "--json"]) == 0
+    nov = json.loads(capsys.readouterr().out)
+    assert nov["verdict"] in ("healthy", "novel") and nov["false_alarm_rate"] == 0.05 and nov["score"] > 0
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["predict", "--registry", "{reg}", "--model", "nope", "{rec}"], "not found"),
+    (["predict", "--registry", "{reg}", "--model", "../etc", "{rec}"], "invalid"),
+    (["predict", "--registry", "{reg}", "--model", "bw-small", "{missing}"], "missing.npz"),
+    (["train", "{badcfg}", "--registry", "{reg}"], "name"),
+    (["train", "{reg}/nothing.toml", "--registry", "{reg}"], "nothing.toml"),
+    (["lags", "{cfg}", "--ny", "x:y", "--out", "{reg}/s.json"], "ny"),
+])
+def test_cli_errors_are_one_line_exit_2(argv, needle, trained, small_config, tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[system]\nfs = 750.0\n")
+    rec = tmp_path / "r.csv"
+    rec.write_text("time,u,y\n" + "\n".join(f"{i / 750},{np.sin(i)},{0.0}" for i in range(50)))
+    fmt = {"reg": str(trained), "rec": str(rec), "missing": str(tmp_path / "missing.npz"), "badcfg": str(bad),
+           "cfg": str(small_config)}
+    rc = main([a.format(**fmt) for a in argv])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1, err
+    assert needle in err
+
+
+def test_lag_surface_joblib_resumes_and_matches_dask(small_config, tmp_path):
+    from training.lags import choose_lags, lag_surface
+
+    s1 = lag_surface(small_config, [2, 4], [2, 4], jobs=2, cache_dir=tmp_path / "c1")
+    assert s1["cached_cells"] == 0 and len(s1["cells"]) == 4
+    again = lag_surface(small_config, [2, 4], [2, 4], jobs=2, cache_dir=tmp_path / "c1")
+    assert again["cached_cells"] == 4 and again["cells"] == s1["cells"]
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        s2 = lag_surface(small_config, [2, 4], [2, 4], scheduler=cluster.scheduler_address, cache_dir=tmp_path / "c2")
+    f1 = [(c["ny"], c["nu"], c["fit"]) for c in s1["cells"]]
+    f2 = [(c["ny"], c["nu"], c["fit"]) for c in s2["cells"]]
+    assert [a[:2] for a in f1] == [b[:2] for b in f2]
+    assert np.allclose([a[2] for a in f1], [b[2] for b in f2], atol=1e-9)
+    ch = choose_lags(s1["cells"])
+    best = max(c["fit"] for c in s1["cells"])
+    assert ch["fit"] >= best - 0.5
+
+
+def test_choose_lags_rule():
+    from training.lags import choose_lags
+
+    cells = [{"ny": 20, "nu": 17, "fit": 92.4}, {"ny": 10, "nu": 8, "fit": 92.1}, {"ny": 4, "nu": 4, "fit": 80.0},
+             {"ny": 12, "nu": 6, "fit": 92.0}]
+    assert choose_lags(cells) == {"ny": 10, "nu": 8, "fit": 92.1}
+    assert choose_lags(cells, tolerance=0.1)["ny"] == 20
+
+
+def test_lags_cli_writes_surface_and_png(small_config, tmp_path, capsys):
+    out = tmp_path / "surface.json"
+    assert main(["lags", str(small_config), "--ny", "2:4:2", "--nu", "2:2", "--jobs", "1", "--out", str(out),
+                 "--cache-dir", str(tmp_path / "cache"), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["cells"] == 2 and res["chosen"]["ny"] in (2, 4)
+    data = json.loads(out.read_text())
+    assert len(data["cells"]) == 2
+    assert out.with_suffix(".png").is_file()

@@ -1,0 +1,149 @@
+"""``gpnarx predict`` and ``gpnarx novelty`` on record files."""
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+
+from training.cli import CLIError
+
+
+def _common(p):
+    p.add_argument("--registry", default=None,
+                   help="registry folder (default: $GPNARX_REGISTRY or the default registry, built on first use)")
+    p.add_argument("--model", required=True, help="NAME or NAME:VERSION (latest version when omitted)")
+    p.add_argument("record", help="record file (.npz, .npy, .csv, .mat) or LMS Test.Lab folder")
+    p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
+    p.add_argument("--method", choices=("mc", "linear"), default="mc", help="uncertainty propagation")
+
+
+def add_parser(sub):
+    p = sub.add_parser("predict", help="free-run prediction with 99%% bounds for a record's input")
+    _common(p)
+    p.add_argument("--out", default=None, help="write mean/lower/upper/std (and y) to this .npz or .csv")
+    p.add_argument("--confidence", type=float, default=0.99, help="band level (default 0.99)")
+    p.set_defaults(func=run_predict)
+    q = sub.add_parser("novelty", help="bolt-loosening novelty score, threshold and verdict for a measured record")
+    _common(q)
+    q.set_defaults(func=run_novelty)
+
+
+def resolve_registry(registry):
+    if registry:
+        return registry
+    if os.environ.get("GPNARX_REGISTRY"):
+        return os.environ["GPNARX_REGISTRY"]
+    from training.defaults import ensure_default_registry
+
+    return ensure_default_registry(progress=True)
+
+
+def load(args):
+    from model.bundle import BundleError, Registry, load_bundle, parse_model_ref
+    from training.records import read_record
+
+    try:
+        name, version = parse_model_ref(args.model)
+    except BundleError as exc:
+        raise CLIError(str(exc)) from None
+    root = resolve_registry(args.registry)
+    from pathlib import Path
+
+    if not Path(root).is_dir():
+        raise CLIError(f"registry {root} does not exist")
+    reg = Registry(root)
+    if version is None:
+        reg.scan()
+        try:
+            bundle = reg.get(name)
+        except KeyError as exc:
+            raise CLIError(exc.args[0]) from None
+    else:
+        path = Path(root) / name / version
+        if not path.is_dir():
+            raise CLIError(f"model {name}:{version} not found in {root}")
+        bundle = load_bundle(path)
+    rec = read_record(args.record, fs_default=bundle.fs)  # files without fs take the model's
+    if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
+        raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {bundle.fs} Hz")
+    mc = args.mc if args.mc is not None else 1024
+    if not 1 <= mc <= 65536:
+        raise CLIError(f"--mc must be between 1 and 65536, got {mc}")
+    return bundle, rec, mc
+
+
+def _progress(enabled, n):
+    if not enabled:
+        return None, None
+    from tqdm import tqdm
+
+    bar = tqdm(total=n, desc="free-run", unit="step", leave=False, mininterval=0.5)
+
+    def cb(done, total):
+        bar.n = done
+        bar.refresh()
+
+    return bar, cb
+
+
+def run_predict(args):
+    from model.metrics import summary
+
+    bundle, rec, mc = load(args)
+    bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
+    run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, confidence=args.confidence,
+                                method=args.method, progress=cb)
+    if bar is not None:
+        bar.close()
+    out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "mc_paths": run.n_paths,
+           "method": run.method, "confidence": run.confidence, "seconds": run.seconds,
+           "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std}
+    if rec.y is not None:
+        m = summary(rec.y, run.mean, run.lower, run.upper)
+        out.update({"fit": m["fit"], "rmse": m["rmse"], "coverage": m["coverage"], "band_width": m["band_width"]})
+    if args.out:
+        _write_prediction(args.out, rec, run)
+        out["out"] = args.out
+    return out
+
+
+def _write_prediction(path, rec, run):
+    import tempfile
+    from pathlib import Path
+
+    path = Path(path)
+    cols = {"time": rec.t, "u": rec.u, "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std}
+    if rec.y is not None:
+        cols["y"] = rec.y
+    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", suffix=path.suffix + ".tmp")
+    os.close(fd)
+    try:
+        if path.suffix.lower() == ".csv":
+            arr = np.column_stack(list(cols.values()))
+            np.savetxt(tmp, arr, delimiter=",", header=",".join(cols), comments="")
+        else:
+            with open(tmp, "wb") as f:
+                np.savez(f, fs=rec.fs, **cols)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def run_novelty(args):
+    from model.novelty import novelty_score, verdict
+
+    bundle, rec, mc = load(args)
+    if rec.y is None:
+        raise CLIError(f"{args.record}: novelty needs the measured output y")
+    nov = bundle.manifest.get("novelty")
+    if not nov:
+        raise CLIError(f"model {bundle.name}:{bundle.version} has no novelty calibration (train it with 'healthy' records)")
+    run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method)
+    s = novelty_score(rec.y, run.mean, run.std)
+    return {"model": bundle.name, "version": bundle.version, "score": s["score"], "nlpd": s["nlpd"],
+            "threshold": nov["threshold"], "verdict": verdict(s["score"], nov["threshold"]),
+            "false_alarm_rate": nov["false_alarm_rate"]}

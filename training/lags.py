@@ -1,0 +1,163 @@
+"""Lag surface of section 2.2 (step 2): free-run fit % (eq. 14) for each (ny, nu).
+
+For every cell the GP-NARX is trained (ML-II) on the config's ``train`` records and its free-run
+mean on the ``lags`` records is scored with eq. (14). Cells run in parallel with joblib on local
+cores, or on an existing Dask cluster (``scheduler`` address: dask.distributed behind joblib).
+Finished cells are cached on disk (one JSON file per cell, keyed by the config content and the
+settings), so an interrupted surface resumes where it stopped.
+
+Choice rule ("the best fit with a minimal number of lags"): among cells whose fit is within
+``tolerance`` (default 0.5) points of the best fit, take the smallest ny + nu; ties go to the
+higher fit.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from model.metrics import fit_percent
+
+DEFAULT_TOLERANCE = 0.5
+
+
+@lru_cache(maxsize=4)
+def _load(config_path: str, mtime: float):
+    from training.config import load_config
+
+    cfg = load_config(config_path)
+    return cfg, cfg.records_for("train"), cfg.records_for("lags")
+
+
+def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
+    """Train at (ny, nu) and score free-run fit % on the ``lags`` records (mean of their fits).
+
+    The free-run mean comes from the first-order propagation (deterministic); it equals feeding
+    back the mean, as eq. (14) scores the model mean output.
+    """
+    from training.pipeline import model_from_config
+
+    cfg, train, lag_recs = _load(str(config_path), os.path.getmtime(config_path))
+    if not lag_recs:
+        raise ValueError(f"{config_path}: no record has role 'lags'")
+    t0 = time.perf_counter()
+    try:
+        model = model_from_config(cfg, ny, nu, **settings).fit(train)
+        fits = []
+        for rec in lag_recs:
+            run = model.simulate(rec.u, method="linear")
+            ref = rec.meta.get("clean_y", rec.y) if settings.get("score_clean") else rec.y
+            f = fit_percent(ref, run.mean)
+            fits.append(f if np.isfinite(f) else -1e3)
+        fit = float(np.mean(fits))
+        err = None
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        fit, err = float("nan"), str(exc)
+    return {"ny": int(ny), "nu": int(nu), "fit": fit, "seconds": time.perf_counter() - t0, "error": err}
+
+
+def _cache_key(config_path: Path, settings: dict) -> str:
+    h = hashlib.sha256(Path(config_path).read_bytes())
+    h.update(json.dumps(settings, sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
+def choose_lags(cells: list[dict], tolerance: float = DEFAULT_TOLERANCE) -> dict:
+    """The chosen cell by the documented rule (see module docstring)."""
+    ok = [c for c in cells if c["fit"] is not None and np.isfinite(c["fit"])]
+    if not ok:
+        raise ValueError("no lag cell produced a finite fit")
+    best = max(c["fit"] for c in ok)
+    near = [c for c in ok if c["fit"] >= best - tolerance]
+    return min(near, key=lambda c: (c["ny"] + c["nu"], -c["fit"]))
+
+
+def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler: str | None = None,
+                cache_dir=None, settings: dict | None = None, progress: bool = False,
+                tolerance: float = DEFAULT_TOLERANCE) -> dict:
+    """Compute the surface; returns {"cells": [...], "chosen": {...}, "best": {...}, ...}."""
+    from joblib import Parallel, delayed
+
+    config_path = Path(config_path).resolve()
+    settings = dict(settings or {})
+    cache_dir = Path(cache_dir) if cache_dir else config_path.parent / ".lagcache"
+    key = _cache_key(config_path, settings)
+    cdir = cache_dir / key
+    cdir.mkdir(parents=True, exist_ok=True)
+    grid = [(int(a), int(b)) for a in ny_values for b in nu_values]
+    cells, todo = {}, []
+    for ny, nu in grid:
+        f = cdir / f"ny{ny}_nu{nu}.json"
+        if f.is_file():
+            try:
+                cells[(ny, nu)] = json.loads(f.read_text())
+                continue
+            except json.JSONDecodeError:
+                pass
+        todo.append((ny, nu))
+    bar = None
+    if progress and todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(grid), initial=len(grid) - len(todo), desc="lag surface", unit="cell")
+
+    def run(parallel):
+        for res in parallel(delayed(lag_cell)(str(config_path), ny, nu, settings) for ny, nu in todo):
+            tmp = cdir / f".ny{res['ny']}_nu{res['nu']}.json.tmp"
+            tmp.write_text(json.dumps(res, allow_nan=True))
+            os.replace(tmp, cdir / f"ny{res['ny']}_nu{res['nu']}.json")
+            cells[(res["ny"], res["nu"])] = res
+            if bar is not None:
+                bar.update(1)
+
+    t0 = time.perf_counter()
+    if todo:
+        if scheduler:
+            from dask.distributed import Client
+            from joblib import parallel_config
+
+            with Client(scheduler, timeout="20s") as client:  # noqa: F841 (registers the dask backend)
+                with parallel_config(backend="dask"):
+                    run(Parallel(return_as="generator"))
+        else:
+            run(Parallel(n_jobs=jobs, return_as="generator"))
+    if bar is not None:
+        bar.close()
+    ordered = [cells[g] for g in grid]
+    chosen = choose_lags(ordered, tolerance)
+    best = max((c for c in ordered if np.isfinite(c["fit"])), key=lambda c: c["fit"])
+    return {"config": str(config_path), "ny": list(ny_values), "nu": list(nu_values), "cells": ordered,
+            "chosen": chosen, "best": best, "tolerance": tolerance, "settings": settings,
+            "seconds": time.perf_counter() - t0, "cached_cells": len(grid) - len(todo)}
+
+
+def write_surface(surface: dict, out) -> list[Path]:
+    """Write the surface as JSON (or CSV when ``out`` ends in .csv) plus a heat-map PNG beside it."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    paths = []
+    if out.suffix.lower() == ".csv":
+        lines = ["ny,nu,fit,seconds"] + [f"{c['ny']},{c['nu']},{c['fit']},{c['seconds']:.3f}" for c in surface["cells"]]
+        tmp = out.with_suffix(".csv.tmp")
+        tmp.write_text("\n".join(lines) + "\n")
+    else:
+        tmp = out.with_suffix(out.suffix + ".tmp")
+        clean = json.loads(json.dumps(surface, default=float).replace("NaN", "null"))
+        tmp.write_text(json.dumps(clean, indent=1))
+    os.replace(tmp, out)
+    paths.append(out)
+    try:
+        from training.report import lag_surface_figure
+
+        png = out.with_suffix(".png")
+        lag_surface_figure(surface["cells"], (surface["chosen"]["ny"], surface["chosen"]["nu"]),
+                           surface.get("paper"), png)
+        paths.append(png)
+    except ImportError:
+        pass
+    return paths
