@@ -1,0 +1,234 @@
+"""Shared set-up for the benchmarks: the Bouc-Wen protocol, the scikit-learn baseline, timing helpers.
+
+Every script under ``bench/`` measures the product and its scikit-learn baseline in the same run
+(interleaved repetitions, so load from other processes hits both) and prints one line
+``RESULT key=value ...`` with the product's figure, the baseline's and ``ratio=``.
+
+Bouc-Wen protocol (design.md, section 3 of the paper): training records are the 10 N and 80 N
+sweeps with Gaussian output noise of variance 0.1 * mean(y10^2) added to both; ny=20, nu=17
+(D=37); the 50 N sweep is the free-run record. Regressors are standardised per column and the
+GP training points are a stride selection of the stacked rows (4064 rows in all).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import time
+import warnings
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from model.gp import ExactPosterior, fit_ml2  # noqa: E402
+from model.kernels import make_kernel  # noqa: E402
+from model.regressors import stack_regressors  # noqa: E402
+from model.scaling import Standardizer  # noqa: E402
+from model.selection import select_rows  # noqa: E402
+
+NY, NU = 20, 17
+D = NY + NU
+NOISE_SEED = 1234
+# ML-II (eq. 13, one start) on a 500-point stride subset of this protocol: Matern var, lengthscale,
+# cubic var, scale, bias, noise var (log). Used by --quick runs, where ML-II itself is not measured.
+THETA_REF = np.log([0.9916, 35.71, 0.05503, 2.794e-4, 12.13, 0.01076])
+
+
+def parse_args(doc: str | None = None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=doc)
+    ap.add_argument("--quick", action="store_true", help="small sizes (whole script < 30 s), for the smoke test")
+    return ap.parse_args()
+
+
+@lru_cache(maxsize=None)
+def record(amplitude: float):
+    from training.config import simulate_record
+
+    return simulate_record({"system": "bouc-wen", "excitation": "sweep", "amplitude": float(amplitude)})
+
+
+@lru_cache(maxsize=None)
+def protocol():
+    """Training pairs [(u10, y10 + noise), (u80, y80 + noise)], the noise variance, the 50 N record."""
+    r10, r80 = record(10.0), record(80.0)
+    nv = 0.1 * float(np.mean(r10.y ** 2))
+    rng = np.random.default_rng(NOISE_SEED)
+    pairs = [(r10.u, r10.y + rng.normal(0.0, math.sqrt(nv), r10.y.size)),
+             (r80.u, r80.y + rng.normal(0.0, math.sqrt(nv), r80.y.size))]
+    return pairs, nv, record(50.0)
+
+
+@lru_cache(maxsize=None)
+def _stacked():
+    pairs, _, _ = protocol()
+    X, Y, idx = stack_regressors(pairs, NY, NU)
+    xsc = Standardizer().fit(X)
+    ysc = Standardizer().fit(Y[:, None])
+    Xs = xsc.transform(X)
+    Ys = (Y - ysc.mean_[0]) / ysc.scale_[0]
+    return Xs, Ys, idx, xsc, ysc
+
+
+def training_set(n: int):
+    """Standardised (X, y) with n stride-selected rows, and the x/y standardisers."""
+    Xs, Ys, idx, xsc, ysc = _stacked()
+    rows = select_rows(Ys, idx, n, "stride", 0)
+    return np.ascontiguousarray(Xs[rows]), Ys[rows].copy(), xsc, ysc
+
+
+def n_rows() -> int:
+    return _stacked()[0].shape[0]
+
+
+def ml2_theta(n_fit: int) -> tuple[np.ndarray, float]:
+    """ML-II hyperparameters (eq. 13, one start) on an n_fit-point stride subset; (theta, seconds)."""
+    X, y, _, _ = training_set(n_fit)
+    k = make_kernel("matern32+cubic")
+    t0 = time.perf_counter()
+    res = fit_ml2(k, X, y, n_restarts=0, seed=0)
+    return res.theta, time.perf_counter() - t0
+
+
+def hyperparameters(quick: bool, n_fit: int = 500) -> tuple[np.ndarray, float, str]:
+    """(theta, seconds, description): ML-II on n_fit stride points, or THETA_REF when quick."""
+    if quick:
+        return THETA_REF.copy(), 0.0, "fixed THETA_REF (quick)"
+    theta, s = ml2_theta(n_fit)
+    return theta, s, f"ML-II on {n_fit} pts, {s:.1f} s"
+
+
+def load() -> float:
+    """1-minute load average (other processes share the 2 cores; both sides see the same load)."""
+    import os
+
+    return float(os.getloadavg()[0])
+
+
+def exact_posterior(theta: np.ndarray, X: np.ndarray, y: np.ndarray) -> ExactPosterior:
+    k = make_kernel("matern32+cubic")
+    k.set_theta(theta[:-1])
+    return ExactPosterior.fit(k, float(np.exp(theta[-1])), X, y)
+
+
+# --- the scikit-learn baseline ---------------------------------------------------------------------
+def sk_kernel(theta: np.ndarray, fixed: bool = True, white: bool = False):
+    """scikit-learn kernel equal to eq. (12) with our log-parameters theta.
+
+    var_p (s x.x' + b)^3 = (var_p s^3) (x.x' + b/s)^3, so the cubic part is
+    ConstantKernel(var_p s^3) * DotProduct(sigma_0=sqrt(b/s)) ** 3.
+    fixed=True freezes every hyperparameter (reproducing our posterior); fixed=False gives wide
+    bounds for sklearn's own optimiser (and white=True adds a WhiteKernel for the noise).
+    """
+    from sklearn.gaussian_process.kernels import ConstantKernel, DotProduct, Matern, WhiteKernel
+
+    var_m, ls, var_p, s, b = np.exp(np.asarray(theta[:5], float))
+    wide = (1e-8, 1e8)
+    cb = "fixed" if fixed else wide
+    k = (ConstantKernel(var_m, constant_value_bounds=cb)
+         * Matern(length_scale=ls, nu=1.5, length_scale_bounds="fixed" if fixed else (1e-5, 1e5))
+         + ConstantKernel(var_p * s ** 3, constant_value_bounds=cb)
+         * DotProduct(sigma_0=math.sqrt(b / s), sigma_0_bounds="fixed" if fixed else (1e-6, 1e6)) ** 3)
+    if white:
+        k = k + WhiteKernel(float(np.exp(theta[-1])), noise_level_bounds="fixed" if fixed else (1e-8, 10.0))
+    return k
+
+
+def sk_gpr(theta: np.ndarray, X: np.ndarray, y: np.ndarray):
+    """GaussianProcessRegressor reproducing our exact posterior (same kernel, alpha = noise, no optimiser)."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+
+    gpr = GaussianProcessRegressor(sk_kernel(theta), alpha=float(np.exp(theta[-1])), optimizer=None,
+                                   normalize_y=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gpr.fit(X, y)
+    return gpr
+
+
+def lagged_inputs(u: np.ndarray, nu: int = NU) -> np.ndarray:
+    """(n, nu) rows [u_i, ..., u_{i-nu+1}], zeros before the record."""
+    upad = np.concatenate([np.zeros(nu - 1), u])
+    return np.stack([upad[nu - 1 - j: nu - 1 - j + u.size] for j in range(nu)], axis=1)
+
+
+def sklearn_freerun(gpr, noise_var, xsc, ysc, u, y0, n_paths, seed=0, keep_X=(), confidence=0.99):
+    """The per-step Monte Carlo loop a user would write around GaussianProcessRegressor.predict.
+
+    Starts from the first ny measured outputs y0 (like ``simulate_mc(..., y0=y0)``); each step builds
+    the (n_paths, D) regressor block, standardises it, calls ``predict(X, return_std=True)``, samples
+    y ~ N(mu, std^2 + noise) per path and feeds it back. Returns (mean, lower, upper, seconds,
+    path_steps, {step: standardised X block} for the steps in keep_X).
+    """
+    t0 = time.perf_counter()
+    P = int(n_paths)
+    n = u.size
+    rng = np.random.default_rng(seed)
+    Ulag = lagged_inputs(u)
+    ylag = np.tile(np.asarray(y0, float)[:NY][::-1], (P, 1))
+    ym, ys = float(ysc.mean_[0]), float(ysc.scale_[0])
+    q = (1.0 - confidence) / 2.0
+    mean, lower, upper = np.zeros(n), np.zeros(n), np.zeros(n)
+    mean[:NY] = lower[:NY] = upper[:NY] = np.asarray(y0, float)[:NY]
+    kept = {}
+    for i in range(NY, n):
+        Xraw = np.hstack([ylag, np.tile(Ulag[i], (P, 1))])
+        Xs = xsc.transform(Xraw)
+        if i in keep_X:
+            kept[i] = Xs.copy()
+        mu, sd = gpr.predict(Xs, return_std=True)
+        ysamp = (mu + np.sqrt(sd ** 2 + noise_var) * rng.standard_normal(P)) * ys + ym
+        mean[i] = mu.mean() * ys + ym
+        lower[i], upper[i] = np.quantile(ysamp, [q, 1.0 - q])
+        ylag = np.hstack([ysamp[:, None], ylag[:, :-1]])
+    return mean, lower, upper, time.perf_counter() - t0, (n - NY) * P, kept
+
+
+# --- timing helpers --------------------------------------------------------------------------------
+def best(fn, repeat: int = 3):
+    """min wall time of fn() over repeat calls (and the last return value)."""
+    ts, out = [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        ts.append(time.perf_counter() - t0)
+    return min(ts), out
+
+
+def dgemm_gflops(n: int = 2000, p: int = 1024, repeat: int = 3) -> float:
+    """numpy's measured dgemm rate: (n x n) @ (n x p), best of repeat."""
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((n, n))
+    B = rng.standard_normal((n, p))
+    A @ B
+    t, _ = best(lambda: A @ B, repeat)
+    return 2.0 * n * n * p / t / 1e9
+
+
+def median(xs):
+    return float(statistics.median(xs))
+
+
+def fmt(v) -> str:
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, str):
+        return v
+    v = float(v)
+    if v != 0 and (abs(v) >= 1e5 or abs(v) < 1e-3):
+        return f"{v:.3e}"
+    return f"{v:.4g}"
+
+
+def result(**kv) -> None:
+    """Print the contract line: RESULT key=value ..."""
+    print("RESULT " + " ".join(f"{k}={fmt(v)}" for k, v in kv.items()), flush=True)
+
+
+def loglog_slope(x, y) -> float:
+    return float(np.polyfit(np.log(np.asarray(x, float)), np.log(np.asarray(y, float)), 1)[0])
