@@ -1,0 +1,128 @@
+"""Baselines a system-identification user fits first, on the same records as the GP-NARX.
+
+* ``LinearARX``: least-squares ARX with the same regressors as eq. (3) (same ny, nu), free-run
+  simulated (model predicted output) from rest or from the first ny measured outputs.
+* ``FrolsNARX``: a polynomial NARX from SysIdentPy (FROLS structure selection, degree 2, AIC,
+  least squares), as a new user of that library would fit it: training records concatenated,
+  ``ylag = ny``, ``xlag = nu`` (capped at ``max_lag`` to keep the candidate set tractable),
+  free-run with ``predict(X=u, y=y[:max_lag])``. Optional: needs the ``baselines`` extra.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from model.regressors import stack_regressors
+
+
+class LinearARX:
+    """y_i = a . [y_{i-1..i-ny}] + b . [u_i..u_{i-nu+1}] by least squares."""
+
+    name = "linear ARX"
+
+    def __init__(self, ny: int, nu: int):
+        self.ny, self.nu = int(ny), int(nu)
+
+    def fit(self, records) -> "LinearARX":
+        t0 = time.perf_counter()
+        X, Y, _ = stack_regressors([(r.u, r.y) for r in records], self.ny, self.nu)
+        self.coef_ = np.linalg.lstsq(X, Y, rcond=None)[0]
+        self.fit_seconds_ = time.perf_counter() - t0
+        return self
+
+    def simulate(self, u, y0=None) -> np.ndarray:
+        """Free-run output for input u (from rest, or from y0 = first ny outputs)."""
+        ny, nu = self.ny, self.nu
+        a, b = self.coef_[:ny], self.coef_[ny:]
+        n = u.size
+        upad = np.concatenate([np.zeros(nu - 1), u])
+        uterm = np.convolve(upad, b, mode="valid")[:n]  # sum_j b_j u_{i-j}
+        y = np.zeros(n + ny)
+        i0 = 0
+        if y0 is not None:
+            i0 = ny
+            y[ny:2 * ny] = np.asarray(y0, float)[:ny]
+        for i in range(i0, n):  # y[ny + i] is y_i; y[i : ny + i] reversed is [y_{i-1}, ..., y_{i-ny}]
+            y[ny + i] = float(np.dot(a, y[i : ny + i][::-1])) + uterm[i]
+        return y[ny:]
+
+
+class FrolsNARX:
+    """SysIdentPy polynomial NARX (FROLS), degree 2, AIC-selected terms."""
+
+    name = "polynomial NARX (SysIdentPy FROLS)"
+
+    def __init__(self, ny: int, nu: int, degree: int = 2, max_lag: int = 10, n_info_values: int = 25):
+        self.ny, self.nu = min(int(ny), max_lag), min(int(nu), max_lag)
+        self.degree, self.n_info_values = degree, n_info_values
+
+    @staticmethod
+    def available() -> bool:
+        try:
+            import sysidentpy  # noqa: F401
+        except ImportError:
+            return False
+        return True
+
+    def fit(self, records) -> "FrolsNARX":
+        from sysidentpy.basis_function import Polynomial
+        from sysidentpy.model_structure_selection import FROLS
+        from sysidentpy.parameter_estimation import LeastSquares
+
+        t0 = time.perf_counter()
+        u = np.concatenate([r.u for r in records])[:, None]
+        y = np.concatenate([r.y for r in records])[:, None]
+        self.scale_u_, self.scale_y_ = float(np.std(u)) or 1.0, float(np.std(y)) or 1.0
+        self.model_ = FROLS(order_selection=True, n_info_values=self.n_info_values, ylag=self.ny, xlag=self.nu,
+                            info_criteria="aic", estimator=LeastSquares(), basis_function=Polynomial(degree=self.degree),
+                            model_type="NARMAX")
+        self.model_.fit(X=u / self.scale_u_, y=y / self.scale_y_)
+        self.fit_seconds_ = time.perf_counter() - t0
+        return self
+
+    def simulate(self, u, y0=None) -> np.ndarray:
+        lag = max(self.ny, self.nu)
+        init = np.zeros(lag) if y0 is None else np.r_[np.asarray(y0, float), np.zeros(lag)][:lag]
+        yh = self.model_.predict(X=(np.asarray(u, float) / self.scale_u_)[:, None],
+                                 y=(init / self.scale_y_)[:, None])
+        out = np.asarray(yh, float).ravel()[: u.size] * self.scale_y_
+        if not np.all(np.isfinite(out)):  # a diverging simulation scores as a zero prediction
+            out = np.where(np.isfinite(out), out, 0.0)
+            out = np.clip(out, -1e6 * self.scale_y_, 1e6 * self.scale_y_)
+        return out
+
+
+def fit_baselines(train_records, ny: int, nu: int, log=None) -> dict:
+    """Fitted baselines by name (SysIdentPy only when installed)."""
+    out = {"linear ARX": LinearARX(ny, nu).fit(train_records)}
+    if FrolsNARX.available():
+        try:
+            out["polynomial NARX (FROLS)"] = FrolsNARX(ny, nu).fit(train_records)
+        except Exception as exc:  # a third-party failure must not stop the report
+            if log:
+                log(f"SysIdentPy FROLS baseline failed: {exc}")
+    elif log:
+        log("SysIdentPy not installed (pip install -e '.[baselines]'): polynomial NARX baseline skipped")
+    return out
+
+
+def score_baselines(baselines: dict, records, initial_ny: dict | None = None) -> dict:
+    """{record_name: {baseline_name: {fit, rmse, fit_clean?}}} on free-run simulations."""
+    from model.metrics import fit_percent, rmse
+
+    res = {}
+    for rec in records:
+        row = {}
+        for bname, b in baselines.items():
+            y0 = rec.y[: b.ny] if rec.meta.get("initial") == "measured" else None
+            try:
+                yhat = b.simulate(rec.u, y0=y0)
+                m = {"fit": fit_percent(rec.y, yhat), "rmse": rmse(rec.y, yhat)}
+                if rec.meta.get("clean_y") is not None:
+                    m["fit_clean"] = fit_percent(rec.meta["clean_y"], yhat)
+            except Exception as exc:  # noqa: BLE001 - report, do not crash the protocol
+                m = {"fit": None, "error": str(exc)}
+            row[bname] = m
+        res[rec.name] = row
+    return res
