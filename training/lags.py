@@ -43,6 +43,9 @@ def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
     from training.pipeline import model_from_config
 
     cfg, train, lag_recs = _load(str(config_path), os.path.getmtime(config_path))
+    if settings.get("max_seconds"):  # quick mode: the first max_seconds of every record
+        train = [shorten(r, settings["max_seconds"]) for r in train]
+        lag_recs = [shorten(r, settings["max_seconds"]) for r in lag_recs]
     if not lag_recs:
         raise ValueError(f"{config_path}: no record has role 'lags'")
     t0 = time.perf_counter()
@@ -59,6 +62,19 @@ def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
     except (ValueError, np.linalg.LinAlgError) as exc:
         fit, err = float("nan"), str(exc)
     return {"ny": int(ny), "nu": int(nu), "fit": fit, "seconds": time.perf_counter() - t0, "error": err}
+
+
+def shorten(rec, seconds: float):
+    """The first ``seconds`` of a record (the whole record when shorter); clean_y follows."""
+    n = int(round(seconds * rec.fs))
+    if n >= rec.n:
+        return rec
+    from model.records import Record
+
+    meta = dict(rec.meta)
+    if meta.get("clean_y") is not None:
+        meta["clean_y"] = meta["clean_y"][:n]
+    return Record(rec.u[:n], None if rec.y is None else rec.y[:n], rec.fs, dict(rec.units), rec.name, meta)
 
 
 def _cache_key(config_path: Path, settings: dict) -> str:

@@ -108,12 +108,19 @@ class _Progress:
 def train(config, registry, name: str | None = None, version: str | None = None, *, progress: bool = False,
           mc_paths: int | None = None, ny: int | None = None, nu: int | None = None, report: bool = True,
           lag_surface: dict | None = None, baselines: dict | None = None, paper: dict | None = None,
-          model_overrides: dict | None = None, log=None) -> dict:
+          model_overrides: dict | None = None, log=None, max_seconds: float | None = None,
+          extra_evals: list | None = None) -> dict:
     """Train from a dataset config and write a bundle; returns name, version, path and metrics."""
     cfg = as_config(config)
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
-    train_recs = cfg.records_for("train")
+    def records(role):
+        from training.lags import shorten
+
+        recs = cfg.records_for(role)
+        return [shorten(r, max_seconds) for r in recs] if max_seconds else recs
+
+    train_recs = records("train")
     model = model_from_config(cfg, ny, nu, **(model_overrides or {}))
     log(f"training {cfg.name}: ny={model.ny} nu={model.nu} mode={model.mode} on {len(train_recs)} record(s)")
     model.fit(train_recs)
@@ -123,7 +130,7 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     method = cfg.predict.get("method", "mc")
     todo = []
     for role in EVAL_ROLES:
-        for rec in cfg.records_for(role):
+        for rec in records(role):
             todo.append((role, rec))
     bar = _Progress(progress, sum(r.n for _, r in todo), "free-run")
     evals = []
@@ -135,6 +142,11 @@ def train(config, registry, name: str | None = None, version: str | None = None,
         evals.append(ev)
         log(f"  {role:8s} {rec.name}: " + ", ".join(f"{k}={v:.4g}" for k, v in ev["metrics"].items()))
     bar.close()
+    if baselines is None:
+        from training.baselines import fit_baselines, score_baselines
+
+        fitted = fit_baselines(train_recs, model.ny, model.nu, log=log)
+        baselines = score_baselines(fitted, [rec for _, rec in todo])
     novelty = None
     healthy = [ev for ev in evals if ev["role"] == "healthy"]
     if len(healthy) >= 2:
@@ -151,7 +163,7 @@ def train(config, registry, name: str | None = None, version: str | None = None,
         "fit_seconds": model.fit_seconds_, "n_train": model.n_train_, "n_rows": model.n_rows_,
         "nlml": model.nlml_, "train_records": [r.name for r in train_recs],
         "records": {ev["name"]: {"role": ev["role"], **{k: v for k, v in ev["metrics"].items()}} for ev in evals},
-        "mc_paths": n_paths, "confidence": conf, "wall_seconds": None,
+        "mc_paths": n_paths, "confidence": conf, "wall_seconds": None, "baselines": baselines,
     }
     physics = dict(cfg.physics)
     physics.setdefault("output", cfg.system.get("output", "displacement"))
@@ -165,7 +177,7 @@ def train(config, registry, name: str | None = None, version: str | None = None,
                 "config": str(cfg.path), "ny": model.ny, "nu": model.nu, "mode": model.mode,
                 "kernel": repr(model.kernel_), "noise_var": model.noise_var_, "n_train": model.n_train_,
                 "fit_seconds": model.fit_seconds_, "mc_paths": n_paths, "novelty": novelty,
-            }, evals, physics=physics, lag_surface=lag_surface, baselines=baselines, paper=paper)
+            }, evals + list(extra_evals or []), physics=physics, lag_surface=lag_surface, baselines=baselines, paper=paper)
             # the report's richer per-record metrics (PSD peaks, loop areas) go into the manifest too
             import json
 
