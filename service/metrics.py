@@ -1,0 +1,48 @@
+"""Prometheus metrics of one app (its own ``CollectorRegistry``, so several apps can coexist).
+
+- ``gpnarx_http_requests_total{method,route,status}`` and ``gpnarx_http_errors_total{method,route,status}``
+  (status >= 400), labelled by the route template (``/v1/models/{name}/predict``), never the raw path;
+- ``gpnarx_http_request_duration_seconds{method,route}`` latency histogram;
+- ``gpnarx_mc_path_steps_total`` Monte Carlo path-steps served;
+- ``gpnarx_requests_shed_total`` requests refused with 503 because the work queue was full;
+- ``gpnarx_bundles_loaded`` / ``gpnarx_bundles_refused`` gauges, ``gpnarx_work_pending`` (running + waiting jobs).
+"""
+from __future__ import annotations
+
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0)
+
+
+class ServiceMetrics:
+    def __init__(self, state):
+        self.state = state
+        self.registry = CollectorRegistry(auto_describe=True)
+        r = self.registry
+        self.requests = Counter("gpnarx_http_requests", "HTTP requests by route and status",
+                                ["method", "route", "status"], registry=r)
+        self.errors = Counter("gpnarx_http_errors", "HTTP error answers (status >= 400) by route and status",
+                              ["method", "route", "status"], registry=r)
+        self.latency = Histogram("gpnarx_http_request_duration_seconds", "HTTP request latency",
+                                 ["method", "route"], buckets=BUCKETS, registry=r)
+        self.path_steps = Counter("gpnarx_mc_path_steps", "Monte Carlo path-steps served", registry=r)
+        self.shed = Counter("gpnarx_requests_shed", "Requests refused with 503 because the work queue was full",
+                            registry=r)
+        self.loaded = Gauge("gpnarx_bundles_loaded", "Model bundles loaded", registry=r)
+        self.refused = Gauge("gpnarx_bundles_refused", "Model bundles refused (corrupt or invalid)", registry=r)
+        self.pending = Gauge("gpnarx_work_pending", "Jobs running or waiting on the worker pool", registry=r)
+        self.pending.set_function(lambda: self.state.executor.pending)
+
+    def observe(self, method: str, route: str, status: int, seconds: float) -> None:
+        self.requests.labels(method, route, str(status)).inc()
+        if status >= 400:
+            self.errors.labels(method, route, str(status)).inc()
+        self.latency.labels(method, route).observe(seconds)
+
+    def update_bundles(self) -> None:
+        reg = self.state.registry
+        self.loaded.set(sum(len(v) for v in reg.bundles.values()))
+        self.refused.set(len(reg.refused))
+
+    def render(self) -> tuple[bytes, str]:
+        return generate_latest(self.registry), CONTENT_TYPE_LATEST

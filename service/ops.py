@@ -1,0 +1,186 @@
+"""The three operations (predict, loops, novelty) on a loaded bundle, without any web framework.
+
+``plan`` runs on the event loop: cheap checks of a validated request against the bundle and the
+bounds (fs, lengths, y0, Monte Carlo paths and work), raising ``ProblemError`` naming the field
+and the limit. ``compute`` runs on a worker thread: the free run and what is derived from it.
+Answers are plain dicts of numpy arrays and floats (serialised by ``service.app``).
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from model.bundle import Bundle
+from model.metrics import summary
+from model.novelty import novelty_score, verdict
+from model.restoring import loop_area, restoring_force
+
+from .problems import ProblemError
+from .settings import Settings
+
+OPERATIONS = ("predict", "loops", "novelty")
+
+
+@dataclass(frozen=True)
+class Plan:
+    operation: str
+    bundle: Bundle
+    method: str
+    mc_paths: int  # 0 for linear
+    work: int  # Monte Carlo path-steps (samples for linear)
+
+
+def _fs_matches(a: float, b: float) -> bool:
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+
+
+def plan(operation: str, req, bundle: Bundle, settings: Settings, budget: int | None = None) -> Plan:
+    """Check ``req`` (a validated RecordRequest) against ``bundle`` and the bounds."""
+    n = len(req.u)
+    if n > settings.max_samples:
+        raise ProblemError(413, f"u has {n} samples; the limit is {settings.max_samples} samples per record",
+                           "u", limit=settings.max_samples)
+    if not _fs_matches(float(req.fs), bundle.fs):
+        raise ProblemError(422, f"fs {req.fs:g} Hz does not match the model's fs {bundle.fs:g} Hz "
+                                f"({bundle.name}:{bundle.version}); resample the record to {bundle.fs:g} Hz",
+                           "fs", model_fs=bundle.fs)
+    if req.y is not None and len(req.y) != n:
+        raise ProblemError(422, f"y has {len(req.y)} samples but u has {n}; they must have the same length", "y")
+    if operation == "novelty" and req.y is None:
+        raise ProblemError(422, "y is required for novelty: the measured output record to score", "y")
+    ny = bundle.model.ny
+    if req.y0 is not None and len(req.y0) > 0:
+        if len(req.y0) < ny:
+            raise ProblemError(422, f"y0 must hold at least ny={ny} initial outputs for this model, got "
+                                    f"{len(req.y0)}", "y0")
+        if n <= ny:
+            raise ProblemError(422, f"u must be longer than ny={ny} samples when y0 is given, got {n}", "u")
+    if operation == "loops":
+        physics_of(bundle)
+    if operation == "novelty":
+        novelty_of(bundle)
+    if req.method == "mc":
+        paths = settings.mc_paths_default if req.mc_paths is None else int(req.mc_paths)
+        if paths > settings.mc_paths_max:
+            raise ProblemError(422, f"mc_paths {paths} exceeds the limit of {settings.mc_paths_max} Monte Carlo "
+                                    f"paths", "mc_paths", limit=settings.mc_paths_max)
+        work = paths * n
+        limit = settings.max_mc_work if budget is None else budget
+        if work > limit:
+            what = ("the Monte Carlo work limit" if budget is None
+                    else "the Monte Carlo work left in this batch's budget")
+            raise ProblemError(413, f"mc_paths x samples = {paths} x {n} = {work} path-steps exceeds {what} "
+                                    f"({limit}; at most {settings.max_mc_work} per request); send fewer paths or "
+                                    f"a shorter record", "mc_paths", limit=limit)
+    else:
+        paths, work = 0, n
+    return Plan(operation, bundle, req.method, paths, work)
+
+
+def physics_of(bundle: Bundle) -> dict:
+    phys = bundle.manifest.get("physics") or {}
+    try:
+        mass = float(phys["mass"])
+    except (KeyError, TypeError, ValueError):
+        raise ProblemError(409, f"model {bundle.name}:{bundle.version} has no physical constants (mass) for the "
+                                f"restoring force; loops are not available for it") from None
+    gain = phys.get("input_gain", 1.0)
+    output = phys.get("output", "displacement")
+    if not (mass > 0 and math.isfinite(mass)) or output not in ("displacement", "velocity"):
+        raise ProblemError(409, f"model {bundle.name}:{bundle.version} has unusable physical constants "
+                                f"(mass={mass!r}, output={output!r})")
+    try:
+        gain = float(gain)
+    except (TypeError, ValueError):
+        raise ProblemError(409, f"model {bundle.name}:{bundle.version} has an unusable input_gain") from None
+    return {**{k: v for k, v in phys.items() if isinstance(v, (int, float, str, bool))},
+            "mass": mass, "input_gain": gain, "output": output}
+
+
+def novelty_of(bundle: Bundle) -> dict:
+    nov = bundle.manifest.get("novelty")
+    if not isinstance(nov, dict) or not isinstance(nov.get("threshold"), (int, float)):
+        raise ProblemError(409, f"model {bundle.name}:{bundle.version} has no novelty calibration; train it with "
+                                f"healthy records to get a threshold")
+    return nov
+
+
+_FIELD_RE = re.compile(r"^(u|y0|y|fs|confidence|n_paths|mc_paths|method|seed)\b")
+
+
+def _field_from_message(msg: str) -> str | None:
+    m = _FIELD_RE.match(msg)
+    if not m:
+        return None
+    return {"n_paths": "mc_paths"}.get(m.group(1), m.group(1))
+
+
+def _simulate(plan: Plan, req):
+    u = np.asarray(req.u, dtype=float)
+    model = plan.bundle.model
+    try:
+        with np.errstate(all="ignore"):
+            run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=req.y0 or None,
+                                 confidence=float(req.confidence), method=plan.method)
+    except ValueError as exc:
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
+        raise ProblemError(422, msg, _field_from_message(msg)) from None
+    if not (np.all(np.isfinite(run.mean)) and np.all(np.isfinite(run.lower)) and np.all(np.isfinite(run.upper))
+            and np.all(np.isfinite(run.std))):
+        raise ProblemError(422, f"the free-run prediction of {plan.bundle.name}:{plan.bundle.version} diverged for "
+                                f"this input (non-finite outputs): u is probably far outside the amplitude or "
+                                f"frequency range the model was trained on", "u")
+    return u, run
+
+
+def _num(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def compute(plan: Plan, req) -> tuple[dict, int]:
+    """Run the operation; returns (answer dict, Monte Carlo path-steps done)."""
+    b = plan.bundle
+    u, run = _simulate(plan, req)
+    head = {"model": b.name, "version": b.version}
+    common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
+              "seed": int(req.seed)}
+    steps = int(run.path_steps) if run.method == "mc" else 0
+    if plan.operation == "predict":
+        out = {**head, "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std, **common,
+               "n_samples": int(u.size), "units": dict(b.manifest.get("units") or {})}
+        if req.y is not None:
+            s = summary(np.asarray(req.y, float), run.mean, run.lower, run.upper)
+            out.update(fit=_num(s["fit"]), rmse=_num(s["rmse"]), coverage=_num(s["coverage"]))
+        return out, steps
+    if plan.operation == "loops":
+        phys = physics_of(b)
+        kw = dict(fs=b.fs, mass=phys["mass"], input_gain=phys["input_gain"], output=phys["output"])
+
+        def loop(y):
+            x, r = restoring_force(u, y, **kw)
+            if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
+                raise ProblemError(422, "the restoring force is not finite for this record", "u")
+            return {"x": x, "force": r, "area": loop_area(x, r)}
+
+        out = {**head, **common, "n_samples": int(u.size), "physics": phys, "units": {"x": "m", "force": "N"},
+               "predicted": loop(run.mean), "lower": loop(run.lower), "upper": loop(run.upper)}
+        if req.y is not None:
+            out["measured"] = loop(np.asarray(req.y, float))
+        return out, steps
+    if plan.operation == "novelty":
+        nov = novelty_of(b)
+        try:
+            s = novelty_score(np.asarray(req.y, float), run.mean, run.std)
+        except ValueError as exc:
+            raise ProblemError(422, f"cannot score this record: {exc}", "y") from None
+        thr = float(nov["threshold"])
+        far = nov.get("false_alarm_rate")
+        out = {**head, "score": s["score"], "threshold": thr, "verdict": verdict(s["score"], thr),
+               "false_alarm_rate": float(far) if isinstance(far, (int, float)) else None,
+               "nlpd": s["nlpd"], "n_samples": s["n_samples"], **common}
+        return out, steps
+    raise ProblemError(422, f"operation must be one of {OPERATIONS}", "operation")

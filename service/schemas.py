@@ -1,0 +1,252 @@
+"""Request and response models (pydantic v2) of the HTTP API.
+
+Field names follow the contract in design.md: records are ``u``, ``fs``, ``y``, ``y0``,
+``mc_paths``, ``seed``, ``confidence`` (and ``method``); answers hold ``mean``, ``lower``,
+``upper``, ``std`` and, when a measured ``y`` was sent, ``fit``, ``rmse``, ``coverage``.
+Numbers must be finite JSON numbers (NaN/Infinity are refused); numeric fields are strict (a
+string "1.0" or a boolean is not a number).
+
+Bounds that can be changed by environment variables (``service.settings``) are not encoded as
+schema constraints; their defaults are stated in the descriptions and enforced by the service with
+a 413/422 problem detail naming the field and the limit.
+"""
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal, Optional, Union
+
+from pydantic import BaseModel, ConfigDict, Field, Strict
+
+from .settings import DEFAULT_BOUNDS
+
+B = DEFAULT_BOUNDS
+
+FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+StrictInt = Annotated[int, Strict()]
+
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+VERSION_PATTERN = r"^[1-9][0-9]{0,8}$"
+
+_U_DESC = (f"Input record (input units of the model, e.g. force in N or shaker voltage in V), one value per "
+           f"sample at `fs`. 1 to {B['max_samples']} samples by default (GPNARX_MAX_SAMPLES); a longer "
+           f"record is refused with 413.")
+_FS_DESC = "Sampling frequency of the record [Hz]; must equal the model's `fs` (422 naming both values otherwise)."
+_Y_DESC = ("Optional measured output record (output units, e.g. m or m/s), same length as `u`. When sent, the "
+           "answer adds `fit` (%, eq. 14), `rmse` and `coverage` (% of samples inside the band).")
+_Y0_DESC = ("Optional first `ny` measured outputs (ny = the model's output lag). They are taken as known and the "
+            "free run starts after them; without `y0` the system starts from rest. Extra values are ignored.")
+_MC_DESC = (f"Monte Carlo paths for `method`='mc' (default {B['mc_paths_default']}, at most {B['mc_paths_max']} "
+            f"by default: GPNARX_MC_PATHS_DEFAULT, GPNARX_MC_PATHS_MAX; above the maximum -> 422). "
+            f"mc_paths x samples is capped at {B['max_mc_work']} path-steps per HTTP request "
+            f"(GPNARX_MAX_MC_WORK; a batch shares one budget) -> 413. Ignored for 'linear'.")
+_SEED_DESC = "Seed of the Monte Carlo draws; the same request with the same seed gives the same answer."
+_CONF_DESC = "Two-sided band probability, in [0.5, 1). Default 0.99 (the 0.5% and 99.5% quantiles)."
+_METHOD_DESC = ("Uncertainty propagation: 'mc' (Monte Carlo over `mc_paths` paths, the paper's method) or "
+                "'linear' (first-order propagation of mean and variance, one pass).")
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class RecordRequest(_Strict):
+    """A record to predict from (the body of predict and loops)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"u": [0.0, 1.5, 2.0, -0.5, -1.0, 0.25], "fs": 750.0, "mc_paths": 64, "seed": 0, "confidence": 0.99}]})
+
+    u: list[FiniteFloat] = Field(..., min_length=1, description=_U_DESC)
+    fs: FiniteFloat = Field(..., gt=0, description=_FS_DESC)
+    y: Optional[list[FiniteFloat]] = Field(None, min_length=1, description=_Y_DESC)
+    y0: Optional[list[FiniteFloat]] = Field(None, description=_Y0_DESC)
+    mc_paths: Optional[StrictInt] = Field(None, ge=1, description=_MC_DESC)
+    seed: StrictInt = Field(0, ge=0, le=2**63 - 1, description=_SEED_DESC)
+    confidence: FiniteFloat = Field(0.99, ge=0.5, lt=1.0, description=_CONF_DESC)
+    method: Literal["mc", "linear"] = Field("mc", description=_METHOD_DESC)
+
+
+class NoveltyRequest(RecordRequest):
+    """A measured record to score against the model (``y`` is required)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"u": [0.0, 1.5, 2.0, -0.5, -1.0, 0.25], "y": [0.0, 1e-5, 3e-5, 2e-5, -1e-5, -2e-5], "fs": 750.0,
+         "mc_paths": 64, "seed": 0}]})
+
+    y: list[FiniteFloat] = Field(..., min_length=1, description="Measured output record (output units), same "
+                                 "length as `u`. Required: the score compares it with the predicted band.")
+
+
+class BatchItem(RecordRequest):
+    """One record of a batch: the single call's fields plus the model and the operation."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"model": "bouc-wen", "operation": "predict", "u": [0.0, 1.5, 2.0, -0.5], "fs": 750.0, "mc_paths": 32}]})
+
+    model: str = Field(..., pattern=NAME_PATTERN, description="Model name.")
+    version: Optional[str] = Field(None, pattern=VERSION_PATTERN, description="Model version (default: latest).")
+    operation: Literal["predict", "loops", "novelty"] = Field("predict", description="What to compute; 'novelty' "
+                                                               "needs `y`.")
+
+
+class BatchRequest(_Strict):
+    """Many records, each answered or failed on its own."""
+
+    requests: list[BatchItem] = Field(..., description=(
+        f"Records to process in order, 1 to {B['max_batch']} by default (GPNARX_MAX_BATCH; more -> 413). Each "
+        f"item is validated on its own: a malformed item is answered by a problem detail in its slot and never "
+        f"loses the others."))
+
+
+# ---------------------------------------------------------------------------------------- answers
+class Problem(BaseModel):
+    """RFC 9457 problem details (media type application/problem+json)."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "type": "https://gpnarx.dev/problems/invalid-request", "title": "Unprocessable Content", "status": 422,
+        "detail": "mc_paths: 10000 exceeds the limit of 4096 Monte Carlo paths", "field": "mc_paths"}]})
+
+    type: str = Field(..., description="URI naming the kind of problem.")
+    title: str = Field(..., description="Short summary of the kind of problem.")
+    status: int = Field(..., description="HTTP status code.")
+    detail: str = Field(..., description="What was wrong with this request, naming the field and the limit.")
+    field: Optional[str] = Field(None, description="Dotted path of the offending request field (e.g. `u`, "
+                                 "`mc_paths`, `requests.2.mc_paths`), null when no single field is to blame.")
+    errors: Optional[list[dict[str, Any]]] = Field(None, description="Every validation error found: "
+                                                   "{field, message, type}.")
+
+
+class Units(BaseModel):
+    model_config = ConfigDict(extra="allow")
+    u: Optional[str] = Field(None, description="Input unit (e.g. N, V).")
+    y: Optional[str] = Field(None, description="Output unit (e.g. m, m/s).")
+
+
+class PredictResponse(BaseModel):
+    model: str
+    version: str
+    mean: list[float] = Field(..., description="Free-run predicted mean, output units.")
+    lower: list[float] = Field(..., description="Lower edge of the band at `confidence`.")
+    upper: list[float] = Field(..., description="Upper edge of the band at `confidence`.")
+    std: list[float] = Field(..., description="Predictive standard deviation, output units.")
+    confidence: float
+    mc_paths: int = Field(..., description="Monte Carlo paths used (0 for method 'linear').")
+    method: Literal["mc", "linear"]
+    seed: int
+    n_samples: int
+    units: Units
+    fit: Optional[float] = Field(None, description="Only when `y` was sent: fit % of eq. (14) (null when y is "
+                                 "identically zero).")
+    rmse: Optional[float] = Field(None, description="Only when `y` was sent: RMSE, output units.")
+    coverage: Optional[float] = Field(None, description="Only when `y` was sent: % of measured samples inside "
+                                      "[lower, upper].")
+
+
+class Loop(BaseModel):
+    x: list[float] = Field(..., description="Displacement [m].")
+    force: list[float] = Field(..., description="Restoring force R = g u - m x'' [N].")
+    area: float = Field(..., description="Area enclosed by the (x, R) trajectory [J] (shoelace formula).")
+
+
+class Physics(BaseModel):
+    model_config = ConfigDict(extra="allow")
+    mass: float = Field(..., description="Mass [kg].")
+    input_gain: float = Field(..., description="Force per input unit g (N/N or N/V).")
+    output: Literal["displacement", "velocity"]
+
+
+class LoopsResponse(BaseModel):
+    model: str
+    version: str
+    confidence: float
+    mc_paths: int
+    method: Literal["mc", "linear"]
+    seed: int
+    n_samples: int
+    physics: Physics
+    units: dict[str, str] = Field(..., description="Units of `x` and `force`.")
+    predicted: Loop = Field(..., description="Loop of the predicted mean response.")
+    lower: Loop = Field(..., description="Loop of the lower band edge.")
+    upper: Loop = Field(..., description="Loop of the upper band edge.")
+    measured: Optional[Loop] = Field(None, description="Only when `y` was sent: loop of the measured response.")
+
+
+class NoveltyResponse(BaseModel):
+    model: str
+    version: str
+    score: float = Field(..., description="RMS standardised residual of y under the predictive distribution "
+                         "(about 1 for a healthy record).")
+    threshold: float = Field(..., description="Score above which the record is 'novel'.")
+    verdict: Literal["healthy", "novel"]
+    false_alarm_rate: Optional[float] = Field(..., description="False-alarm rate the threshold was calibrated for "
+                                              "(null if the calibration does not say).")
+    nlpd: float = Field(..., description="Mean negative log predictive density.")
+    n_samples: int = Field(..., description="Samples that entered the score.")
+    mc_paths: int
+    method: Literal["mc", "linear"]
+    seed: int
+
+
+class BatchResponse(BaseModel):
+    results: list[Union[PredictResponse, LoopsResponse, NoveltyResponse, Problem]] = Field(
+        ..., description="One entry per request, in order: that operation's answer or a problem detail.")
+
+
+class Lags(BaseModel):
+    ny: int
+    nu: int
+
+
+class ModelSummary(BaseModel):
+    name: str
+    versions: list[str]
+    latest: str
+    fs: float
+    units: Units
+    lags: Lags
+    novelty: bool = Field(..., description="Whether the latest version has a novelty calibration.")
+
+
+class ModelList(BaseModel):
+    models: list[ModelSummary]
+
+
+class ModelDetail(BaseModel):
+    name: str
+    version: str
+    versions: list[str]
+    created: Optional[str] = None
+    lags: Lags
+    mode: str
+    fs: float
+    units: Units
+    kernel: dict[str, Any]
+    hyperparameters: dict[str, Any]
+    n_train: Optional[int] = None
+    training: dict[str, Any] = Field(..., description="Training metrics.")
+    novelty: Optional[dict[str, Any]] = Field(None, description="Novelty calibration (threshold, "
+                                              "false_alarm_rate, n_healthy, ...) or null.")
+    physics: dict[str, Any] = Field(..., description="Physical constants for restoring force.")
+    package_versions: dict[str, Any] = {}
+
+
+class RefusedBundle(BaseModel):
+    path: str = Field(..., description="NAME/VERSION inside the registry.")
+    reason: str
+
+
+class Live(BaseModel):
+    status: Literal["alive"]
+
+
+class Ready(BaseModel):
+    status: Literal["ready"]
+    bundles: int
+    models: dict[str, list[str]]
+    refused: list[RefusedBundle]
+
+
+class ReloadResponse(BaseModel):
+    bundles: int
+    models: dict[str, list[str]]
+    refused: list[RefusedBundle]
+    added: list[str]
+    removed: list[str]

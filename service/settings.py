@@ -1,0 +1,130 @@
+"""Service settings and request bounds.
+
+Every bound is documented here (``DEFAULT_BOUNDS``), in the OpenAPI document (field descriptions
+and the API description) and in the README. Each one can be changed with an environment variable
+(``Settings.from_env``); the defaults are what the committed OpenAPI document describes.
+
+=====================  ==========================  ===========  =============================
+setting                 environment variable         default      exceeded ->
+=====================  ==========================  ===========  =============================
+max_samples             GPNARX_MAX_SAMPLES           65536        413, field ``u`` (or ``y``)
+max_batch               GPNARX_MAX_BATCH             64           413, field ``requests``
+mc_paths_default        GPNARX_MC_PATHS_DEFAULT      256          -
+mc_paths_max            GPNARX_MC_PATHS_MAX          4096         422, field ``mc_paths``
+max_mc_work             GPNARX_MAX_MC_WORK           2**24        413, field ``mc_paths``
+max_body_bytes          GPNARX_MAX_BODY_BYTES        32 MiB       413, field ``body``
+workers                 GPNARX_WORKERS               min(4, CPUs) -
+queue_size              GPNARX_QUEUE_SIZE            16           503 + Retry-After
+retry_after             GPNARX_RETRY_AFTER           2 (s)        -
+api_key                 GPNARX_API_KEY               unset (off)  401 on /v1 routes
+blas_threads            GPNARX_BLAS_THREADS          1            - (0: leave BLAS as it is)
+=====================  ==========================  ===========  =============================
+
+``max_mc_work`` bounds Monte Carlo path-steps (mc_paths x samples) per HTTP request; a batch
+shares one budget across its records. ``queue_size`` is the number of jobs allowed to wait for a
+worker on top of the ``workers`` running ones; when both are taken a request is shed with 503.
+
+``blas_threads``: the service runs requests in parallel on its worker threads, and the per-step
+matrix products of a free run are small (paths x training points), so multi-threaded BLAS inside
+each request only oversubscribes the cores (measured on a loaded 2-core machine: a 256-sample,
+128-path prediction took 3.8 s with OpenBLAS threads vs 0.33 s with one). The app therefore
+limits BLAS to ``blas_threads`` threads per process (threadpoolctl) unless it is 0.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field, replace
+
+MiB = 1024 * 1024
+
+#: Default bounds (documented in the OpenAPI document and the README).
+DEFAULT_BOUNDS = {
+    "max_samples": 65536,
+    "max_batch": 64,
+    "mc_paths_default": 256,
+    "mc_paths_max": 4096,
+    "max_mc_work": 2**24,
+    "max_body_bytes": 32 * MiB,
+}
+
+ENV = {
+    "max_samples": "GPNARX_MAX_SAMPLES",
+    "max_batch": "GPNARX_MAX_BATCH",
+    "mc_paths_default": "GPNARX_MC_PATHS_DEFAULT",
+    "mc_paths_max": "GPNARX_MC_PATHS_MAX",
+    "max_mc_work": "GPNARX_MAX_MC_WORK",
+    "max_body_bytes": "GPNARX_MAX_BODY_BYTES",
+    "workers": "GPNARX_WORKERS",
+    "queue_size": "GPNARX_QUEUE_SIZE",
+    "retry_after": "GPNARX_RETRY_AFTER",
+    "api_key": "GPNARX_API_KEY",
+    "registry": "GPNARX_REGISTRY",
+    "blas_threads": "GPNARX_BLAS_THREADS",
+}
+
+
+def _default_workers() -> int:
+    return max(1, min(4, os.cpu_count() or 1))
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Runtime configuration of the HTTP service (see the module docstring for the table)."""
+
+    max_samples: int = DEFAULT_BOUNDS["max_samples"]
+    max_batch: int = DEFAULT_BOUNDS["max_batch"]
+    mc_paths_default: int = DEFAULT_BOUNDS["mc_paths_default"]
+    mc_paths_max: int = DEFAULT_BOUNDS["mc_paths_max"]
+    max_mc_work: int = DEFAULT_BOUNDS["max_mc_work"]
+    max_body_bytes: int = DEFAULT_BOUNDS["max_body_bytes"]
+    workers: int = field(default_factory=_default_workers)
+    queue_size: int = 16
+    retry_after: int = 2
+    api_key: str | None = None
+    registry: str | None = None
+    blas_threads: int = 1
+    #: reload the registry on SIGHUP (only where the event loop runs in the main thread)
+    sighup_reload: bool = False
+
+    def __post_init__(self):
+        for name in ("max_samples", "max_batch", "mc_paths_default", "mc_paths_max", "max_mc_work",
+                     "max_body_bytes", "workers", "retry_after"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"setting {name} must be a positive integer, got {v!r}")
+        if isinstance(self.queue_size, bool) or not isinstance(self.queue_size, int) or self.queue_size < 0:
+            raise ValueError(f"setting queue_size must be a non-negative integer, got {self.queue_size!r}")
+        if isinstance(self.blas_threads, bool) or not isinstance(self.blas_threads, int) or self.blas_threads < 0:
+            raise ValueError(f"setting blas_threads must be a non-negative integer, got {self.blas_threads!r}")
+        if self.mc_paths_default > self.mc_paths_max:
+            raise ValueError(f"setting mc_paths_default ({self.mc_paths_default}) exceeds mc_paths_max "
+                             f"({self.mc_paths_max})")
+        if self.api_key is not None and not str(self.api_key).strip():
+            object.__setattr__(self, "api_key", None)
+
+    @classmethod
+    def from_env(cls, environ=None, **overrides) -> "Settings":
+        """Settings from ``GPNARX_*`` environment variables; ``overrides`` win."""
+        env = os.environ if environ is None else environ
+        kw: dict = {}
+        for name, var in ENV.items():
+            raw = env.get(var)
+            if raw is None or raw == "":
+                continue
+            if name in ("api_key", "registry"):
+                kw[name] = raw
+            else:
+                try:
+                    kw[name] = int(raw.replace("_", ""))
+                except ValueError:
+                    raise ValueError(f"environment variable {var} must be an integer, got {raw!r}") from None
+        kw.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**kw)
+
+    def with_(self, **changes) -> "Settings":
+        return replace(self, **changes)
+
+    def bounds(self) -> dict:
+        """The request bounds in force (no secrets)."""
+        d = asdict(self)
+        return {k: d[k] for k in DEFAULT_BOUNDS}

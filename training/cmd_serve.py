@@ -1,0 +1,96 @@
+"""``gpnarx serve`` and ``gpnarx export-openapi``.
+
+::
+
+    gpnarx serve [--registry DIR] [--host 127.0.0.1] [--port 8000] [--workers N] [--queue N]
+                 [--log-level info]
+    gpnarx export-openapi [--out openapi/openapi.json]
+
+``serve`` runs the HTTP service (``service.app``) with uvicorn over a registry folder. Without
+``--registry`` the default registry is used, built on first use from the embedded defaults
+(``training.defaults.ensure_default_registry``). Bounds and the optional API key come from
+``GPNARX_*`` environment variables (``service.settings``); ``--workers``/``--queue`` override
+GPNARX_WORKERS/GPNARX_QUEUE_SIZE. SIGHUP rescans the registry (like ``POST /v1/admin/reload``).
+
+``export-openapi`` writes the OpenAPI document (sorted keys, indent 2) of the app with default
+settings; ``--out -`` prints it.
+"""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from training.cli import CLIError
+
+DEFAULT_OPENAPI = os.path.join("openapi", "openapi.json")
+
+
+def add_parser(sub):
+    p = sub.add_parser("serve", help="run the HTTP service over a model registry")
+    p.add_argument("--registry", default=None,
+                   help="registry folder (default: the default registry, built on first use)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
+    p.add_argument("--workers", type=int, default=None, help="prediction worker threads (GPNARX_WORKERS)")
+    p.add_argument("--queue", type=int, default=None, help="jobs allowed to wait for a worker (GPNARX_QUEUE_SIZE)")
+    p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    p.set_defaults(func=run_serve)
+
+    q = sub.add_parser("export-openapi", help="write the service's OpenAPI document")
+    q.add_argument("--out", default=DEFAULT_OPENAPI, help=f"output file (default {DEFAULT_OPENAPI}; '-' for stdout)")
+    q.set_defaults(func=run_export)
+
+
+def _registry(arg) -> Path:
+    if arg:
+        root = Path(arg).expanduser()
+        if not root.is_dir():
+            raise CLIError(f"--registry {arg}: no such folder")
+        return root
+    try:
+        from training.defaults import ensure_default_registry
+    except ImportError:
+        raise CLIError("no --registry given and the default registry builder is not available") from None
+    return Path(ensure_default_registry())
+
+
+def run_serve(args):
+    if not 0 < args.port < 65536:
+        raise CLIError(f"--port must be between 1 and 65535, got {args.port}")
+    import uvicorn
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    root = _registry(args.registry)
+    try:
+        settings = Settings.from_env(workers=args.workers, queue_size=args.queue, registry=str(root),
+                                     sighup_reload=True)
+    except (TypeError, ValueError) as exc:
+        raise CLIError(str(exc)) from None
+    app = create_app(root, settings)
+    state = app.state.service
+    n = state.n_bundles()
+    print(f"[gpnarx] serving {n} bundle(s) from {root} on http://{args.host}:{args.port}"
+          f" ({len(state.registry.refused)} refused; API key {'on' if settings.api_key else 'off'})",
+          file=sys.stderr)
+    for r in state.refused():
+        print(f"[gpnarx] refused {r['path']}: {r['reason']}", file=sys.stderr)
+    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=30)
+    return None
+
+
+def run_export(args):
+    from service.app import openapi_json
+
+    text = openapi_json()
+    if args.out == "-":
+        sys.stdout.write(text)
+        return None
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, out)
+    return {"path": str(out), "bytes": len(text.encode())}
