@@ -1,14 +1,15 @@
 """HTTP overhead of the prediction service against the same prediction called in-process.
 
     python bench/bench_service.py [--registry DIR --model NAME] [--samples 2048] [--paths 256]
-                                  [--repeats 15] [--clients 8] [--rps-requests 32]
+                                  [--repeats 10] [--clients 8] [--rps-requests 16]
 
 Starts ``gpnarx serve`` in a subprocess on a free loopback port (without ``--registry`` it first
 trains a small Bouc-Wen bundle, ny = nu = 10, 600 training points, into a temporary registry),
 then, interleaving the two so both see the same machine load:
 
 - in-process: ``bundle.model.simulate(u, n_paths, seed)`` plus the metrics of the answer
-  (fit, RMSE, coverage), in this process (BLAS limited to one thread, as the service does);
+  (fit, RMSE, coverage), in this process, with the service's process tuning (BLAS limited to one
+  thread, glibc mmap threshold raised; see ``service.settings``);
 - over HTTP: ``POST /v1/models/NAME/predict`` with the same record, measured end to end by an
   httpx client (serialisation of u and y, parsing, validation, queueing, the prediction, JSON
   rendering of mean/lower/upper/std, transfer, client-side parsing).
@@ -96,9 +97,9 @@ def main(argv=None):
     ap.add_argument("--model", default=None, help="model name (default: the only/first one with fs 750 Hz)")
     ap.add_argument("--samples", type=int, default=2048)
     ap.add_argument("--paths", type=int, default=256)
-    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--clients", type=int, default=8)
-    ap.add_argument("--rps-requests", type=int, default=32)
+    ap.add_argument("--rps-requests", type=int, default=16)
     ap.add_argument("--workers", type=int, default=None, help="server worker threads (default: the service's)")
     args = ap.parse_args(argv)
 
@@ -106,9 +107,12 @@ def main(argv=None):
 
     from model.bundle import Registry
     from model.metrics import summary
-    from service.app import limit_blas_threads, render_json
+    from service.app import limit_blas_threads, render_json, tune_malloc
+    from service.settings import Settings
 
-    limit_blas_threads(1)
+    # the in-process baseline runs under the same process tuning as the service (service.settings)
+    limit_blas_threads(Settings().blas_threads)
+    tune_malloc(Settings().mmap_threshold)
     tmp = None
     if args.registry:
         registry = Path(args.registry)
@@ -145,7 +149,7 @@ def main(argv=None):
         with httpx.Client(base_url=url, timeout=600) as c:
             path = f"/v1/models/{name}/predict"
             c.post(path, content=payload, headers=headers).raise_for_status()  # warm-up
-            inproc, http = [], []
+            inproc, http, server_compute = [], [], []
             for _ in range(args.repeats):
                 t0 = time.perf_counter()
                 run = bundle.model.simulate(u, n_paths=args.paths, seed=0)
@@ -155,6 +159,10 @@ def main(argv=None):
                 r = c.post(path, content=payload, headers=headers)
                 d = r.json()
                 http.append(time.perf_counter() - t0)
+                timing = dict(part.strip().split(";dur=") for part in r.headers.get("server-timing", "").split(",")
+                              if ";dur=" in part)
+                if "compute" in timing:
+                    server_compute.append(float(timing["compute"]) / 1e3)
                 assert r.status_code == 200 and len(d["mean"]) == args.samples, r.text[:200]
             same = np.array_equal(np.asarray(d["mean"]), run.mean)
 
@@ -207,6 +215,7 @@ def main(argv=None):
           f"ratio={ratio:.3f} overhead_pct={overhead:.1f} rps={rps:.2f} clients={args.clients} "
           f"rps_requests={sum(counts)} rps_errors={len(errors)} samples={args.samples} paths={args.paths} "
           f"repeats={args.repeats} model={name} n_train={n_train} inproc_p95_ms={pct(inproc, 95) * 1e3:.1f} "
+          f"server_compute_p50_ms={pct(server_compute, 50) * 1e3 if server_compute else float('nan'):.1f} "
           f"render_ms={render_ms:.2f} stdlib_json_ms={stdlib_ms:.2f} identical_to_inproc={int(same)} "
           f"cpus={os.cpu_count()}")
 

@@ -24,6 +24,7 @@ import json
 import logging
 import math
 import signal
+import sys
 import time
 import uuid
 from contextlib import asynccontextmanager
@@ -342,10 +343,27 @@ def limit_blas_threads(n: int) -> None:
     threadpool_limits(limits=int(n), user_api="blas")
 
 
+def tune_malloc(mmap_threshold: int) -> bool:
+    """glibc: serve blocks below ``mmap_threshold`` bytes from the heap (see ``service.settings``)."""
+    if not mmap_threshold or not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        ok = libc.mallopt(m_mmap_threshold, int(min(mmap_threshold, 2**31 - 1)))
+        ok = ok and libc.mallopt(m_trim_threshold, int(min(4 * mmap_threshold, 2**31 - 1)))
+        return bool(ok)
+    except (OSError, AttributeError):  # not glibc
+        return False
+
+
 def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
     """The service app over the registry folder ``registry_dir`` (None: an empty registry)."""
     settings = settings or Settings.from_env()
     limit_blas_threads(settings.blas_threads)
+    tune_malloc(settings.mmap_threshold)
     if registry_dir is None and settings.registry:
         registry_dir = settings.registry
     state = ServiceState(registry_dir, settings)
@@ -469,12 +487,18 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
         return JSONBytesResponse(detail_of(state.lookup(name, version)))
 
     # ---------------------------------------------------------------- operations
+    def timed_compute(plan, body, submitted):
+        started = time.perf_counter()
+        out, steps = ops.compute(plan, body)
+        return out, steps, started - submitted, time.perf_counter() - started
+
     async def single(operation: str, body: RecordRequest, name: str, version: str | None):
         bundle = state.lookup(name, version)
         plan = ops.plan(operation, body, bundle, settings)
-        out, steps = await state.run(ops.compute, plan, body)
+        out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter())
         state.metrics.path_steps.inc(steps)
-        return JSONBytesResponse(out)
+        return JSONBytesResponse(out, headers={
+            "Server-Timing": f"queue;dur={waited * 1e3:.2f}, compute;dur={computed * 1e3:.2f}"})
 
     op_problems = {k: {"description": v} for k, v in _RECORD_PROBLEMS.items()}
     loops_problems = {**op_problems, 409: {"description": "The bundle has no physical constants (mass)"}}
