@@ -169,7 +169,7 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
             "n_train": model.n_train_,
             "estimator": {"include_noise": bool(model.include_noise), "n_inducing": int(model.n_inducing),
                           "max_train_points": model.max_train_points, "selection": model.selection,
-                          "seed": int(model.seed), "kernel_spec": model.kernel if isinstance(model.kernel, str) else None},
+                          "seed": int(model.seed), "hyper": model.hyper, "kernel_spec": model.kernel if isinstance(model.kernel, str) else None},
             "fs": float(fs),
             "units": dict(units),
             "physics": dict(physics or {}),
@@ -257,7 +257,7 @@ def load_bundle(path) -> Bundle:
         model = GPNARX(ny=ny, nu=nu, kernel=est.get("kernel_spec") or kernel, mode=manifest["mode"],
                        n_inducing=int(est.get("n_inducing", 256)), max_train_points=est.get("max_train_points"),
                        selection=est.get("selection", "stride"), seed=int(est.get("seed", 0)),
-                       include_noise=bool(est.get("include_noise", True)))
+                       include_noise=bool(est.get("include_noise", True)), hyper=est.get("hyper", "subset"))
         model._validate_params()
         model.kernel_ = kernel
         model.theta_ = arrays["theta"]

@@ -72,12 +72,15 @@ class GPNARX:
     n_restarts: extra seeded L-BFGS-B starts for ML-II (stops early when two agree).
     seed: seed of the selection, restarts and inducing-point k-means.
     include_noise: free-run samples include the likelihood noise sigma_y^2 (eq. 2).
+    hyper: how sparse mode sets hyperparameters: 'subset' (exact ML-II, eq. 13, on the capped
+        rows) or 'vfe' (that, then refined on all rows by maximising the Titsias VFE bound with
+        analytic gradients, O(N M^2) per evaluation; see ``model.vfe``).
     """
 
     def __init__(self, ny: int = 2, nu: int = 2, kernel: Kernel | str = "matern32+cubic", mode: str = "exact",
                  n_inducing: int = 256, max_train_points: int | None = 2000, selection: str = "stride",
                  n_restarts: int = 2, seed: int = 0, include_noise: bool = True,
-                 sparse_max_rows: int | None = 50000):
+                 sparse_max_rows: int | None = 50000, hyper: str = "subset"):
         self.ny = ny
         self.nu = nu
         self.kernel = kernel
@@ -89,6 +92,7 @@ class GPNARX:
         self.seed = seed
         self.include_noise = include_noise
         self.sparse_max_rows = sparse_max_rows
+        self.hyper = hyper
 
     # ------------------------------------------------------------------------------------------
     def _validate_params(self) -> None:
@@ -101,6 +105,8 @@ class GPNARX:
             raise ValueError(f"max_train_points must be at least 2, got {self.max_train_points}")
         if self.mode == "sparse" and not 1 <= int(self.n_inducing) <= 4096:
             raise ValueError(f"n_inducing must be between 1 and 4096, got {self.n_inducing}")
+        if self.hyper not in ("subset", "vfe"):
+            raise ValueError(f"hyper must be 'subset' or 'vfe', got {self.hyper!r}")
         if int(self.n_restarts) < 0:
             raise ValueError(f"n_restarts must be >= 0, got {self.n_restarts}")
 
@@ -138,6 +144,12 @@ class GPNARX:
         else:
             all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed)
             Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
+            if self.hyper == "vfe" and theta is None:
+                from .vfe import fit_vfe
+
+                res = fit_vfe(self.kernel_, Xs[all_rows], Ys[all_rows], Z, theta0=self.theta_)
+                self.theta_, self.nlml_ = res.theta, res.nlml
+                self.noise_var_ = float(np.exp(self.theta_[-1]))
             self.posterior_ = SparsePosterior.fit(self.kernel_, self.noise_var_, Xs[all_rows], Ys[all_rows], Z)
         self.n_train_ = int(Xt.shape[0])
         self.n_rows_ = int(X.shape[0])

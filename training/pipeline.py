@@ -38,7 +38,7 @@ def model_from_config(cfg: DatasetConfig, ny: int | None = None, nu: int | None 
     return GPNARX(ny=int(ny), nu=int(nu), kernel=m.get("kernel", "matern32+cubic"), mode=m.get("mode", "exact"),
                   n_inducing=int(m.get("inducing", 256)), max_train_points=m.get("max_train_points", 2000),
                   selection=m.get("selection", "stride"), n_restarts=int(m.get("restarts", 2)),
-                  seed=int(m.get("seed", 0)))
+                  seed=int(m.get("seed", 0)), hyper=m.get("hyper", "subset"))
 
 
 def evaluate_record(model: GPNARX, rec: Record, role: str, n_paths: int, seed: int = 0, confidence: float = 0.99,

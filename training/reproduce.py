@@ -38,7 +38,7 @@ GRIDS = {
 SURFACE_SETTINGS = {"max_train_points": 500, "mode": "sparse", "inducing": 256, "score_clean": True}
 QUICK = {"grid": ([2, 4], [2, 4]), "max_seconds": 1.0, "surface": {"max_train_points": 150, "mode": "sparse", "score_clean": True,
                                                                      "inducing": 32},
-         "model": {"max_train_points": 200, "inducing": 64}, "mc_paths": 32, "novelty_n": 4}
+         "model": {"max_train_points": 200, "inducing": 64}, "mc_paths": 32, "novelty_n": 3}
 MC_PATHS = {"bouc-wen": 1024, "bert-standin": 4096, "bert-real": 1024}
 SYSTEMS = tuple(PAPER)
 

@@ -1,0 +1,57 @@
+"""Paper protocols end to end (issue 8). Quick modes run in the default suite; the full
+protocols are marked slow (python -m pytest -m slow)."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from training.cli import main
+
+BERT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bert-t5nm"
+
+
+def _run(system, out, quick, capsys):
+    argv = ["reproduce", system, "--out", str(out), "--json"] + (["--quick"] if quick else [])
+    assert main(argv) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_reproduce_bouc_wen_quick(tmp_path, capsys):
+    res = _run("bouc-wen", tmp_path, True, capsys)
+    assert res["quick"] is True and res["paper_lags"] == {"ny": 20, "nu": 17, "fit": 92.4}
+    assert res["chosen_lags"]["ny"] in (2, 4) and res["chosen_lags"]["nu"] in (2, 4)
+    expected = {"sweep-10N", "sweep-50N", "sweep-80N", "sine-10N", "sine-50N", "sine-80N",
+                "multisine-10N", "multisine-50N", "multisine-80N"}
+    assert set(res["records"]) == expected
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    base = summary["baselines"]
+    assert set(base) == expected and all("linear ARX" in v for v in base.values())
+    report = Path(res["bundle"]) / "report"
+    rj = json.loads((report / "report.json").read_text())
+    assert rj["lag_surface"] and rj["paper"]["lags"]["fit"] == 92.4
+    html = (report / "report.html").read_text()
+    assert "linear ARX" in html and "sine-50N" in html
+    assert (tmp_path / "lag_surface.png").is_file()
+    assert res["wall_seconds"] < 120
+
+
+def test_reproduce_bert_real_quick(tmp_path, capsys):
+    assert (BERT_DATA / "Sine").is_dir(), f"real BERT records expected at {BERT_DATA}"
+    res = _run("bert-real", tmp_path, True, capsys)
+    held_out = {k for k, v in res["records"].items() if v["role"] == "validate"}
+    assert {"heldout-09Hz", "heldout-09p75Hz", "heldout-06p75Hz"} <= held_out
+    assert not any(k.startswith("train-") for k in res["records"])  # training records are not scored as held out
+
+
+@pytest.mark.slow
+def test_reproduce_bouc_wen_full_meets_targets(tmp_path, capsys):
+    res = _run("bouc-wen", tmp_path, False, capsys)
+    print(json.dumps(res, indent=1))
+    assert res["chosen_lags"]["fit"] >= 92.4 - 3
+    for name in ("sweep-10N", "sweep-50N", "sweep-80N"):
+        assert res["records"][name]["fit_clean"] >= 90, name
+    for name, rec in res["records"].items():
+        if rec["role"] == "validate":
+            assert rec["coverage_clean"] >= 95, name
+    assert res["wall_seconds"] < 15 * 60
