@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -557,3 +558,62 @@ def test_settings_from_env():
     with pytest.raises(ValueError, match="mc_paths_default"):
         Settings(mc_paths_default=10, mc_paths_max=5)
     assert Settings.from_env({"GPNARX_API_KEY": "  "}).api_key is None
+
+
+def test_truncated_and_changed_bundles_refused(tmp_path):
+    root = copy_registry(tmp_path / "reg")
+    npy = sorted((root / "boucwen" / "1").glob("*.npy"))[0]
+    npy.write_bytes(npy.read_bytes()[:40])  # truncated
+    mf = root / "boucwen" / "2" / "manifest.json"
+    m = json.loads(mf.read_text())
+    m["version"] = "9"  # manifest edited: it no longer names the folder's version
+    # (the manifest carries no checksum of its own in model.bundle, so an edit of e.g. fs alone is not detected)
+    mf.write_text(json.dumps(m))
+    c = TestClient(create_app(root, settings()), raise_server_exceptions=False)
+    ready = c.get("/health/ready").json()
+    assert sorted(r["path"] for r in ready["refused"]) == ["boucwen/1", "boucwen/2"]
+    assert ready["models"] == {"plain": ["1"]}
+    assert_problem(c.post("/v1/models/boucwen/predict", json=rec(n=8)[0]), 404, "name")
+    assert c.post("/v1/models/plain/predict", json=rec(n=8)[0]).status_code == 200
+
+
+@pytest.mark.skipif(not hasattr(__import__("signal"), "SIGHUP"), reason="needs SIGHUP")
+def test_cli_serve_subprocess_and_sighup_reload(tmp_path):
+    import signal
+    import socket
+
+    from model.bundle import save_bundle
+
+    root = copy_registry(tmp_path / "reg")
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("GPNARX_API_KEY", None)
+    proc = subprocess.Popen([sys.executable, "-m", "training.cli", "serve", "--registry", str(root), "--port",
+                             str(port), "--log-level", "warning"], cwd=str(ROOT), env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        def up():
+            assert proc.poll() is None, proc.stderr.read()
+            try:
+                return httpx.get(url + "/health/ready", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        _wait(up, timeout=60)
+        assert httpx.get(url + "/v1/models/boucwen", timeout=10).json()["versions"] == ["1", "2"]
+        save_bundle(built_registry().model, root, "boucwen", "3", fs=FS, units={"u": "N", "y": "m"}, training={})
+        proc.send_signal(signal.SIGHUP)
+        _wait(lambda: httpx.get(url + "/v1/models/boucwen", timeout=10).json()["versions"] == ["1", "2", "3"],
+              timeout=30)
+        r = httpx.post(url + "/v1/models/boucwen/predict", json=rec(n=16)[0], timeout=30)
+        assert r.status_code == 200 and r.json()["version"] == "3" and "compute;dur=" in r.headers["server-timing"]
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:  # pragma: no cover
+            proc.kill()

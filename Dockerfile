@@ -1,0 +1,44 @@
+# GP-NARX hysteresis surrogate service.
+#
+#   docker build -t gpnarx .
+#   docker run -p 8000:8000 gpnarx                       # serves the default registry
+#   docker run -p 8000:8000 -e GPNARX_API_KEY=... -v /srv/registry:/registry gpnarx \
+#       gpnarx serve --registry /registry --host 0.0.0.0 --port 8000
+#
+# The default registry (Bouc-Wen and BERT stand-in bundles) is built at image build time by
+# `gpnarx build-defaults` (a few minutes on 2 cores), so the container is ready at first start.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    GPNARX_REGISTRY=/var/lib/gpnarx/registry \
+    GPNARX_BLAS_THREADS=1 \
+    MPLBACKEND=Agg
+
+RUN groupadd --system --gid 10001 gpnarx \
+    && useradd --system --uid 10001 --gid gpnarx --home-dir /home/gpnarx --create-home --shell /usr/sbin/nologin gpnarx \
+    && mkdir -p /var/lib/gpnarx/registry \
+    && chown -R gpnarx:gpnarx /var/lib/gpnarx
+
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY model ./model
+COPY training ./training
+COPY service ./service
+COPY configs ./configs
+COPY openapi ./openapi
+# Editable install: the shipped dataset configs are read from /app/configs next to the packages.
+# orjson renders the long float arrays of predictions (the service falls back to json without it).
+RUN pip install -e . orjson \
+    && python -c "import service.app, model.bundle, training.cli"
+
+USER gpnarx
+# Default registry at image build (training runs as the unprivileged user into its own folder).
+RUN gpnarx build-defaults --registry "$GPNARX_REGISTRY"
+
+EXPOSE 8000
+HEALTHCHECK --interval=30s --timeout=5s --start-period=120s --retries=3 \
+    CMD ["python", "-c", "import sys, urllib.request; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8000/health/ready', timeout=4).status == 200 else 1)"]
+CMD ["gpnarx", "serve", "--host", "0.0.0.0", "--port", "8000"]
