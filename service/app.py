@@ -32,7 +32,8 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
-from fastapi import FastAPI, Path as PathParam, Request
+from fastapi import FastAPI, Request
+from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from pydantic import ValidationError
@@ -45,9 +46,24 @@ from model.bundle import BundleError, Registry, check_name, check_version
 from . import ops
 from .metrics import ServiceMetrics
 from .problems import PROBLEM_MEDIA_TYPE, ProblemError, validation_problem
-from .schemas import (NAME_PATTERN, VERSION_PATTERN, BatchItem, BatchRequest, BatchResponse, Live, LoopsResponse,
-                      ModelDetail, ModelList, NoveltyRequest, NoveltyResponse, PredictResponse, Problem, Ready,
-                      RecordRequest, ReloadResponse)
+from .schemas import (
+    NAME_PATTERN,
+    VERSION_PATTERN,
+    BatchItem,
+    BatchRequest,
+    BatchResponse,
+    Live,
+    LoopsResponse,
+    ModelDetail,
+    ModelList,
+    NoveltyRequest,
+    NoveltyResponse,
+    PredictResponse,
+    Problem,
+    Ready,
+    RecordRequest,
+    ReloadResponse,
+)
 from .settings import DEFAULT_BOUNDS, Settings
 from .worker import BoundedExecutor, Overloaded
 

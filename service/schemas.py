@@ -12,7 +12,7 @@ a 413/422 problem detail naming the field and the limit.
 """
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, Optional, Union
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, Strict
 
@@ -56,9 +56,9 @@ class RecordRequest(_Strict):
 
     u: list[FiniteFloat] = Field(..., min_length=1, description=_U_DESC)
     fs: FiniteFloat = Field(..., gt=0, description=_FS_DESC)
-    y: Optional[list[FiniteFloat]] = Field(None, min_length=1, description=_Y_DESC)
-    y0: Optional[list[FiniteFloat]] = Field(None, description=_Y0_DESC)
-    mc_paths: Optional[StrictInt] = Field(None, ge=1, description=_MC_DESC)
+    y: list[FiniteFloat] | None = Field(None, min_length=1, description=_Y_DESC)
+    y0: list[FiniteFloat] | None = Field(None, description=_Y0_DESC)
+    mc_paths: StrictInt | None = Field(None, ge=1, description=_MC_DESC)
     seed: StrictInt = Field(0, ge=0, le=2**63 - 1, description=_SEED_DESC)
     confidence: FiniteFloat = Field(0.99, ge=0.5, lt=1.0, description=_CONF_DESC)
     method: Literal["mc", "linear"] = Field("mc", description=_METHOD_DESC)
@@ -82,7 +82,7 @@ class BatchItem(RecordRequest):
         {"model": "bouc-wen", "operation": "predict", "u": [0.0, 1.5, 2.0, -0.5], "fs": 750.0, "mc_paths": 32}]})
 
     model: str = Field(..., pattern=NAME_PATTERN, description="Model name.")
-    version: Optional[str] = Field(None, pattern=VERSION_PATTERN, description="Model version (default: latest).")
+    version: str | None = Field(None, pattern=VERSION_PATTERN, description="Model version (default: latest).")
     operation: Literal["predict", "loops", "novelty"] = Field("predict", description="What to compute; 'novelty' "
                                                                "needs `y`.")
 
@@ -108,16 +108,16 @@ class Problem(BaseModel):
     title: str = Field(..., description="Short summary of the kind of problem.")
     status: int = Field(..., description="HTTP status code.")
     detail: str = Field(..., description="What was wrong with this request, naming the field and the limit.")
-    field: Optional[str] = Field(None, description="Dotted path of the offending request field (e.g. `u`, "
+    field: str | None = Field(None, description="Dotted path of the offending request field (e.g. `u`, "
                                  "`mc_paths`, `requests.2.mc_paths`), null when no single field is to blame.")
-    errors: Optional[list[dict[str, Any]]] = Field(None, description="Every validation error found: "
+    errors: list[dict[str, Any]] | None = Field(None, description="Every validation error found: "
                                                    "{field, message, type}.")
 
 
 class Units(BaseModel):
     model_config = ConfigDict(extra="allow")
-    u: Optional[str] = Field(None, description="Input unit (e.g. N, V).")
-    y: Optional[str] = Field(None, description="Output unit (e.g. m, m/s).")
+    u: str | None = Field(None, description="Input unit (e.g. N, V).")
+    y: str | None = Field(None, description="Output unit (e.g. m, m/s).")
 
 
 class PredictResponse(BaseModel):
@@ -133,10 +133,10 @@ class PredictResponse(BaseModel):
     seed: int
     n_samples: int
     units: Units
-    fit: Optional[float] = Field(None, description="Only when `y` was sent: fit % of eq. (14) (null when y is "
+    fit: float | None = Field(None, description="Only when `y` was sent: fit % of eq. (14) (null when y is "
                                  "identically zero).")
-    rmse: Optional[float] = Field(None, description="Only when `y` was sent: RMSE, output units.")
-    coverage: Optional[float] = Field(None, description="Only when `y` was sent: % of measured samples inside "
+    rmse: float | None = Field(None, description="Only when `y` was sent: RMSE, output units.")
+    coverage: float | None = Field(None, description="Only when `y` was sent: % of measured samples inside "
                                       "[lower, upper].")
 
 
@@ -166,7 +166,7 @@ class LoopsResponse(BaseModel):
     predicted: Loop = Field(..., description="Loop of the predicted mean response.")
     lower: Loop = Field(..., description="Loop of the lower band edge.")
     upper: Loop = Field(..., description="Loop of the upper band edge.")
-    measured: Optional[Loop] = Field(None, description="Only when `y` was sent: loop of the measured response.")
+    measured: Loop | None = Field(None, description="Only when `y` was sent: loop of the measured response.")
 
 
 class NoveltyResponse(BaseModel):
@@ -176,7 +176,7 @@ class NoveltyResponse(BaseModel):
                          "(about 1 for a healthy record).")
     threshold: float = Field(..., description="Score above which the record is 'novel'.")
     verdict: Literal["healthy", "novel"]
-    false_alarm_rate: Optional[float] = Field(..., description="False-alarm rate the threshold was calibrated for "
+    false_alarm_rate: float | None = Field(..., description="False-alarm rate the threshold was calibrated for "
                                               "(null if the calibration does not say).")
     nlpd: float = Field(..., description="Mean negative log predictive density.")
     n_samples: int = Field(..., description="Samples that entered the score.")
@@ -186,7 +186,7 @@ class NoveltyResponse(BaseModel):
 
 
 class BatchResponse(BaseModel):
-    results: list[Union[PredictResponse, LoopsResponse, NoveltyResponse, Problem]] = Field(
+    results: list[PredictResponse | LoopsResponse | NoveltyResponse | Problem] = Field(
         ..., description="One entry per request, in order: that operation's answer or a problem detail.")
 
 
@@ -213,16 +213,16 @@ class ModelDetail(BaseModel):
     name: str
     version: str
     versions: list[str]
-    created: Optional[str] = None
+    created: str | None = None
     lags: Lags
     mode: str
     fs: float
     units: Units
     kernel: dict[str, Any]
     hyperparameters: dict[str, Any]
-    n_train: Optional[int] = None
+    n_train: int | None = None
     training: dict[str, Any] = Field(..., description="Training metrics.")
-    novelty: Optional[dict[str, Any]] = Field(None, description="Novelty calibration (threshold, "
+    novelty: dict[str, Any] | None = Field(None, description="Novelty calibration (threshold, "
                                               "false_alarm_rate, n_healthy, ...) or null.")
     physics: dict[str, Any] = Field(..., description="Physical constants for restoring force.")
     package_versions: dict[str, Any] = {}

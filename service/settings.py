@@ -115,7 +115,7 @@ class Settings:
             object.__setattr__(self, "api_key", None)
 
     @classmethod
-    def from_env(cls, environ=None, **overrides) -> "Settings":
+    def from_env(cls, environ=None, **overrides) -> Settings:
         """Settings from ``GPNARX_*`` environment variables; ``overrides`` win."""
         env = os.environ if environ is None else environ
         kw: dict = {}
@@ -133,7 +133,7 @@ class Settings:
         kw.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**kw)
 
-    def with_(self, **changes) -> "Settings":
+    def with_(self, **changes) -> Settings:
         return replace(self, **changes)
 
     def bounds(self) -> dict:

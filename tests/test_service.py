@@ -18,9 +18,16 @@ import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-
-from test_service_support import (FS, LiveServer, built_registry, copy_registry, multisine, noisy,
-                                  short_record, simulate)
+from test_service_support import (
+    FS,
+    LiveServer,
+    built_registry,
+    copy_registry,
+    multisine,
+    noisy,
+    short_record,
+    simulate,
+)
 
 from service.app import create_app, openapi_json
 from service.settings import DEFAULT_BOUNDS, Settings

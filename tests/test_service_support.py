@@ -56,9 +56,8 @@ def built_registry() -> Built:
     from model.bundle import save_bundle
     from model.estimator import GPNARX
     from model.novelty import calibrate_threshold, novelty_score
-    from training import excitations as ex
-
     from service.app import limit_blas_threads
+    from training import excitations as ex
 
     limit_blas_threads(1)  # as the service does; multi-threaded BLAS on small products only oversubscribes
     root = Path(tempfile.mkdtemp(prefix="gpnarx-svc-registry-"))

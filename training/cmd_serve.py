@@ -78,7 +78,6 @@ def run_serve(args):
     for r in state.refused():
         print(f"[gpnarx] refused {r['path']}: {r['reason']}", file=sys.stderr)
     uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=30)
-    return None
 
 
 def run_export(args):
