@@ -53,7 +53,8 @@ def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
         model = model_from_config(cfg, ny, nu, **settings).fit(train)
         fits = []
         for rec in lag_recs:
-            run = model.simulate(rec.u, method="linear")
+            y0 = rec.y[:ny] if rec.meta.get("initial") == "measured" else None  # steady-state records
+            run = model.simulate(rec.u, method="linear", y0=y0)
             ref = rec.meta.get("clean_y", rec.y) if settings.get("score_clean") else rec.y
             f = fit_percent(ref, run.mean)
             fits.append(f if np.isfinite(f) else -1e3)
