@@ -23,6 +23,7 @@ from scipy.special import ndtri
 
 
 LAG_CLIP = 1e3  # standardised lagged outputs are clipped to +/- this (diverging paths stay finite)
+VAR_CAP = LAG_CLIP**2  # linearised variance cap (standardised units)
 
 
 @dataclass
@@ -196,12 +197,12 @@ def simulate_linear(
     x = np.empty(ny + nu)
     dscale = ys / xs[:ny]  # d y_out / d x_std for the lag columns
     for i in range(i0, n):
-        x[:ny] = (m - xm[:ny]) / xs[:ny]
+        x[:ny] = np.clip((m - xm[:ny]) / xs[:ny], -LAG_CLIP, LAG_CLIP)  # a diverging mean stays finite
         x[ny:] = Ulag[i]
         mu, var_f, grad = posterior.mean_grad(x)
         J = grad[:ny] / xs[:ny] * ys  # d mu_out / d y_lag (output units)
         SJ = S @ J
-        var_y = (var_f + noise) * ys * ys + float(J @ SJ)
+        var_y = min((var_f + noise) * ys * ys + float(J @ SJ), VAR_CAP * ys * ys)
         y_mean = mu * ys + ym
         mean[i] = y_mean
         std[i] = np.sqrt(max(var_y, 0.0))
