@@ -32,6 +32,7 @@ from .scaling import Standardizer
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
+MANIFEST_SUM = "manifest.sha256"  # sha256 of manifest.json: an edited manifest is refused too
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 VERSION_RE = re.compile(r"^[1-9][0-9]{0,8}$")
 MAX_MANIFEST_BYTES = 4 * 1024 * 1024
@@ -184,6 +185,7 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
             json.dump(manifest, f, indent=1, allow_nan=False, default=_json_default)
             f.flush()
             os.fsync(f.fileno())
+        (tmp / MANIFEST_SUM).write_text(_sha256(tmp / MANIFEST) + "\n")
         os.rename(tmp, target)  # atomic on one filesystem; fails if target appeared meanwhile
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -205,6 +207,11 @@ def _read_manifest(path: Path) -> dict:
         raise BundleError(f"{path}: no {MANIFEST}")
     if mf.stat().st_size > MAX_MANIFEST_BYTES:
         raise BundleError(f"{mf}: manifest larger than {MAX_MANIFEST_BYTES} bytes")
+    sf = path / MANIFEST_SUM
+    if not sf.is_file():
+        raise BundleError(f"{sf}: missing (the manifest checksum)")
+    if sf.read_text().strip() != _sha256(mf):
+        raise BundleError(f"{mf}: sha256 does not match {MANIFEST_SUM} (manifest edited or corrupted)")
     try:
         manifest = json.loads(mf.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:

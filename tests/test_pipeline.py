@@ -128,7 +128,20 @@ def test_changed_manifest_and_unsafe_names_are_refused(trained, tmp_path):
     mf = json.loads((p / "manifest.json").read_text())
     mf["files"]["../../etc/passwd"] = "0" * 64
     (p / "manifest.json").write_text(json.dumps(mf))
-    with pytest.raises(BundleError, match="not allowed"):
+    with pytest.raises(BundleError, match="manifest edited"):
+        load_bundle(p)
+    import hashlib
+
+    (p / "manifest.sha256").write_text(hashlib.sha256((p / "manifest.json").read_bytes()).hexdigest())
+    with pytest.raises(BundleError, match="not allowed"):  # even with a matching checksum
+        load_bundle(p)
+    mf["files"].pop("../../etc/passwd")
+    mf["fs"] = 751.0
+    (p / "manifest.json").write_text(json.dumps(mf))
+    with pytest.raises(BundleError, match="manifest.json: sha256 does not match"):
+        load_bundle(p)
+    (p / "manifest.sha256").unlink()
+    with pytest.raises(BundleError, match="missing"):
         load_bundle(p)
     for bad in ("../x", "a/b", "", ".hidden"):
         with pytest.raises(BundleError):

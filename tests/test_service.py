@@ -573,8 +573,7 @@ def test_truncated_and_changed_bundles_refused(tmp_path):
     npy.write_bytes(npy.read_bytes()[:40])  # truncated
     mf = root / "boucwen" / "2" / "manifest.json"
     m = json.loads(mf.read_text())
-    m["version"] = "9"  # manifest edited: it no longer names the folder's version
-    # (the manifest carries no checksum of its own in model.bundle, so an edit of e.g. fs alone is not detected)
+    m["fs"] = 751.0  # manifest edited: its checksum (manifest.sha256) no longer matches
     mf.write_text(json.dumps(m))
     c = TestClient(create_app(root, settings()), raise_server_exceptions=False)
     ready = c.get("/health/ready").json()
