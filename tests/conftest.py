@@ -1,8 +1,18 @@
+import os
 import sys
 from pathlib import Path
 
-import numpy as np
-import pytest
+# One BLAS thread per process: the suite's matrices are small and several processes (dask
+# workers, uvicorn servers, subprocess CLIs) run at once; multi-threaded OpenBLAS on 2 shared
+# cores was measured 10x slower. Subprocesses inherit the variables.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+threadpool_limits(limits=1)
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
