@@ -15,6 +15,8 @@ import sys
 
 import numpy as np
 
+from training.jsonsafe import to_json_safe
+
 # Subcommand modules, in the order shown by --help.
 COMMAND_MODULES = [
     "training.cmd_simulate",
@@ -30,18 +32,6 @@ COMMAND_MODULES = [
 
 class CLIError(Exception):
     """An error the user can fix; printed as one line, exit code 2."""
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
 
 
 class _Parser(argparse.ArgumentParser):
@@ -106,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if result is not None:
         if as_json:
-            json.dump(_jsonable(result), sys.stdout)
+            json.dump(to_json_safe(result), sys.stdout, allow_nan=False)
             sys.stdout.write("\n")
         else:
             _print_human(result)

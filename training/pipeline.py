@@ -19,6 +19,7 @@ from model.estimator import GPNARX
 from model.novelty import calibrate_threshold, novelty_score, verdict
 from model.records import Record
 from training.config import ConfigError, DatasetConfig, load_config
+from training.jsonsafe import to_json_safe
 
 EVAL_ROLES = ("lags", "verify", "validate", "healthy", "damaged")
 
@@ -190,24 +191,8 @@ def train(config, registry, name: str | None = None, version: str | None = None,
             del full
         training_metrics["wall_seconds"] = time.perf_counter() - t0
         path = save_bundle(model, registry, name or cfg.name, version, fs=cfg.fs, units=cfg.units,
-                           physics=physics, novelty=novelty, training=_clean_json(training_metrics),
+                           physics=physics, novelty=novelty, training=to_json_safe(training_metrics),
                            attach_dir=report_dir)
     log(f"bundle written to {path}")
     return {"name": name or cfg.name, "version": path.name, "path": str(path),
-            "metrics": _clean_json(training_metrics), "evals": evals, "model": model}
-
-
-def _clean_json(obj):
-    """Replace NaN/inf by None and numpy scalars by Python numbers, recursively."""
-    if isinstance(obj, dict):
-        return {str(k): _clean_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean_json(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _clean_json(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
+            "metrics": to_json_safe(training_metrics), "evals": evals, "model": model}

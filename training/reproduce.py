@@ -92,9 +92,9 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
 
 
 def _clean(o):
-    from training.pipeline import _clean_json
+    from training.jsonsafe import to_json_safe
 
-    return _clean_json(o)
+    return to_json_safe(o)
 
 
 def novelty_study(model, out: Path, n_per_class: int = 20, n_paths: int = 128, seconds: float = 4.0,
