@@ -23,7 +23,7 @@ def test_regressors_follow_eq3_and_never_straddle_records():
 
 def test_sdof_free_run_and_one_step(sdof_data, sdof_model):
     m = sdof_model
-    run = m.simulate(sdof_data["u2"], n_paths=512, seed=0)
+    run = m.simulate(sdof_data["u2"], n_paths=256, seed=0)
     fit = fit_percent(sdof_data["y2"], run.mean)
     cov = coverage(sdof_data["y2"], run.lower, run.upper)
     print(f"SDOF free-run fit {fit:.2f}% coverage {cov:.2f}%")
@@ -36,7 +36,7 @@ def test_sdof_free_run_and_one_step(sdof_data, sdof_model):
 
 
 def test_free_run_is_deterministic_for_a_seed(sdof_data, sdof_model):
-    u = sdof_data["u2"][:300]
+    u = sdof_data["u2"][:100]
     a = sdof_model.simulate(u, n_paths=1024, seed=7)
     b = sdof_model.simulate(u, n_paths=1024, seed=7)
     c = sdof_model.simulate(u, n_paths=1024, seed=8)
@@ -58,8 +58,8 @@ def test_band_widens_with_training_noise(sdof_data):
 
 
 def test_linearised_band_close_to_monte_carlo(sdof_data, sdof_model):
-    u = sdof_data["u2"][:600]
-    mc = sdof_model.simulate(u, n_paths=2048, seed=0)
+    u = sdof_data["u2"][:300]
+    mc = sdof_model.simulate(u, n_paths=512, seed=0)
     lin = sdof_model.simulate(u, method="linear")
     ratio = band_width(lin.lower, lin.upper) / band_width(mc.lower, mc.upper)
     assert 0.8 < ratio < 1.2, ratio
