@@ -24,8 +24,28 @@ def first_index(ny: int, nu: int) -> int:
     return max(ny, nu - 1)
 
 
+def _series(name: str, v) -> np.ndarray:
+    """``v`` as a 1-D float64 array; ValueError naming ``name`` otherwise."""
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 1-D sequence of numbers") from None
+    if a.ndim != 1:
+        raise ValueError(f"{name} must be a 1-D sequence of numbers, got an array of shape {a.shape}")
+    return a
+
+
 def narx_regressors(u: np.ndarray, y: np.ndarray, ny: int, nu: int) -> tuple[np.ndarray, np.ndarray]:
-    """Regression matrix X (n - i0, ny + nu) and targets Y (n - i0,) for one record, eq. (3)."""
+    """Regression matrix X (n - i0, ny + nu) and targets Y (n - i0,) for one record, eq. (3).
+
+    Row r is x_i for i = i0 + r, i0 = max(ny, nu - 1). Raises ValueError (naming the argument and the
+    limit) for invalid lags, u/y that are not 1-D sequences of numbers of one length, or a record
+    with no complete lag window.
+    """
+    ny, nu = check_lags(ny, nu)
+    u, y = _series("u", u), _series("y", y)
+    if u.size != y.size:
+        raise ValueError(f"u and y must have the same length, got {u.size} and {y.size} samples")
     i0 = first_index(ny, nu)
     n = u.size
     if n <= i0:
@@ -42,11 +62,25 @@ def narx_regressors(u: np.ndarray, y: np.ndarray, ny: int, nu: int) -> tuple[np.
 
 
 def stack_regressors(records, ny: int, nu: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """X, Y and the record index of each row, for many records (u, y) stacked; no window straddles two."""
+    """X, Y and the record index of each row, for many records (u, y) stacked; no window straddles two.
+
+    A record that is not a (u, y) pair or fails ``narx_regressors`` raises ValueError prefixed with
+    ``record K:`` (its position).
+    """
+    ny, nu = check_lags(ny, nu)
     Xs, Ys, idx = [], [], []
-    for k, (u, y) in enumerate(records):
-        X, Y = narx_regressors(u, y, ny, nu)
+    for k, rec in enumerate(records):
+        try:
+            u, y = rec
+        except (TypeError, ValueError):
+            raise ValueError(f"record {k}: expected a (u, y) pair") from None
+        try:
+            X, Y = narx_regressors(u, y, ny, nu)
+        except ValueError as exc:
+            raise ValueError(f"record {k}: {exc}") from None
         Xs.append(X)
         Ys.append(Y)
         idx.append(np.full(Y.size, k))
+    if not Xs:
+        raise ValueError("stack_regressors needs at least one record (u, y)")
     return np.vstack(Xs), np.concatenate(Ys), np.concatenate(idx)
