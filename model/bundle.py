@@ -7,8 +7,11 @@ versions and the sha256 of every array file. Loading never executes code from a 
 read with ``allow_pickle=False`` and the kernel is rebuilt from a whitelist of types. A bundle
 whose manifest or checksums do not verify is refused with a ``BundleError`` naming the file.
 Writes are atomic: a bundle is written into a hidden temporary folder and renamed into place, so a
-killed run leaves no partial version visible. Versions are positive integers, increasing; an
-existing version is never overwritten.
+killed run leaves no partial version visible (``Registry.scan`` and ``next_version`` skip hidden
+folders). Such a leftover ``NAME/.tmp-VERSION-*`` folder is removed by the next ``save_bundle`` of
+the same model name once it is older than ``STALE_TMP_SECONDS`` (one hour, so a write in progress
+in another process is never touched), or at once with ``remove_stale_temps(registry, 0)``.
+Versions are positive integers, increasing; an existing version is never overwritten.
 """
 from __future__ import annotations
 
@@ -36,6 +39,8 @@ MANIFEST_SUM = "manifest.sha256"  # sha256 of manifest.json: an edited manifest 
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 VERSION_RE = re.compile(r"^[1-9][0-9]{0,8}$")
 MAX_MANIFEST_BYTES = 4 * 1024 * 1024
+TMP_PREFIX = ".tmp-"  # hidden temporary folder of a bundle being written: NAME/.tmp-VERSION-XXXX
+STALE_TMP_SECONDS = 3600.0  # a temporary folder untouched this long is a killed write's leftover
 REQUIRED_KEYS = ("schema_version", "name", "version", "created", "lags", "kernel", "noise_var", "mode",
                  "fs", "units", "files", "estimator")
 
@@ -123,6 +128,32 @@ def next_version(registry: Path, name: str) -> str:
     return str(max(existing, default=0) + 1)
 
 
+def remove_stale_temps(registry, older_than: float = STALE_TMP_SECONDS, name: str | None = None) -> list[Path]:
+    """Remove temporary folders (``NAME/.tmp-*``) left by killed writes; returns the removed paths.
+
+    Only folders whose modification time is at least ``older_than`` seconds old are removed (a write
+    in progress in another process keeps touching its folder). ``name`` limits it to one model.
+    """
+    import time
+
+    registry = Path(registry)
+    dirs = [registry / check_name(name)] if name is not None else (
+        [d for d in registry.iterdir() if d.is_dir() and not d.name.startswith(".")] if registry.is_dir() else [])
+    now, removed = time.time(), []
+    for d in dirs:
+        if not d.is_dir():
+            continue
+        for t in d.iterdir():
+            try:
+                if t.name.startswith(TMP_PREFIX) and t.is_dir() and not t.is_symlink() \
+                        and now - t.stat().st_mtime >= older_than:
+                    shutil.rmtree(t)
+                    removed.append(t)
+            except OSError:  # vanished meanwhile or not ours to remove: leave it
+                continue
+    return removed
+
+
 def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, units: dict,
                 physics: dict | None = None, novelty: dict | None = None, training: dict | None = None,
                 extra: dict | None = None, extra_files: dict | None = None,
@@ -142,7 +173,8 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
     if target.exists():
         raise BundleError(f"bundle {name}:{version} already exists at {target}; versions are never overwritten")
     (registry / name).mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{version}-", dir=registry / name))
+    remove_stale_temps(registry, STALE_TMP_SECONDS, name)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=registry / name))
     try:
         files = {}
         for stem, arr in model_arrays(model).items():
