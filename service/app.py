@@ -14,7 +14,9 @@ Routes (JSON, versioned under /v1; see design.md for the contract)::
     GET  /health/live, /health/ready, /metrics        open even when an API key is set
 
 CPU-heavy work runs on a ``BoundedExecutor`` (503 + Retry-After when full); bodies are capped
-(413); every error is an RFC 9457 problem detail (``service.problems``).
+(413); a compute request has a deadline (``request_timeout``: 504 when its job was running, 503 +
+Retry-After when it was still queued) and a client that disconnects cancels its job; every error
+is an RFC 9457 problem detail (``service.problems``).
 """
 from __future__ import annotations
 
@@ -65,9 +67,18 @@ from .schemas import (
     ReloadResponse,
 )
 from .settings import DEFAULT_BOUNDS, Settings
-from .worker import BoundedExecutor, Overloaded
+from .worker import (
+    Abandoned,
+    BoundedExecutor,
+    Cancelled,
+    CancelToken,
+    Overloaded,
+    QueueTimeout,
+    TimedOut,
+)
 
 log = logging.getLogger("gpnarx.service")
+DEFAULT_REQUEST_TIMEOUT = Settings.__dataclass_fields__["request_timeout"].default
 
 API_TITLE = "GP-NARX hysteresis surrogate service"
 API_KEY_HEADER = "X-API-Key"
@@ -199,13 +210,40 @@ class ServiceState:
             msg = exc.args[0] if exc.args else "not found"
             raise ProblemError(404, str(msg), "version" if name in self.registry.bundles else "name") from None
 
-    async def run(self, fn, *args):
+    async def run(self, fn, *args, request: Request | None = None, token: CancelToken | None = None):
+        """Run ``fn(*args)`` on the worker pool under the request deadline; cancel it if the client goes.
+
+        ``token`` (the caller passes it to ``fn`` too) is set when a running job must stop.
+        """
+        timeout = self.settings.request_timeout or None
+        watch = (lambda: _client_gone(request)) if request is not None else None
         try:
-            return await self.executor.run(fn, *args)
+            return await self.executor.run(fn, *args, timeout=timeout, watch=watch, token=token)
+        except QueueTimeout:
+            self.metrics.timed_out.labels("queued").inc()
+            raise ProblemError(503, f"the service is busy: the request waited its whole time limit of {timeout:g} s "
+                                    f"(GPNARX_REQUEST_TIMEOUT) for a worker; retry after {self.settings.retry_after} s",
+                               headers={"Retry-After": str(self.settings.retry_after)}, limit=timeout) from None
         except Overloaded as exc:
             self.metrics.shed.inc()
             raise ProblemError(503, f"the service is busy ({exc}); retry after {self.settings.retry_after} s",
                                headers={"Retry-After": str(self.settings.retry_after)}) from None
+        except TimedOut:
+            self.metrics.timed_out.labels("running").inc()
+            raise ProblemError(504, f"the request did not finish within its time limit of {timeout:g} s "
+                                    f"(GPNARX_REQUEST_TIMEOUT); send fewer mc_paths, a shorter record or "
+                                    f"method 'linear'", "mc_paths", limit=timeout) from None
+        except Abandoned as exc:
+            self.metrics.abandoned.inc()
+            raise ProblemError(499, f"{exc}; the job was cancelled") from None
+
+
+async def _client_gone(request: Request) -> None:
+    """Completes when the client disconnects (the body has already been read)."""
+    while True:
+        message = await request.receive()
+        if message["type"] == "http.disconnect":
+            return
 
 
 # ------------------------------------------------------------------------------------------ middleware
@@ -323,7 +361,8 @@ VersionP = Annotated[str, PathParam(description="Model version (a positive integ
 
 _RECORD_PROBLEMS = {400: "Body is not JSON", 401: "API key missing or wrong (when GPNARX_API_KEY is set)",
                     404: "Unknown model or version", 413: "Record, Monte Carlo work or body too large",
-                    422: "Invalid request (field named in `field`)", 503: "Busy: retry after Retry-After seconds"}
+                    422: "Invalid request (field named in `field`)", 503: "Busy: retry after Retry-After seconds",
+                    504: "The request exceeded its time limit (GPNARX_REQUEST_TIMEOUT) while computing"}
 
 
 def _api_description() -> str:
@@ -341,7 +380,10 @@ def _api_description() -> str:
         f"- Monte Carlo work per HTTP request (mc_paths x samples, shared by a batch): {b['max_mc_work']} "
         f"path-steps [GPNARX_MAX_MC_WORK] -> 413 `mc_paths`\n"
         f"- body size: {b['max_body_bytes']} bytes [GPNARX_MAX_BODY_BYTES] -> 413 `body`\n"
-        "- work queue: GPNARX_WORKERS running + GPNARX_QUEUE_SIZE waiting jobs -> 503 with Retry-After\n\n"
+        "- work queue: GPNARX_WORKERS running + GPNARX_QUEUE_SIZE waiting jobs -> 503 with Retry-After\n"
+        f"- time per compute request (queue wait included): {DEFAULT_REQUEST_TIMEOUT:g} s "
+        "[GPNARX_REQUEST_TIMEOUT, 0 = none] -> 504 if the job was running (it is cancelled), 503 with "
+        "Retry-After if it was still queued; a client that disconnects cancels its job\n\n"
         "Authentication: off by default. When GPNARX_API_KEY is set, every /v1 route needs the header "
         "`X-API-Key` (401 otherwise); /health/* and /metrics stay open."
     )
@@ -503,15 +545,17 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
         return JSONBytesResponse(detail_of(state.lookup(name, version)))
 
     # ---------------------------------------------------------------- operations
-    def timed_compute(plan, body, submitted):
+    def timed_compute(plan, body, submitted, token):
         started = time.perf_counter()
-        out, steps = ops.compute(plan, body)
+        out, steps = ops.compute(plan, body, token)
         return out, steps, started - submitted, time.perf_counter() - started
 
-    async def single(operation: str, body: RecordRequest, name: str, version: str | None):
+    async def single(request: Request, operation: str, body: RecordRequest, name: str, version: str | None):
         bundle = state.lookup(name, version)
         plan = ops.plan(operation, body, bundle, settings)
-        out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter())
+        token = CancelToken()
+        out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter(), token,
+                                                       request=request, token=token)
         state.metrics.path_steps.inc(steps)
         return JSONBytesResponse(out, headers={
             "Server-Timing": f"queue;dur={waited * 1e3:.2f}, compute;dur={computed * 1e3:.2f}"})
@@ -523,41 +567,41 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
 
     @app.post(f"{v1}/models/{{name}}/predict", response_model=PredictResponse, tags=ptags, operation_id="predict",
               summary="Free-run prediction with a Monte Carlo band (latest version)", responses=op_problems)
-    async def predict(name: NameP, body: RecordRequest):
-        return await single("predict", body, name, None)
+    async def predict(request: Request, name: NameP, body: RecordRequest):
+        return await single(request, "predict", body, name, None)
 
     @app.post(f"{v1}/models/{{name}}/versions/{{version}}/predict", response_model=PredictResponse, tags=ptags,
               operation_id="predict_version", summary="Free-run prediction with one version", responses=op_problems)
-    async def predict_version(name: NameP, version: VersionP, body: RecordRequest):
-        return await single("predict", body, name, version)
+    async def predict_version(request: Request, name: NameP, version: VersionP, body: RecordRequest):
+        return await single(request, "predict", body, name, version)
 
     @app.post(f"{v1}/models/{{name}}/loops", response_model=LoopsResponse, tags=ptags, operation_id="loops",
               summary="Restoring-force loops of the predicted response and its band (latest version)",
               responses=loops_problems)
-    async def loops(name: NameP, body: RecordRequest):
-        return await single("loops", body, name, None)
+    async def loops(request: Request, name: NameP, body: RecordRequest):
+        return await single(request, "loops", body, name, None)
 
     @app.post(f"{v1}/models/{{name}}/versions/{{version}}/loops", response_model=LoopsResponse, tags=ptags,
               operation_id="loops_version", summary="Restoring-force loops with one version",
               responses=loops_problems)
-    async def loops_version(name: NameP, version: VersionP, body: RecordRequest):
-        return await single("loops", body, name, version)
+    async def loops_version(request: Request, name: NameP, version: VersionP, body: RecordRequest):
+        return await single(request, "loops", body, name, version)
 
     @app.post(f"{v1}/models/{{name}}/novelty", response_model=NoveltyResponse, tags=ptags, operation_id="novelty",
               summary="Novelty score, threshold and verdict of a measured record (latest version)",
               responses=novelty_problems)
-    async def novelty(name: NameP, body: NoveltyRequest):
-        return await single("novelty", body, name, None)
+    async def novelty(request: Request, name: NameP, body: NoveltyRequest):
+        return await single(request, "novelty", body, name, None)
 
     @app.post(f"{v1}/models/{{name}}/versions/{{version}}/novelty", response_model=NoveltyResponse, tags=ptags,
               operation_id="novelty_version", summary="Novelty score with one version", responses=novelty_problems)
-    async def novelty_version(name: NameP, version: VersionP, body: NoveltyRequest):
-        return await single("novelty", body, name, version)
+    async def novelty_version(request: Request, name: NameP, version: VersionP, body: NoveltyRequest):
+        return await single(request, "novelty", body, name, version)
 
     # ---------------------------------------------------------------- batch
     @app.post(f"{v1}/batch", response_model=BatchResponse, tags=ptags, operation_id="batch",
               summary="Many records: each answered or failed on its own, in order",
-              responses={**{k: {"description": _RECORD_PROBLEMS[k]} for k in (400, 401, 413, 422, 503)},
+              responses={**{k: {"description": _RECORD_PROBLEMS[k]} for k in (400, 401, 413, 422, 503, 504)},
                          415: {"description": "Body is not application/json"}},
               openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
                   "schema": {"$ref": "#/components/schemas/BatchRequest"}}}}})
@@ -604,13 +648,16 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
             budget -= plan.work if plan.method == "mc" else 0
             todo.append((i, plan, req))
 
-        def run_all():
+        def run_all(token):
             done, steps = [], 0
             for i, plan, req in todo:
+                token.check()  # deadline passed or client gone: stop between records
                 try:
-                    out, s = ops.compute(plan, req)
+                    out, s = ops.compute(plan, req, token)
                     steps += s
                     done.append((i, out))
+                except Cancelled:
+                    raise
                 except ProblemError as exc:
                     done.append((i, exc.to_dict(f"requests.{i}")))
                 except Exception:  # one bad record never loses the others
@@ -621,7 +668,8 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
             return done, steps
 
         if todo:
-            done, steps = await state.run(run_all)
+            token = CancelToken()
+            done, steps = await state.run(run_all, token, request=request, token=token)
             state.metrics.path_steps.inc(steps)
             for i, out in done:
                 results[i] = out

@@ -5,6 +5,9 @@
 - ``gpnarx_http_request_duration_seconds{method,route}`` latency histogram;
 - ``gpnarx_mc_path_steps_total`` Monte Carlo path-steps served;
 - ``gpnarx_requests_shed_total`` requests refused with 503 because the work queue was full;
+- ``gpnarx_requests_timed_out_total{stage}`` requests past GPNARX_REQUEST_TIMEOUT (stage ``queued``:
+  503, the job never started; ``running``: 504, the job was cancelled at its next checkpoint);
+- ``gpnarx_requests_abandoned_total`` requests whose client disconnected before the answer (job cancelled);
 - ``gpnarx_bundles_loaded`` / ``gpnarx_bundles_refused`` gauges, ``gpnarx_work_pending`` (running + waiting jobs).
 """
 from __future__ import annotations
@@ -35,6 +38,10 @@ class ServiceMetrics:
         self.path_steps = Counter("gpnarx_mc_path_steps", "Monte Carlo path-steps served", registry=r)
         self.shed = Counter("gpnarx_requests_shed", "Requests refused with 503 because the work queue was full",
                             registry=r)
+        self.timed_out = Counter("gpnarx_requests_timed_out", "Requests past their time limit, by the stage "
+                                 "their job was in (queued -> 503, running -> 504)", ["stage"], registry=r)
+        self.abandoned = Counter("gpnarx_requests_abandoned", "Requests whose client disconnected before the "
+                                 "answer (their job was cancelled)", registry=r)
         self.loaded = Gauge("gpnarx_bundles_loaded", "Model bundles loaded", registry=r)
         self.refused = Gauge("gpnarx_bundles_refused", "Model bundles refused (corrupt or invalid)", registry=r)
         self.pending = Gauge("gpnarx_work_pending", "Jobs running or waiting on the worker pool", registry=r)

@@ -20,6 +20,7 @@ from model.restoring import loop_area, restoring_force
 
 from .problems import ProblemError
 from .settings import Settings
+from .worker import CancelToken
 
 OPERATIONS = ("predict", "loops", "novelty")
 
@@ -118,13 +119,16 @@ def _field_from_message(msg: str) -> str | None:
     return {"n_paths": "mc_paths"}.get(m.group(1), m.group(1))
 
 
-def _simulate(plan: Plan, req):
+def _simulate(plan: Plan, req, token: CancelToken | None = None):
     u = np.asarray(req.u, dtype=float)
     model = plan.bundle.model
+    if token is not None:
+        token.check()
     try:
         with np.errstate(all="ignore"):
             run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=req.y0 or None,
-                                 confidence=float(req.confidence), method=plan.method)
+                                 confidence=float(req.confidence), method=plan.method,
+                                 progress=None if token is None else token.progress)
     except ValueError as exc:
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
         raise ProblemError(422, msg, _field_from_message(msg)) from None
@@ -141,10 +145,14 @@ def _num(v) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def compute(plan: Plan, req) -> tuple[dict, int]:
-    """Run the operation; returns (answer dict, Monte Carlo path-steps done)."""
+def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, int]:
+    """Run the operation; returns (answer dict, Monte Carlo path-steps done).
+
+    ``token``: cooperative cancellation (deadline passed or client gone): ``worker.Cancelled`` is
+    raised at the free run's next checkpoint (every 256 samples) once it is set.
+    """
     b = plan.bundle
-    u, run = _simulate(plan, req)
+    u, run = _simulate(plan, req, token)
     head = {"model": b.name, "version": b.version}
     common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
               "seed": int(req.seed)}

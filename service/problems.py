@@ -26,11 +26,15 @@ SLUGS = {
     415: "unsupported-media-type",
     422: "invalid-request",
     500: "internal-error",
+    499: "client-closed-request",
     503: "overloaded",
+    504: "timeout",
 }
 
 
 def title_for(status: int) -> str:
+    if status == 499:  # not in http.HTTPStatus (nginx's code; the client never reads it)
+        return "Client Closed Request"
     try:
         return HTTPStatus(status).phrase
     except ValueError:

@@ -16,6 +16,7 @@ max_body_bytes          GPNARX_MAX_BODY_BYTES        32 MiB       413, field ``b
 workers                 GPNARX_WORKERS               min(4, CPUs) -
 queue_size              GPNARX_QUEUE_SIZE            16           503 + Retry-After
 retry_after             GPNARX_RETRY_AFTER           2 (s)        -
+request_timeout         GPNARX_REQUEST_TIMEOUT       120 (s)      504 (running) / 503 (queued)
 api_key                 GPNARX_API_KEY               unset (off)  401 on /v1 routes
 blas_threads            GPNARX_BLAS_THREADS          1            - (0: leave BLAS as it is)
 mmap_threshold          GPNARX_MMAP_THRESHOLD        32 MiB       - (0: leave malloc as it is)
@@ -24,6 +25,17 @@ mmap_threshold          GPNARX_MMAP_THRESHOLD        32 MiB       - (0: leave ma
 ``max_mc_work`` bounds Monte Carlo path-steps (mc_paths x samples) per HTTP request; a batch
 shares one budget across its records. ``queue_size`` is the number of jobs allowed to wait for a
 worker on top of the ``workers`` running ones; when both are taken a request is shed with 503.
+
+``request_timeout`` (seconds, may be fractional; 0 turns it off) bounds the time from
+submission to answer of a prediction, loops, novelty or batch request. A job still waiting for a
+worker at the deadline is dropped and answered 503 + Retry-After (the service was too busy); a job
+already computing is answered 504 (the problem's ``limit`` is the limit in s) and cancelled at
+its next checkpoint (every 256 samples of the free run, and between the records of a batch), which
+frees its worker. A client that disconnects while its job waits or runs cancels it the same way,
+so an abandoned request never holds a worker slot to the end. Choose it together with
+``max_mc_work``: the README's bench_service run served about 37 000 path-steps/s per worker (a
+600-point model on a shared 2-core machine), so a request at the default work bound (2**24
+path-steps) would need about 450 s and is cut at 120 s; raise the limit or lower the bound.
 
 ``blas_threads``: the service runs requests in parallel on its worker threads, and the per-step
 matrix products of a free run are small (paths x training points), so multi-threaded BLAS inside
@@ -65,6 +77,7 @@ ENV = {
     "workers": "GPNARX_WORKERS",
     "queue_size": "GPNARX_QUEUE_SIZE",
     "retry_after": "GPNARX_RETRY_AFTER",
+    "request_timeout": "GPNARX_REQUEST_TIMEOUT",
     "api_key": "GPNARX_API_KEY",
     "registry": "GPNARX_REGISTRY",
     "blas_threads": "GPNARX_BLAS_THREADS",
@@ -89,6 +102,8 @@ class Settings:
     workers: int = field(default_factory=_default_workers)
     queue_size: int = 16
     retry_after: int = 2
+    #: seconds from submission to answer of a compute request (0: no limit)
+    request_timeout: float = 120.0
     api_key: str | None = None
     registry: str | None = None
     blas_threads: int = 1
@@ -108,6 +123,10 @@ class Settings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ValueError(f"setting {name} must be a non-negative integer, got {v!r}")
+        t = self.request_timeout
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 <= t < float("inf"):
+            raise ValueError(f"setting request_timeout must be a non-negative number of seconds, got {t!r}")
+        object.__setattr__(self, "request_timeout", float(t))
         if self.mc_paths_default > self.mc_paths_max:
             raise ValueError(f"setting mc_paths_default ({self.mc_paths_default}) exceeds mc_paths_max "
                              f"({self.mc_paths_max})")
@@ -125,6 +144,11 @@ class Settings:
                 continue
             if name in ("api_key", "registry"):
                 kw[name] = raw
+            elif name == "request_timeout":
+                try:
+                    kw[name] = float(raw)
+                except ValueError:
+                    raise ValueError(f"environment variable {var} must be a number of seconds, got {raw!r}") from None
             else:
                 try:
                     kw[name] = int(raw.replace("_", ""))
