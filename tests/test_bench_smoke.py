@@ -44,3 +44,22 @@ def test_parse_result_rejects_garbage():
     with pytest.raises(AssertionError):
         parse_result("no result here")
     assert parse_result("table\nRESULT a=1 ratio=2.5 baseline=3\n")["ratio"] == "2.5"
+
+
+def test_bench_load_quick():
+    """Loopback load test (bench/bench_load.py --quick): zero errors, shedding with Retry-After, live health."""
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_load.py"), "--quick"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, f"exited {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr[-3000:]}"
+    kv = parse_result(proc.stdout)
+    assert int(kv["errors"]) == 0, kv
+    assert math.isfinite(float(kv["ratio"])) and float(kv["ratio"]) > 0 and float(kv["baseline"]) > 0, kv
+    for t in ("predict", "novelty", "batch"):
+        assert math.isfinite(float(kv[f"p95_{t}_ms"])), kv
+    # overload: more simultaneous requests than workers + queue -> the surplus is shed with 503 + Retry-After
+    assert int(kv["overload"]) > int(kv["capacity"]), kv
+    assert int(kv["shed_503"]) > 0 and int(kv["retry_after_ok"]) == int(kv["shed_503"]), kv
+    assert int(kv["shed_503"]) + int(kv["ok_200"]) == int(kv["overload"]), kv
+    assert int(kv["other_5xx"]) == 0 and int(kv["health_errors"]) == 0, kv
+    health = float(kv["health_p95_overload_ms"])
+    assert math.isfinite(health) and 0 < health < 5000, kv  # the event loop is never blocked for seconds
