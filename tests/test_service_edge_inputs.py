@@ -1,0 +1,98 @@
+"""Edge-case inputs listed in the README that the other service tests do not send on their own.
+
+- 1- and 2-sample records (shorter than the model's lags, ny = nu = 10) on predict, loops,
+  novelty and batch: answered 200 with arrays of that length (the free run starts from rest);
+- huge but finite numbers (1e300, -1e308) that make the free run overflow: 422 naming ``u``;
+  large values that stay finite (1e30): 200 with finite arrays or a 422 problem, never a 5xx;
+- unknown model or version on every POST operation and in a batch slot: 404 naming the field.
+"""
+from __future__ import annotations
+
+import math
+
+import pytest
+from fastapi.testclient import TestClient
+from test_service_support import FS, built_registry
+
+from service.app import create_app
+from service.settings import Settings
+
+PROBLEM = "application/problem+json"
+OPS = ("predict", "loops", "novelty")
+
+
+@pytest.fixture(scope="module")
+def client():
+    return TestClient(create_app(built_registry().root, Settings(workers=1, queue_size=4)),
+                      raise_server_exceptions=False)
+
+
+def _problem(r, status, field):
+    assert r.status_code == status, r.text[:300]
+    assert r.headers["content-type"].startswith(PROBLEM)
+    p = r.json()
+    assert p["status"] == status and p["field"] == field and p["detail"], p
+    assert "Traceback" not in r.text
+    return p
+
+
+def _finite(d):
+    if isinstance(d, dict):
+        return all(_finite(v) for v in d.values())
+    if isinstance(d, list):
+        return all(_finite(v) for v in d)
+    return not isinstance(d, float) or math.isfinite(d)
+
+
+@pytest.mark.parametrize("n", [1, 2])
+@pytest.mark.parametrize("op", OPS)
+def test_records_shorter_than_the_lags(client, op, n):
+    body = {"u": [0.5, -0.25][:n], "y": [1e-5, -1e-5][:n], "fs": FS, "mc_paths": 8, "seed": 0}
+    r = client.post(f"/v1/models/boucwen/{op}", json=body)
+    assert r.status_code == 200, r.text[:300]
+    d = r.json()
+    assert _finite(d)
+    if op == "predict":
+        assert all(len(d[k]) == n for k in ("mean", "lower", "upper", "std"))
+        assert d["coverage"] is not None and 0 <= d["coverage"] <= 100
+    elif op == "loops":
+        assert d["n_samples"] == n and len(d["predicted"]["x"]) == n and len(d["measured"]["force"]) == n
+    else:
+        assert d["n_samples"] >= 1 and d["verdict"] in ("healthy", "novel")
+    res = client.post("/v1/batch", json={"requests": [{"model": "boucwen", "operation": op, **body}]}).json()
+    assert "status" not in res["results"][0], res
+
+
+@pytest.mark.parametrize("value", [1e300, -1e308])
+@pytest.mark.parametrize("op", OPS)
+def test_huge_values_that_overflow_are_a_422_on_u(client, op, value):
+    body = {"u": [value, -value] * 20, "y": [value] * 40, "fs": FS, "mc_paths": 8}
+    p = _problem(client.post(f"/v1/models/boucwen/{op}", json=body), 422, "u")
+    assert "diverged" in p["detail"]
+
+
+@pytest.mark.parametrize("op", OPS)
+def test_large_finite_values_never_5xx(client, op):
+    body = {"u": [1e30, -1e30] * 20, "y": [1e30] * 40, "fs": FS, "mc_paths": 8}
+    r = client.post(f"/v1/models/boucwen/{op}", json=body)
+    assert r.status_code in (200, 422), r.text[:300]
+    if r.status_code == 200:
+        assert _finite(r.json())
+    else:
+        _problem(r, 422, "u")
+
+
+@pytest.mark.parametrize("op", OPS)
+def test_unknown_model_or_version(client, op):
+    body = {"u": [0.5] * 16, "y": [0.0] * 16, "fs": FS, "mc_paths": 8}
+    p = _problem(client.post(f"/v1/models/nosuchmodel/{op}", json=body), 404, "name")
+    assert "nosuchmodel" in p["detail"] and "boucwen" in p["detail"]  # names what exists
+    p = _problem(client.post(f"/v1/models/boucwen/versions/99/{op}", json=body), 404, "version")
+    assert "99" in p["detail"]
+    res = client.post("/v1/batch", json={"requests": [
+        {"model": "nosuchmodel", "operation": op, **body},
+        {"model": "boucwen", "version": "99", "operation": op, **body},
+        {"model": "boucwen", "version": "1", "operation": op, **body}]}).json()["results"]
+    assert res[0]["status"] == 404 and res[0]["field"] == "requests.0.model"
+    assert res[1]["status"] == 404 and res[1]["field"] == "requests.1.version"
+    assert "status" not in res[2] and res[2]["version"] == "1"
