@@ -252,3 +252,26 @@ def test_parse_range():
         with pytest.raises(ConfigError):
             parse_range(bad)
     assert issubclass(ConfigError, ValueError)
+
+
+def test_every_shipped_config_loads_and_is_named_after_its_file():
+    from training.defaults import CONFIG_DIR, DEFAULT_BUNDLES
+
+    names = sorted(p.stem for p in CONFIG_DIR.glob("*.toml"))
+    assert set(DEFAULT_BUNDLES) <= set(names)
+    for name in names:
+        cfg = load_config(CONFIG_DIR / f"{name}.toml")
+        assert cfg.name == name
+        assert cfg.records_for("train"), name
+
+
+def test_monitor_config_trains_on_healthy_probes_only():
+    from training.defaults import CONFIG_DIR
+
+    cfg = load_config(CONFIG_DIR / "bert-standin-monitor.toml")
+    specs = {role: [s for s in cfg.records if role in s.roles] for role in ("train", "healthy", "damaged")}
+    assert specs["train"] and all(s.simulate["torque"] == 5.0 and s.simulate["freq"] == 9.0 for s in specs["train"])
+    assert all(s.simulate["torque"] == 5.0 for s in specs["healthy"]) and len(specs["healthy"]) >= 2
+    assert {s.simulate["torque"] for s in specs["damaged"]} == {4.0, 7.0, 9.0}
+    train_seeds = {s.simulate["seed"] for s in specs["train"]}
+    assert not train_seeds & {s.simulate["seed"] for s in specs["healthy"] + specs["damaged"]}

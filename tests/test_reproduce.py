@@ -55,3 +55,24 @@ def test_reproduce_bouc_wen_full_meets_targets(tmp_path, capsys):
         if rec["role"] == "validate":
             assert rec["coverage_clean"] >= 95, name
     assert res["wall_seconds"] < 15 * 60
+
+
+def test_reproduce_bert_standin_quick_runs_the_monitor_and_novelty_study(tmp_path, capsys):
+    res = _run("bert-standin", tmp_path, True, capsys)
+    assert {"sweep-0.10V", "sweep-0.15V", "sine-18Hz-0.15V", "noise-0.30V"} == set(res["records"])
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    oracle = summary["oracle"]  # nominal stand-in vs each seeded realization: the scatter-only ceiling
+    assert set(oracle) == set(res["records"]) and all(np.isfinite(v["fit_clean"]) for v in oracle.values())
+    assert oracle["sine-18Hz-0.15V"]["fit_clean"] > oracle["noise-0.30V"]["fit_clean"]
+    mon = summary["monitor"]
+    assert Path(mon["bundle"]).name == "1" and Path(mon["bundle"]).parent.name == "bert-standin-monitor"
+    roles = {v["role"] for v in mon["records"].values()}
+    assert {"healthy", "damaged", "validate"} <= roles
+    assert mon["novelty"]["threshold"] > 0 and mon["novelty"]["n_healthy"] == 6
+    nov = summary["novelty"]
+    assert nov["probe"] == {"excitation": "sine", "amplitude": 0.15, "freq": 9.0}
+    for far in ("0.01", "0.05"):
+        rates = nov["rates"][far]
+        assert set(rates) == {"healthy 5 N m (unseen)", "7 N m", "9 N m", "4 N m (partly loosened)"}
+        assert all(0.0 <= r <= 1.0 for r in rates.values())
+    assert (tmp_path / "novelty_roc.png").stat().st_size > 1000

@@ -1,8 +1,8 @@
 """The embedded default registry: built on first use from the shipped configs.
 
 ``ensure_default_registry()`` returns the registry folder (``$GPNARX_REGISTRY`` or
-``~/.cache/gpnarx/registry``), training any missing default bundle first: Bouc-Wen and the BERT
-stand-in always, the real BERT bundle too when the lab records are present
+``~/.cache/gpnarx/registry``), training any missing default bundle first: Bouc-Wen, the BERT
+stand-in and its bolt-loosening monitor (9 Hz sine probe, novelty calibrated) always, the real BERT bundle too when the lab records are present
 (``$GPNARX_BERT_DATA`` or ``../shared/data/bert-t5nm`` beside the repository). The default build
 uses fewer Monte Carlo paths for its verification report than the full protocol
 (``gpnarx reproduce``) so it finishes in a few minutes on 2 cores.
@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-DEFAULT_BUNDLES = ("bouc-wen", "bert-standin", "bert-real")
+DEFAULT_BUNDLES = ("bouc-wen", "bert-standin", "bert-standin-monitor", "bert-real")
 DEFAULT_MC = 128
 
 

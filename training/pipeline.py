@@ -195,4 +195,5 @@ def train(config, registry, name: str | None = None, version: str | None = None,
                            attach_dir=report_dir)
     log(f"bundle written to {path}")
     return {"name": name or cfg.name, "version": path.name, "path": str(path),
-            "metrics": to_json_safe(training_metrics), "evals": evals, "model": model}
+            "metrics": to_json_safe(training_metrics), "evals": evals, "model": model,
+            "novelty": to_json_safe(novelty)}
