@@ -163,11 +163,21 @@ def _check(kind: str, r) -> str | None:
     return None
 
 
+def _server_timing(header: str) -> dict:
+    out = {}
+    for part in header.split(","):
+        if ";dur=" in part:
+            k, v = part.strip().split(";dur=", 1)
+            out[k] = float(v) / 1e3
+    return out
+
+
 async def run_calls(url: str, calls, clients: int):
     """``clients`` workers share the list (closed loop); returns (latencies by type, errors, wall s)."""
     import httpx
 
     lat = {k: [] for k in TYPES}
+    lat["server"] = []  # (queue s, compute s) from the Server-Timing header of predict/novelty answers
     errors: list[str] = []
     queue: asyncio.Queue = asyncio.Queue()
     for c in calls:
@@ -184,6 +194,9 @@ async def run_calls(url: str, calls, clients: int):
                 try:
                     r = await c.post(path, content=body, headers=HEADERS)
                     err = _check(kind, r)
+                    timing = _server_timing(r.headers.get("server-timing", ""))
+                    if {"queue", "compute"} <= set(timing):
+                        lat["server"].append((timing["queue"], timing["compute"]))
                 except httpx.HTTPError as exc:
                     err = f"{kind}: {type(exc).__name__} {exc}"
                 lat[kind].append(time.perf_counter() - t0)
@@ -354,6 +367,11 @@ def main(argv=None):
     for phase, lat in (("sequential (1 client)", base_lat), (f"load ({clients} clients)", load_lat)):
         for k in TYPES:
             print(f"{phase:<22}{k:<9}{len(lat[k]):>5}{pct(lat[k], 50) * 1e3:>10.1f}{pct(lat[k], 95) * 1e3:>10.1f}")
+    for phase, lat in (("sequential", base_lat), ("load", load_lat)):
+        q = [a for a, _ in lat["server"]]
+        comp = [b for _, b in lat["server"]]
+        print(f"server side ({phase}, predict/novelty): queue p50 {pct(q, 50) * 1e3:.1f} ms, compute p50 "
+              f"{pct(comp, 50) * 1e3:.1f} ms")
     print(f"throughput: sequential {base_rps:.2f} req/s, {clients} clients {rps:.2f} req/s (x{rps / base_rps:.2f}); "
           f"errors {len(base_err)} sequential, {len(load_err)} under load")
     for e in (base_err + load_err)[:5]:
@@ -371,6 +389,9 @@ def main(argv=None):
         kv[f"p50_{k}_ms"] = pct(load_lat[k], 50) * 1e3
         kv[f"p95_{k}_ms"] = pct(load_lat[k], 95) * 1e3
         kv[f"seq_p50_{k}_ms"] = pct(base_lat[k], 50) * 1e3
+    kv["compute_p50_ms"] = pct([b for _, b in load_lat["server"]], 50) * 1e3
+    kv["seq_compute_p50_ms"] = pct([b for _, b in base_lat["server"]], 50) * 1e3
+    kv["queue_p50_ms"] = pct([a for a, _ in load_lat["server"]], 50) * 1e3
     kv.update(overload=n_over, capacity=args.workers + queue_size, ok_200=n200, shed_503=n503,
               retry_after_ok=retry_ok, other_5xx=other_5xx, other_4xx=other, shed_p95_ms=pct(shed_lat, 95) * 1e3,
               health_p95_idle_ms=pct(h_idle, 95) * 1e3, health_p95_overload_ms=pct(h_over, 95) * 1e3,
