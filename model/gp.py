@@ -13,7 +13,7 @@ import numpy as np
 from scipy import linalg
 from scipy.optimize import minimize
 
-from .kernels import Kernel
+from .kernels import SQRT3, Kernel
 
 LOG_2PI = np.log(2.0 * np.pi)
 NOISE_LOG_BOUNDS = (np.log(1e-8), np.log(10.0))
@@ -57,14 +57,223 @@ def chol_inverse(L: np.ndarray) -> np.ndarray:
     return inv
 
 
-def nlml_and_grad(theta: np.ndarray, kernel: Kernel, X: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
+class NLMLWorkspace:
+    """Reusable buffers for ``nlml_and_grad`` on one training set (one ML-II fit).
+
+    Holds, for the lower-triangle row blocks only, the theta-independent Gram matrix G = X X^T
+    and distances r = |x - x'| (computed once), one buffer for exp(-a) per stationary kernel part,
+    and the N x N buffer that is K + sigma_y^2 I, then its Cholesky factor L, then W = K^-1 in
+    place (LAPACK potrf/potri on the F-ordered view, no copies). Memory: (3 + stationary parts)
+    N^2 float64 (about 0.5 GB at N=4000). Kernels other than sums of Matern32, RBF,
+    CubicPolynomial and White fall back to ``Kernel.K_and_grads`` (``fused`` is False).
+    """
+
+    def __init__(self, kernel: Kernel, X: np.ndarray, chunk: int = 64):
+        from .kernels import RBF, CubicPolynomial, Matern32, Sum, White
+
+        self.X = X
+        n = X.shape[0]
+        self.n = n
+        parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
+        self.fused = all(isinstance(p, (Matern32, RBF, CubicPolynomial, White)) for p in parts)
+        if not self.fused:
+            return
+        self.KL = np.empty((n, n))
+        self.chunk = max(8, int(chunk))
+        self.blocks = [(r0, min(n, r0 + self.chunk)) for r0 in range(0, n, self.chunk)]
+        self.kinds = []
+        for p in parts:
+            if isinstance(p, Matern32):
+                self.kinds.append("matern")
+            elif isinstance(p, RBF):
+                self.kinds.append("rbf")
+            elif isinstance(p, CubicPolynomial):
+                self.kinds.append("cubic")
+            else:
+                self.kinds.append("white")
+        self.G = np.empty((n, n)) if "cubic" in self.kinds else None
+        self.R = np.empty((n, n)) if ("matern" in self.kinds or "rbf" in self.kinds) else None
+        self.E = [np.empty((n, n)) if k in ("matern", "rbf") else None for k in self.kinds]
+        sq = np.einsum("ij,ij->i", X, X)
+        for r0, r1 in self.blocks:
+            g = X[r0:r1] @ X[:r1].T
+            if self.R is not None:
+                r = self.R[r0:r1, :r1]
+                np.multiply(g, -2.0, out=r)
+                r += sq[r0:r1, None]
+                r += sq[None, :r1]
+                np.maximum(r, 0.0, out=r)
+                np.sqrt(r, out=r)
+                idx = np.arange(r0, r1)
+                r[idx - r0, idx] = 0.0
+            if self.G is not None:
+                self.G[r0:r1, :r1] = g
+        self.tril_masks = {}
+
+    def _mask(self, m: int) -> np.ndarray:
+        """Lower-triangular weights of a diagonal block: 1 below, 0.5 on the diagonal, 0 above."""
+        w = self.tril_masks.get(m)
+        if w is None:
+            w = np.tril(np.ones((m, m)), -1) + 0.5 * np.eye(m)
+            self.tril_masks[m] = w
+        return w
+
+    def fill_K(self, params: list, noise: float, jitter: float = 0.0) -> None:
+        """Lower triangle (row blocks) of K + (noise + jitter) I into KL: eqs. (10)-(12) summed over parts."""
+        KL = self.KL
+        for r0, r1 in self.blocks:
+            out = KL[r0:r1, :r1]
+            first = True
+            for kind, th, E in zip(self.kinds, params, self.E):
+                if kind == "white":
+                    continue
+                if kind == "matern":
+                    var, ls = th
+                    a = self.R[r0:r1, :r1] * (SQRT3 / ls)
+                    e = E[r0:r1, :r1]
+                    np.negative(a, out=e)
+                    np.exp(e, out=e)
+                    a += 1.0
+                    a *= e
+                    a *= var
+                    t = a
+                elif kind == "rbf":
+                    var, ls = th
+                    e = E[r0:r1, :r1]
+                    np.multiply(self.R[r0:r1, :r1], 1.0 / ls, out=e)
+                    e *= e
+                    e *= -0.5
+                    np.exp(e, out=e)
+                    t = e * var
+                else:  # cubic
+                    var, s, b = th
+                    P = self.G[r0:r1, :r1] * s
+                    P += b
+                    t = P * P
+                    t *= P
+                    t *= var
+                if first:
+                    out[...] = t
+                    first = False
+                else:
+                    out += t
+            if first:
+                out[...] = 0.0
+        d = noise + jitter
+        for kind, th in zip(self.kinds, params):
+            if kind == "white":
+                d += th[0]
+        KL[np.diag_indices(self.n)] += d
+
+    def grad_traces(self, params: list, alpha: np.ndarray, tr_w: float) -> list:
+        """0.5 tr((K^-1 - alpha alpha^T) dK/dtheta_j) for every kernel log-parameter (not the noise).
+
+        KL holds K^-1 in its lower triangle. Both matrices are symmetric, so the full trace is
+        twice the sum over the lower triangle with the diagonal weighted 1/2; W' = K^-1 - alpha
+        alpha^T is formed block by block in place. Matern32: dK/dlog var = K, dK/dlog l =
+        var a^2 e^-a (a = sqrt(3) r / l); RBF: K and K r^2/l^2; cubic (P = s x.x' + b):
+        dK/dlog var = var P^3, dK/dlog b = 3 var b P^2, dK/dlog s = 3 var P^3 - dK/dlog b.
+        """
+        acc = [np.zeros(len(th)) for th in params]  # lower-triangle sums per part
+        KL = self.KL
+        for r0, r1 in self.blocks:
+            W = KL[r0:r1, :r1]
+            W -= np.outer(alpha[r0:r1], alpha[:r1])
+            W[:, r0:r1] *= self._mask(r1 - r0)
+            for kind, th, E, s_ in zip(self.kinds, params, self.E, acc):
+                if kind == "white":
+                    continue
+                if kind == "matern":
+                    a = self.R[r0:r1, :r1] * (SQRT3 / th[1])
+                    t = W * E[r0:r1, :r1]
+                    s0 = t.sum()
+                    t *= a
+                    s1 = t.sum()
+                    s_[0] += s0 + s1
+                    s_[1] += np.einsum("ij,ij->", t, a)
+                elif kind == "rbf":
+                    t = W * E[r0:r1, :r1]
+                    s_[0] += t.sum()
+                    r2 = self.R[r0:r1, :r1] * (1.0 / th[1])
+                    r2 *= r2
+                    s_[1] += np.einsum("ij,ij->", t, r2)
+                else:
+                    P = self.G[r0:r1, :r1] * th[1]
+                    P += th[2]
+                    t = W * P
+                    t *= P
+                    s_[1] += t.sum()
+                    s_[0] += np.einsum("ij,ij->", t, P)
+        out = []
+        for kind, th, s_ in zip(self.kinds, params, acc):
+            if kind == "matern" or kind == "rbf":
+                out += [th[0] * s_[0], th[0] * s_[1]]
+            elif kind == "cubic":
+                var, _, b = th
+                g_var = var * s_[0]
+                g_b = 3.0 * var * b * s_[1]
+                out += [g_var, 3.0 * g_var - g_b, g_b]
+            else:  # White: dK/dlog var = var I
+                out.append(0.5 * th[0] * tr_w)
+        return out
+
+
+def _potrf_inplace(KL: np.ndarray) -> tuple[np.ndarray, int]:
+    """Cholesky of the lower triangle of C-ordered KL in place: KL.T is F-ordered and its upper
+    triangle is KL's lower, so LAPACK factors it as U^T U with no copy; KL's lower becomes L."""
+    c, info = linalg.lapack.dpotrf(KL.T, lower=0, clean=0, overwrite_a=1)
+    return c, info
+
+
+def nlml_and_grad(theta: np.ndarray, kernel: Kernel, X: np.ndarray, y: np.ndarray,
+                  workspace: NLMLWorkspace | None = None) -> tuple[float, np.ndarray]:
     """Negative log marginal likelihood, eq. (13) negated, and its analytic gradient.
 
-    theta = [kernel log-parameters..., log sigma_y^2]. One Cholesky of K + sigma_y^2 I.
+    theta = [kernel log-parameters..., log sigma_y^2] (dimensionless, standardised data).
+    One Cholesky of K + sigma_y^2 I and one potri for K^-1:
     dNLML/dtheta_j = 0.5 tr((K^-1 - alpha alpha^T) dK/dtheta_j), alpha = K^-1 y.
+    Pass a ``NLMLWorkspace`` built for (kernel, X) to reuse its buffers across evaluations
+    (``fit_ml2`` does); without it one is built for this call.
     """
+    ws = workspace if workspace is not None else NLMLWorkspace(kernel, X)
     kernel.set_theta(theta[:-1])
     noise = float(np.exp(theta[-1]))
+    n = y.size
+    if not ws.fused:
+        return _nlml_and_grad_generic(theta, kernel, X, y, noise)
+    from .kernels import Sum
+
+    parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
+    params = [np.exp(p.theta) for p in parts]
+    ws.fill_K(params, noise)
+    scale = float(np.mean(np.diag(ws.KL)))
+    jitter = 0.0
+    for rel in JITTERS:
+        if rel:
+            jitter = rel * scale
+            ws.fill_K(params, noise, jitter)
+        c, info = _potrf_inplace(ws.KL)
+        if info == 0 and np.all(np.isfinite(np.diag(ws.KL))):
+            break
+    else:
+        raise NotPositiveDefiniteError(
+            f"covariance matrix (N={n}) is not positive definite even with jitter "
+            f"{JITTERS[-1]:g} x mean diagonal; check for duplicated regressors or extreme hyperparameters")
+    logdet_half = float(np.sum(np.log(np.diag(ws.KL))))
+    alpha, info = linalg.lapack.dpotrs(c, y, lower=0)
+    nlml = 0.5 * float(y @ alpha) + logdet_half + 0.5 * n * LOG_2PI
+    _, info = linalg.lapack.dpotri(c, lower=0, overwrite_c=1)
+    if info != 0:
+        raise NotPositiveDefiniteError(f"potri failed (info={info})")
+    tr_w = float(np.sum(np.diag(ws.KL))) - float(alpha @ alpha)  # tr(K^-1 - alpha alpha^T)
+    g = np.empty(theta.size)
+    g[:-1] = ws.grad_traces(params, alpha, tr_w)
+    g[-1] = 0.5 * noise * tr_w
+    return nlml, g
+
+
+def _nlml_and_grad_generic(theta, kernel, X, y, noise):
+    """Unfused path for kernels without a workspace formula: every dK/dtheta_j materialised."""
     K, grads = kernel.K_and_grads(X)
     K[np.diag_indices_from(K)] += noise
     L, _ = cholesky_jitter(K, overwrite=True)
@@ -115,6 +324,107 @@ class MLIIResult:
     nlml: float
     restarts: list = field(default_factory=list)  # (nlml, n_iter) per start
     seconds: float = 0.0
+    n_evals: int = 0  # objective + gradient evaluations on the full data (all starts)
+    subset_evals: int = 0  # evaluations spent on the warm-start subset (fit_ml2 warm_start_subset)
+    subset_rows: int = 0
+
+
+class _Stalled(Exception):
+    """Raised inside the objective when the best value has stopped improving (see ``_StallWatch``)."""
+
+
+class _StallWatch:
+    """Objective wrapper: keeps the best (value, x) seen and stops the run once ``patience``
+    consecutive evaluations improved the best value by less than ``tol`` in total (same units as the
+    objective: nats for an NLML). L-BFGS-B near an ill-conditioned optimum can spend dozens of
+    evaluations in line searches that end "ABNORMAL" without progress; this ends them early."""
+
+    def __init__(self, fun, patience: int | None, tol: float):
+        self.fun, self.patience, self.tol = fun, patience, tol
+        self.best_f, self.best_x, self.n, self.since = np.inf, None, 0, 0
+
+    def __call__(self, theta, *args):
+        f, g = self.fun(theta, *args)
+        self.n += 1
+        if f < self.best_f - self.tol or self.best_x is None:
+            self.since = 0
+        else:
+            self.since += 1
+        if f < self.best_f:
+            self.best_f, self.best_x = float(f), np.array(theta, dtype=float)
+        if self.patience and self.since >= self.patience:
+            raise _Stalled
+        return f, g
+
+
+def multistart_lbfgsb(fun, args: tuple, starts: list, bounds: list, n_restarts: int = 0, seed: int = 0,
+                      max_iter: int = 200, agree_tol: float = 0.5, failure=NotPositiveDefiniteError,
+                      stall_evals: int | None = None, stall_tol: float = 1e-4):
+    """Minimise ``fun(theta, *args) -> (value, grad)`` by L-BFGS-B from several starts.
+
+    The restart scheme shared by ``fit_ml2`` (exact ML-II, eq. 13) and ``vfe.fit_vfe``: first the
+    fixed ``starts`` in order, then ``n_restarts`` seeded N(0, 1) log-space perturbations of
+    ``starts[0]`` (clipped to ``bounds``). Once every fixed start has run, it stops as soon as two
+    finished starts agree within ``agree_tol`` (same units as ``fun``, nats for an NLML). A start
+    raising ``failure`` keeps its best point so far, or is recorded as (inf, 0) if it had none. With ``stall_evals``, a start also ends once that
+    many consecutive evaluations improved its best value by less than ``stall_tol`` (its best point
+    is kept; n_iter is then recorded as -1). Returns (best result, with ``x``, ``fun``, ``nfev``,
+    or None; history of (value, n_iter) per start; total evaluations).
+    """
+    from scipy.optimize import OptimizeResult
+
+    lo = np.array([b[0] for b in bounds])
+    hi = np.array([b[1] for b in bounds])
+    starts = [np.clip(np.asarray(s, float), lo, hi) for s in starts]
+    rng = np.random.default_rng(seed)
+    best, history, n_evals = None, [], 0
+    n_fixed = len(starts)
+    for r in range(n_fixed + int(n_restarts)):
+        start = starts[r] if r < n_fixed else np.clip(starts[0] + rng.normal(0.0, 1.0, starts[0].size), lo, hi)
+        watch = _StallWatch(fun, stall_evals, stall_tol)
+        try:
+            res = minimize(watch, start, args=args, jac=True, method="L-BFGS-B", bounds=bounds,
+                           options={"maxiter": max_iter})
+            if watch.best_x is not None and watch.best_f < res.fun:
+                res.x, res.fun = watch.best_x, watch.best_f
+        except _Stalled:
+            res = OptimizeResult(x=watch.best_x, fun=watch.best_f, nfev=watch.n, nit=-1, message="stalled")
+        except failure:
+            n_evals += watch.n
+            if watch.best_x is None:
+                history.append((float("inf"), 0))
+                continue
+            res = OptimizeResult(x=watch.best_x, fun=watch.best_f, nfev=watch.n, nit=-1, message=str(failure))
+        n_evals += int(res.nfev)
+        history.append((float(res.fun), int(res.nit)))
+        if best is None or res.fun < best.fun:
+            best = res
+        finite = sorted(h[0] for h in history if np.isfinite(h[0]))
+        if r >= n_fixed - 1 and len(finite) >= 2 and finite[1] - finite[0] < agree_tol:
+            break
+    return best, history, n_evals
+
+
+def _nlml_ws(theta, kernel, X, y, ws):
+    """Objective for L-BFGS-B; looks ``nlml_and_grad`` up at call time (benchmarks may wrap it)."""
+    return nlml_and_grad(theta, kernel, X, y, ws)
+
+
+def redundant_scale_indices(kernel: Kernel) -> list[int]:
+    """Positions in theta of the cubic parts' log scale s (redundant with sigma_p^2 and b, eq. 11)."""
+    from .kernels import CubicPolynomial, Sum
+
+    out, i = [], 0
+    for p in kernel.parts if isinstance(kernel, Sum) else [kernel]:
+        if isinstance(p, CubicPolynomial):
+            out.append(i + 1)
+        i += p.n_params
+    return out
+
+
+def default_warm_start_subset(n: int) -> int | None:
+    """Warm-start subset size used by ``GPNARX`` for n ML-II rows: n // 4 from n >= 2000, else none."""
+    return n // 4 if n >= 2000 else None
 
 
 def fit_ml2(
@@ -126,42 +436,64 @@ def fit_ml2(
     max_iter: int = 200,
     agree_tol: float = 0.5,
     theta0: np.ndarray | None = None,
+    warm_start_subset: int | None = None,
+    hold_redundant: bool = False,
+    stall_evals: int | None = 10,
 ) -> MLIIResult:
     """ML-II: maximise eq. (13) by L-BFGS-B over log-hyperparameters, with seeded restarts.
 
-    Start 0 is the data-scaled initial point; each restart perturbs it by N(0, 1) in log space.
-    Restarts stop early once two starts agree within ``agree_tol`` nats (fewer restarts when
-    they agree). The kernel is left at the best hyperparameters; returns the best theta
-    (kernel log-parameters then log sigma_y^2) and its NLML.
+    Start 0 is the data-scaled initial point (or ``theta0``); each restart perturbs it by N(0, 1)
+    in log space. Restarts stop early once two starts agree within ``agree_tol`` nats (fewer
+    restarts when they agree). One ``NLMLWorkspace`` is reused by every evaluation.
+
+    warm_start_subset: if set (rows, < N), start 0 is first optimised on that many evenly strided
+    rows (O(rows^3) per evaluation, e.g. N/4 costs 1/64 of a full evaluation), and the full-N
+    L-BFGS-B starts from that optimum, so it needs fewer full-N evaluations; restarts then
+    perturb the warm start. ``None`` (default) disables it; ``GPNARX`` uses
+    ``default_warm_start_subset(N)`` (N/4 from N = 2000 rows).
+
+    hold_redundant: hold the log scale s of each cubic part (eq. 11) at its start value. It is
+    redundant: sigma_p^2 (s x.x' + b)^3 = (sigma_p^2 s^3)(x.x' + b/s)^3, so any (sigma_p^2, s, b)
+    is reached with s fixed (inside the bounds), and the flat direction it adds to the NLML
+    surface is removed from L-BFGS-B (on the Bouc-Wen protocol this reaches the better of the
+    two optima a free s misses; see bench/bench_fit.py). ``GPNARX`` sets it together with the warm start.
+
+    stall_evals: each L-BFGS-B run also ends once this many consecutive evaluations improved its best
+    NLML by less than 1e-4 nats in total (None: only L-BFGS-B's own tests).
+
+    The kernel is left at the best hyperparameters; returns the best theta (kernel
+    log-parameters then log sigma_y^2), its NLML and evaluation counts.
     """
     t0 = time.perf_counter()
     base = initial_theta(kernel, X, y) if theta0 is None else np.asarray(theta0, float)
     bounds = kernel.log_bounds() + [NOISE_LOG_BOUNDS]
-    lo = np.array([b[0] for b in bounds])
-    hi = np.array([b[1] for b in bounds])
-    rng = np.random.default_rng(seed)
-    best = None
-    history = []
-    for r in range(n_restarts + 1):
-        start = base if r == 0 else np.clip(base + rng.normal(0.0, 1.0, base.size), lo, hi)
-        try:
-            res = minimize(
-                nlml_and_grad, start, args=(kernel, X, y), jac=True, method="L-BFGS-B",
-                bounds=bounds, options={"maxiter": max_iter},
-            )
-        except NotPositiveDefiniteError:
-            history.append((float("inf"), 0))
-            continue
-        history.append((float(res.fun), int(res.nit)))
-        if best is None or res.fun < best.fun:
-            best = res
-        finite = sorted(h[0] for h in history if np.isfinite(h[0]))
-        if len(finite) >= 2 and finite[1] - finite[0] < agree_tol:
-            break
+    if hold_redundant:
+        base = np.clip(base, [b[0] for b in bounds], [b[1] for b in bounds])
+        for j in redundant_scale_indices(kernel):
+            bounds[j] = (float(base[j]), float(base[j]))  # L-BFGS-B keeps a variable with equal bounds fixed
+    n = X.shape[0]
+    sub_evals = sub_rows = 0
+    if warm_start_subset and 2 <= int(warm_start_subset) < n:
+        rows = np.unique(np.linspace(0, n - 1, int(warm_start_subset)).astype(int))
+        Xs_, ys_ = np.ascontiguousarray(X[rows]), y[rows]
+        ws_sub = NLMLWorkspace(kernel, Xs_)
+        res_sub, _, sub_evals = multistart_lbfgsb(_nlml_ws, (kernel, Xs_, ys_, ws_sub), [base], bounds,
+                                                  max_iter=max_iter, stall_evals=stall_evals)
+        del ws_sub
+        sub_rows = rows.size
+        if res_sub is not None:
+            base = res_sub.x
+    ws = NLMLWorkspace(kernel, X)
+    best, history, n_evals = multistart_lbfgsb(_nlml_ws, (kernel, X, y, ws), [base], bounds,
+                                               n_restarts=n_restarts, seed=seed, max_iter=max_iter,
+                                               agree_tol=agree_tol, stall_evals=stall_evals)
+    del ws
     if best is None:
         raise NotPositiveDefiniteError("ML-II failed from every start: covariance never positive definite")
     kernel.set_theta(best.x[:-1])
-    return MLIIResult(theta=best.x.copy(), nlml=float(best.fun), restarts=history, seconds=time.perf_counter() - t0)
+    return MLIIResult(theta=best.x.copy(), nlml=float(best.fun), restarts=history,
+                      seconds=time.perf_counter() - t0, n_evals=n_evals, subset_evals=sub_evals,
+                      subset_rows=sub_rows)
 
 
 class ExactPosterior:
@@ -178,7 +510,7 @@ class ExactPosterior:
         self.noise_var = float(noise_var)
         self.X = X
         self.alpha = alpha
-        self.Linv = Linv
+        self.Linv = np.ascontiguousarray(Linv)  # C order: Linv.T is its F-ordered (upper) view for BLAS
         self._sqX = np.einsum("ij,ij->i", X, X)
         self._LinvT32 = None
 
@@ -207,11 +539,16 @@ class ExactPosterior:
             return mean, None
         if float32:
             if self._LinvT32 is None:
-                self._LinvT32 = np.ascontiguousarray(self.Linv.T, dtype=np.float32)
-            V = Ks.astype(np.float32) @ self._LinvT32
+                self._LinvT32 = np.ascontiguousarray(self.Linv, dtype=np.float32).T  # F-ordered Linv^T
+            V = linalg.blas.strmm(1.0, self._LinvT32, Ks.astype(np.float32).T, side=0, lower=0, trans_a=1,
+                                  overwrite_b=1).T
             red = np.einsum("ij,ij->i", V, V, dtype=np.float64)
         else:
-            V = Ks @ self.Linv.T
+            # |Linv k|^2 per row (eq. 9) with a triangular product: dtrmm computes Linv Ks^T in place
+            # in P N^2 flops (half the dense Ks @ Linv.T). Ks.T and Linv.T are F-ordered views of the
+            # C-ordered arrays, so BLAS needs no copy; Linv = (Linv.T)^T, hence trans_a=1, lower=0.
+            V = linalg.blas.dtrmm(1.0, self.Linv.T, np.ascontiguousarray(Ks).T, side=0, lower=0, trans_a=1,
+                                  overwrite_b=1).T
             red = np.einsum("ij,ij->i", V, V)
         var = self.kernel.diag(Xs) - red
         np.maximum(var, 1e-300, out=var)
@@ -293,19 +630,36 @@ class SparsePosterior:
     def cross(self, Xs):
         return self.kernel.from_gram(Xs @ self.X.T, np.einsum("ij,ij->i", Xs, Xs), self._sqZ)
 
+    ROW_BLOCK = 256  # test rows per block: the (rows x M) kernel block and its temporaries stay in cache
+
     def predict(self, Xs, return_var=True, float32=False):
-        Ks = self.cross(Xs)
-        mean = Ks @ self.w
+        """Sparse predictive mean and latent variance at Xs (standardised units), in row blocks.
+
+        Each block of ``ROW_BLOCK`` rows computes its kernel block K(Xs_b, Z) (one Gram product),
+        mean K w and variance k(x, x) - rowsum((K A) * K), so the elementwise kernel work and the
+        reduction run on cache-resident (rows x M) arrays instead of one (P x M) pass per operation.
+        """
+        Xs = np.asarray(Xs, dtype=float)
+        P = Xs.shape[0]
+        mean = np.empty(P)
+        var = self.kernel.diag(Xs) if return_var else None
+        sqs = np.einsum("ij,ij->i", Xs, Xs)
+        if float32 and return_var and self._A32 is None:
+            self._A32 = self.A.astype(np.float32)
+        step = self.ROW_BLOCK
+        for r0 in range(0, P, step):
+            r1 = min(P, r0 + step)
+            Ks = self.kernel.from_gram(Xs[r0:r1] @ self.X.T, sqs[r0:r1], self._sqZ)
+            np.dot(Ks, self.w, out=mean[r0:r1])
+            if not return_var:
+                continue
+            if float32:
+                Ks32 = Ks.astype(np.float32)
+                var[r0:r1] -= np.einsum("ij,ij->i", Ks32 @ self._A32, Ks32, dtype=np.float64)
+            else:
+                var[r0:r1] -= np.einsum("ij,ij->i", Ks @ self.A, Ks)
         if not return_var:
             return mean, None
-        if float32:
-            if self._A32 is None:
-                self._A32 = self.A.astype(np.float32)
-            Ks32 = Ks.astype(np.float32)
-            red = np.einsum("ij,ij->i", Ks32 @ self._A32, Ks32, dtype=np.float64)
-        else:
-            red = np.einsum("ij,ij->i", Ks @ self.A, Ks)
-        var = self.kernel.diag(Xs) - red
         np.maximum(var, 1e-300, out=var)
         return mean, var
 

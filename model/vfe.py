@@ -35,7 +35,6 @@ from collections.abc import Iterator
 
 import numpy as np
 from scipy import linalg
-from scipy.optimize import minimize
 
 from . import gp
 from .kernels import (
@@ -269,46 +268,26 @@ def fit_vfe(
     t0 = time.perf_counter()
     y = np.asarray(y, dtype=float).ravel()
     bounds = kernel.log_bounds() + [gp.NOISE_LOG_BOUNDS]
-    lo = np.array([b[0] for b in bounds])
-    hi = np.array([b[1] for b in bounds])
     if theta0 is not None:
-        starts = [np.clip(np.asarray(theta0, float), lo, hi)]
+        starts = [np.asarray(theta0, float)]
     else:
-        starts = [np.clip(gp.initial_theta(kernel, X, y), lo, hi)]
+        starts = [gp.initial_theta(kernel, X, y)]
         if warm_start_rows:
             rows = np.unique(np.linspace(0, X.shape[0] - 1, min(int(warm_start_rows), X.shape[0])).astype(int))
             try:
                 warm = gp.fit_ml2(kernel.clone(), X[rows], y[rows], n_restarts=0, theta0=starts[0],
                                   max_iter=max_iter)
-                starts.append(np.clip(warm.theta, lo, hi))
+                starts.append(warm.theta)
             except gp.NotPositiveDefiniteError:
                 pass
-    base = starts[0]
-    rng = np.random.default_rng(seed)
-    best = None
-    history = []
-    n_fixed = len(starts)
-    for r in range(n_fixed + int(n_restarts)):
-        start = starts[r] if r < n_fixed else np.clip(base + rng.normal(0.0, 1.0, base.size), lo, hi)
-        try:
-            res = minimize(
-                vfe_nlml_and_grad, start, args=(kernel, X, y, Z), jac=True, method="L-BFGS-B",
-                bounds=bounds, options={"maxiter": max_iter},
-            )
-        except gp.NotPositiveDefiniteError:
-            history.append((float("inf"), 0))
-            continue
-        history.append((float(res.fun), int(res.nit)))
-        if best is None or res.fun < best.fun:
-            best = res
-        finite = sorted(h[0] for h in history if np.isfinite(h[0]))
-        if r >= n_fixed - 1 and len(finite) >= 2 and finite[1] - finite[0] < agree_tol:
-            break
+    best, history, n_evals = gp.multistart_lbfgsb(
+        vfe_nlml_and_grad, (kernel, X, y, Z), starts, bounds, n_restarts=n_restarts, seed=seed,
+        max_iter=max_iter, agree_tol=agree_tol)
     if best is None:
         raise gp.NotPositiveDefiniteError("VFE ML-II failed from every start: Kmm/B never positive definite")
     kernel.set_theta(best.x[:-1])
     return gp.MLIIResult(theta=best.x.copy(), nlml=float(best.fun), restarts=history,
-                         seconds=time.perf_counter() - t0)
+                         seconds=time.perf_counter() - t0, n_evals=n_evals)
 
 
 __all__ = ["cross_grads", "diag_grads", "fit_vfe", "vfe_nlml_and_grad"]
