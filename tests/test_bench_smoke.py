@@ -12,7 +12,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py"]
+SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py",
+           "bench_bert_scale.py", "bench_predict_e2e.py"]
+# fields of the new benches' RESULT lines that must be finite numbers (besides ratio and baseline)
+FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "baseline_record_s_extrapolated"),
+          "bench_predict_e2e.py": ("wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s")}
 
 
 def parse_result(stdout: str) -> dict:
@@ -38,6 +42,8 @@ def test_bench_quick(script):
     ratio = float(kv["ratio"])
     assert math.isfinite(ratio) and ratio > 0, kv
     assert math.isfinite(float(kv["baseline"])), kv
+    for key in FINITE.get(script, ()):
+        assert key in kv and math.isfinite(float(kv[key])) and float(kv[key]) > 0, (key, kv)
 
 
 def test_parse_result_rejects_garbage():

@@ -17,6 +17,8 @@ def _common(p):
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
     p.add_argument("--method", choices=("mc", "linear"), default="mc", help="uncertainty propagation")
+    p.add_argument("--blas-threads", type=int, default=None,
+                   help="BLAS threads for the free run (default: $GPNARX_BLAS_THREADS or 1; 0 leaves BLAS as it is)")
 
 
 def add_parser(sub):
@@ -42,6 +44,11 @@ def resolve_registry(registry):
 
 def load(args):
     from model.bundle import BundleError, Registry, load_bundle, parse_model_ref
+    from training.runtime import tune_for_free_run
+
+    if args.blas_threads is not None and args.blas_threads < 0:
+        raise CLIError(f"--blas-threads must be >= 0, got {args.blas_threads}")
+    tune_for_free_run(args.blas_threads)  # one BLAS thread and no per-step mmaps (see training/runtime.py)
     from training.records import read_record
 
     try:

@@ -1,0 +1,68 @@
+"""Process-level tuning for the one-shot CLI commands (``gpnarx predict``, ``gpnarx novelty``).
+
+A free run is thousands of small steps, each a few (paths x points) matrix products. Two process
+settings matter for them, the same two the HTTP service applies (``service/settings.py``; the
+dependency rule keeps ``training/`` from importing ``service/``, hence this small copy):
+
+* BLAS threads: on a machine whose cores are shared, multi-threaded OpenBLAS pays a scheduler
+  wake-up per small product; one thread is the default (``GPNARX_BLAS_THREADS``, 0 = leave BLAS
+  as it is). Measured by ``bench/bench_predict_e2e.py`` (tuned vs untuned subprocess).
+* glibc's mmap threshold: temporaries of a few hundred KiB to MiB per step are otherwise served by
+  fresh mmaps (page faults every step). ``GPNARX_MMAP_THRESHOLD`` bytes (default 32 MiB, 0 = leave
+  malloc as it is) sets M_MMAP_THRESHOLD, and M_TRIM_THRESHOLD to 4x that.
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+MiB = 1024 * 1024
+_LIMITERS = []
+
+
+def _env_int(name: str, default: int) -> int:
+    raw = os.environ.get(name, "").strip()
+    if not raw:
+        return default
+    try:
+        v = int(raw)
+    except ValueError:
+        raise ValueError(f"{name} must be an integer, got {raw!r}") from None
+    if v < 0:
+        raise ValueError(f"{name} must be >= 0, got {v}")
+    return v
+
+
+def limit_blas(n: int) -> bool:
+    """Limit BLAS to n threads in this process (0: leave as it is). Returns whether a limit was set."""
+    if not n:
+        return False
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl is a declared dependency
+        return False
+    _LIMITERS.append(threadpool_limits(limits=int(n), user_api="blas"))
+    return True
+
+
+def tune_malloc(mmap_threshold: int) -> bool:
+    """glibc: serve blocks below ``mmap_threshold`` bytes from the heap (0 or non-glibc: no-op)."""
+    if not mmap_threshold or not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        m_trim_threshold, m_mmap_threshold = -1, -3  # from malloc.h
+        ok = libc.mallopt(m_mmap_threshold, int(min(mmap_threshold, 2**31 - 1)))
+        ok = ok and libc.mallopt(m_trim_threshold, int(min(4 * mmap_threshold, 2**31 - 1)))
+        return bool(ok)
+    except (OSError, AttributeError):  # not glibc
+        return False
+
+
+def tune_for_free_run(blas_threads: int | None = None) -> dict:
+    """Apply both settings (``blas_threads`` overrides ``GPNARX_BLAS_THREADS``); returns what was set."""
+    n = _env_int("GPNARX_BLAS_THREADS", 1) if blas_threads is None else int(blas_threads)
+    mm = _env_int("GPNARX_MMAP_THRESHOLD", 32 * MiB)
+    return {"blas_threads": n if limit_blas(n) else 0, "mmap_threshold": mm if tune_malloc(mm) else 0}
