@@ -120,6 +120,11 @@ def cached_registry(quick: bool, retrain: bool) -> tuple[Path, str]:
 def main():
     args = C.parse_args(__doc__, lambda ap: ap.add_argument("--retrain", action="store_true",
                                                             help="retrain the cached bundle"))
+    with tempfile.TemporaryDirectory(prefix="gpnarx-e2e-") as tmp:
+        run(args, Path(tmp))
+
+
+def run(args, tmp: Path):
     q = args.quick
     P = 256 if q else 1024
     N_base = 500 if q else 4000
@@ -127,7 +132,6 @@ def main():
     reps = 2 if q else 3
 
     reg, reg_note = cached_registry(q, args.retrain)
-    tmp = Path(tempfile.mkdtemp(prefix="gpnarx-e2e-"))
     rec = tmp / "sweep50.npz"
     cli("simulate", "bouc-wen", "--excitation", "sweep", "--amplitude", 50, "--rate", 53.55, "--out", rec)
     if q:
