@@ -8,6 +8,12 @@ grows smoothly with the mismatch a torque change produces (shifted resonance -> 
 amplitude residuals), unlike the fraction outside the 99% band, which saturates and is coarse
 on short records. The mean negative log predictive density is reported alongside.
 
+Initial condition: a record is scored with the free run started from its own first ny measured
+outputs (``novelty_start``), unless the caller gives y0. A monitoring record is usually taken in
+steady state (e.g. a probe sine), and a run started from rest would add a start-up transient
+that is not a change of the structure. Calibration (``training.pipeline``), ``gpnarx novelty`` and
+the service's novelty route all use this rule, so scores and thresholds are comparable.
+
 Calibration: scores of healthy records are modelled as log-normal; the threshold is the
 (1 - false_alarm_rate) quantile of that fit, and never below the largest healthy score seen
 when fewer than 1/false_alarm_rate healthy records are available.
@@ -18,6 +24,15 @@ import numpy as np
 from scipy.special import ndtri
 
 STD_FLOOR_REL = 1e-6
+
+
+def novelty_start(y, ny: int, y0=None):
+    """Initial outputs for scoring record y: y0 when given, else y's first ny samples (a record not
+    longer than ny samples starts from rest, returns None)."""
+    if y0 is not None and len(y0) > 0:
+        return y0
+    y = np.asarray(y, float)
+    return y[:ny].copy() if y.size > ny else None
 
 
 def novelty_score(y, mean, std) -> dict:

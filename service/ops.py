@@ -15,7 +15,7 @@ import numpy as np
 
 from model.bundle import Bundle
 from model.metrics import summary
-from model.novelty import novelty_score, verdict
+from model.novelty import novelty_score, novelty_start, verdict
 from model.restoring import loop_area, restoring_force
 
 from .problems import ProblemError
@@ -105,7 +105,7 @@ def novelty_of(bundle: Bundle) -> dict:
     nov = bundle.manifest.get("novelty")
     if not isinstance(nov, dict) or not isinstance(nov.get("threshold"), (int, float)):
         raise ProblemError(409, f"model {bundle.name}:{bundle.version} has no novelty calibration; train it with "
-                                f"healthy records to get a threshold")
+                                f"'healthy' records to get a threshold (the default bert-standin-monitor bundle has one)")
     return nov
 
 
@@ -126,7 +126,8 @@ def _simulate(plan: Plan, req, token: CancelToken | None = None):
         token.check()
     try:
         with np.errstate(all="ignore"):
-            run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=req.y0 or None,
+            y0 = novelty_start(req.y, model.ny, req.y0) if plan.operation == "novelty" else (req.y0 or None)
+            run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=y0,
                                  confidence=float(req.confidence), method=plan.method,
                                  progress=None if token is None else token.progress)
     except ValueError as exc:

@@ -33,7 +33,8 @@ _FS_DESC = "Sampling frequency of the record [Hz]; must equal the model's `fs` (
 _Y_DESC = ("Optional measured output record (output units, e.g. m or m/s), same length as `u`. When sent, the "
            "answer adds `fit` (%, eq. 14), `rmse` and `coverage` (% of samples inside the band).")
 _Y0_DESC = ("Optional first `ny` measured outputs (ny = the model's output lag). They are taken as known and the "
-            "free run starts after them; without `y0` the system starts from rest. Extra values are ignored.")
+            "free run starts after them; without `y0` the system starts from rest, except for novelty, which "
+            "starts from the first `ny` samples of `y` (the record's own measured start). Extra values are ignored.")
 _MC_DESC = (f"Monte Carlo paths for `method`='mc' (default {B['mc_paths_default']}, at most {B['mc_paths_max']} "
             f"by default: GPNARX_MC_PATHS_DEFAULT, GPNARX_MC_PATHS_MAX; above the maximum -> 422). "
             f"mc_paths x samples is capped at {B['max_mc_work']} path-steps per HTTP request "

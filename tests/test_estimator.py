@@ -162,3 +162,13 @@ def test_sparse_vfe_refines_hyperparameters_on_all_rows(sdof_data):
     assert f_vfe <= f_sub + 1e-6
     run = vfe.simulate(sdof_data["u2"][:800], n_paths=128, seed=0)
     assert fit_percent(sdof_data["y2"][:800], run.mean) > 85
+
+
+def test_novelty_start_rule():
+    from model.novelty import novelty_start
+
+    y = np.arange(10.0)
+    assert np.array_equal(novelty_start(y, 3), [0.0, 1.0, 2.0])
+    assert novelty_start(y, 3, y0=[5.0, 6.0, 7.0]) == [5.0, 6.0, 7.0]
+    assert novelty_start(y[:3], 3) is None  # not longer than ny: from rest
+    assert novelty_start(y, 3, y0=[]) is not None  # an empty y0 means "not given"

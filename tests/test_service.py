@@ -231,6 +231,19 @@ def test_novelty_healthy_and_damaged(client):
     assert_problem(client.post("/v1/models/plain/novelty", json={**base, "y": u.tolist()}), 409)
 
 
+def test_novelty_starts_from_the_measured_record_unless_y0_is_given(client):
+    u = multisine(384, 22)
+    y = noisy(simulate(u), 22)
+    base = {"u": u.tolist(), "fs": FS, "mc_paths": 32, "seed": 0, "y": y.tolist()}
+    default = client.post("/v1/models/boucwen/novelty", json=base).json()
+    ny = client.get("/v1/models/boucwen").json()["lags"]["ny"]
+    measured = client.post("/v1/models/boucwen/novelty", json={**base, "y0": y[:ny].tolist()}).json()
+    assert default["score"] == measured["score"]  # the rule of model.novelty.novelty_start
+    y0_rest = [0.0] * ny
+    from_rest = client.post("/v1/models/boucwen/novelty", json={**base, "y0": y0_rest}).json()
+    assert from_rest["score"] != default["score"]  # an explicit y0 still wins
+
+
 # ------------------------------------------------------------------------------------------ batch
 def test_batch_live_one_malformed_record(live):
     body, y = rec(n=64)

@@ -141,15 +141,17 @@ def _write_prediction(path, rec, run):
 
 
 def run_novelty(args):
-    from model.novelty import novelty_score, verdict
+    from model.novelty import novelty_score, novelty_start, verdict
 
     bundle, rec, mc = load(args)
     if rec.y is None:
         raise CLIError(f"{args.record}: novelty needs the measured output y")
     nov = bundle.manifest.get("novelty")
     if not nov:
-        raise CLIError(f"model {bundle.name}:{bundle.version} has no novelty calibration (train it with 'healthy' records)")
-    run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method)
+        raise CLIError(f"model {bundle.name}:{bundle.version} has no novelty calibration (train it with 'healthy' records; "
+                       "the default bert-standin-monitor bundle has one)")
+    run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method,
+                                y0=novelty_start(rec.y, bundle.model.ny))
     s = novelty_score(rec.y, run.mean, run.std)
     return {"model": bundle.name, "version": bundle.version, "score": s["score"], "nlpd": s["nlpd"],
             "threshold": nov["threshold"], "verdict": verdict(s["score"], nov["threshold"]),

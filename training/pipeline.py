@@ -16,7 +16,7 @@ import numpy as np
 
 from model.bundle import save_bundle
 from model.estimator import GPNARX
-from model.novelty import calibrate_threshold, novelty_score, verdict
+from model.novelty import calibrate_threshold, novelty_score, novelty_start, verdict
 from model.records import Record
 from training.config import ConfigError, DatasetConfig, load_config
 from training.jsonsafe import to_json_safe
@@ -46,8 +46,12 @@ def evaluate_record(model: GPNARX, rec: Record, role: str, n_paths: int, seed: i
                     method: str = "mc", progress=None) -> dict:
     """Free-run prediction of one record and everything the report needs (arrays + metrics)."""
     # records measured in steady state (sines, periodic multisines) start from their first ny
-    # measured outputs (meta initial = "measured"); the others start from rest
-    y0 = rec.y[: model.ny] if rec.meta.get("initial") == "measured" and rec.y is not None else None
+    # measured outputs (meta initial = "measured"), and so do novelty records (healthy/damaged,
+    # the rule of model.novelty.novelty_start); the others start from rest
+    if role in ("healthy", "damaged") and rec.y is not None:
+        y0 = novelty_start(rec.y, model.ny)
+    else:
+        y0 = rec.y[: model.ny] if rec.meta.get("initial") == "measured" and rec.y is not None else None
     run = model.simulate(rec.u, n_paths=n_paths, seed=seed, confidence=confidence, method=method, y0=y0,
                          progress=progress)
     out = {

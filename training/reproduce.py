@@ -139,7 +139,7 @@ def novelty_study(model, out: Path, n_per_class: int = 20, n_paths: int = 128, s
     ``n_paths=0`` scores with the linearised propagation (deterministic, one pass per record; the
     same as ``"method": "linear"`` on the service's novelty route), else Monte Carlo.
     """
-    from model.novelty import calibrate_threshold, novelty_score
+    from model.novelty import calibrate_threshold, novelty_score, novelty_start
     from training.config import simulate_record
 
     log = log or (lambda m: None)
@@ -152,7 +152,7 @@ def novelty_study(model, out: Path, n_per_class: int = 20, n_paths: int = 128, s
                                    "torque": float(torque)}, output="velocity")
             rng = np.random.default_rng(10_000 + int(seed))
             y = rec.y + np.sqrt(0.0004 * np.mean(rec.y ** 2)) * rng.normal(size=rec.n)
-            y0 = y[: model.ny]
+            y0 = novelty_start(y, model.ny)
             run = model.simulate(rec.u, method="linear", y0=y0) if n_paths == 0 else \
                 model.simulate(rec.u, n_paths=n_paths, seed=int(seed), y0=y0)
             s.append(novelty_score(y, run.mean, run.std)["score"])
