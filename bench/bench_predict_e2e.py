@@ -9,7 +9,7 @@ bouc-wen REC --mc 1024 --out OUT.npz --json`` subprocess (interpreter start, imp
 with checksums, 1024-path Monte Carlo free run from rest, writing OUT.npz and the JSON), best and
 median of a few runs; path-steps = 2031 x 1024. Also timed once more with the process tuning off
 (``GPNARX_BLAS_THREADS=0 GPNARX_MMAP_THRESHOLD=0``: library-default BLAS threads, default malloc)
-to show what ``training/runtime.py`` buys.
+to show what ``model/runtime.py`` buys.
 
 Baseline (same run): the per-step loop a user would write around scikit-learn's
 ``GaussianProcessRegressor.predict(X, return_std=True)``, exact GP at N=4000 training rows of the

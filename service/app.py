@@ -44,6 +44,7 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import Match
 
 from model.bundle import BundleError, Registry, check_name, check_version
+from model.runtime import limit_blas, tune_malloc  # process tuning shared with the CLI
 
 from . import ops
 from .metrics import ServiceMetrics
@@ -391,30 +392,8 @@ def _api_description() -> str:
 
 def limit_blas_threads(n: int) -> None:
     """Limit BLAS to ``n`` threads in this process (0: leave it); see ``service.settings``."""
-    if not n:
-        return
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
+    if n and not limit_blas(n):  # pragma: no cover - threadpoolctl comes with scikit-learn
         log.warning("threadpoolctl is not installed: BLAS threads are not limited")
-        return
-    threadpool_limits(limits=int(n), user_api="blas")
-
-
-def tune_malloc(mmap_threshold: int) -> bool:
-    """glibc: serve blocks below ``mmap_threshold`` bytes from the heap (see ``service.settings``)."""
-    if not mmap_threshold or not sys.platform.startswith("linux"):
-        return False
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        m_trim_threshold, m_mmap_threshold = -1, -3
-        ok = libc.mallopt(m_mmap_threshold, int(min(mmap_threshold, 2**31 - 1)))
-        ok = ok and libc.mallopt(m_trim_threshold, int(min(4 * mmap_threshold, 2**31 - 1)))
-        return bool(ok)
-    except (OSError, AttributeError):  # not glibc
-        return False
 
 
 def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:

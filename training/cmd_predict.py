@@ -44,11 +44,11 @@ def resolve_registry(registry):
 
 def load(args):
     from model.bundle import BundleError, Registry, load_bundle, parse_model_ref
-    from training.runtime import tune_for_free_run
+    from model.runtime import tune_for_free_run
 
     if args.blas_threads is not None and args.blas_threads < 0:
         raise CLIError(f"--blas-threads must be >= 0, got {args.blas_threads}")
-    tune_for_free_run(args.blas_threads)  # one BLAS thread and no per-step mmaps (see training/runtime.py)
+    tune_for_free_run(args.blas_threads)  # one BLAS thread and no per-step mmaps (see model/runtime.py)
     from training.records import read_record
 
     try:

@@ -1,8 +1,9 @@
-"""Process-level tuning for the one-shot CLI commands (``gpnarx predict``, ``gpnarx novelty``).
+"""Process-level tuning for free runs, shared by the HTTP service (``service/settings.py`` sets the
+values) and the one-shot CLI commands (``gpnarx predict``, ``gpnarx novelty``).
 
 A free run is thousands of small steps, each a few (paths x points) matrix products. Two process
-settings matter for them, the same two the HTTP service applies (``service/settings.py``; the
-dependency rule keeps ``training/`` from importing ``service/``, hence this small copy):
+settings matter for them (``model/`` holds them because both ``training/`` and ``service/`` may
+import it):
 
 * BLAS threads: on a machine whose cores are shared, multi-threaded OpenBLAS pays a scheduler
   wake-up per small product; one thread is the default (``GPNARX_BLAS_THREADS``, 0 = leave BLAS
