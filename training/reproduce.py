@@ -40,7 +40,6 @@ QUICK = {"grid": ([2, 4], [2, 4]), "max_seconds": 1.0, "surface": {"max_train_po
                                                                      "inducing": 32},
          "model": {"max_train_points": 200, "inducing": 64}, "mc_paths": 32, "novelty_n": 3}
 MONITOR_CONFIG = "bert-standin-monitor"  # the bolt-loosening monitor trained by reproduce bert-standin
-PROBE = {"excitation": "sine", "amplitude": 0.15, "freq": 9.0}  # V, Hz: the monitor's probe
 MC_PATHS = {"bouc-wen": 1024, "bert-standin": 4096, "bert-real": 1024}
 SYSTEMS = tuple(PAPER)
 
@@ -88,13 +87,15 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
         summary["oracle"] = standin_oracle(cfg, summary["records"])
         log(f"[{system}] oracle (nominal stand-in, no realization scatter) fit on each scored record: "
             + ", ".join(f"{k} {v['fit_clean']:.1f}%" for k, v in summary["oracle"].items()))
-        log(f"[{system}] training the bolt-loosening monitor ({MONITOR_CONFIG}.toml, 9 Hz probe)")
-        mon = train(load_config(shipped_config(MONITOR_CONFIG)), registry, progress=progress, mc_paths=n_paths,
+        mon_cfg = load_config(shipped_config(MONITOR_CONFIG))
+        probe = monitor_probe(mon_cfg)
+        log(f"[{system}] training the bolt-loosening monitor ({MONITOR_CONFIG}.toml, probe {probe})")
+        mon = train(mon_cfg, registry, progress=progress, mc_paths=n_paths,
                     log=log, max_seconds=max_seconds, model_overrides=QUICK["model"] if quick else None)
         summary["monitor"] = {"bundle": mon["path"], "records": mon["metrics"]["records"],
                               "novelty": mon["novelty"]}
         summary["novelty"] = novelty_study(mon["model"], out, n_per_class=QUICK["novelty_n"] if quick else novelty_n,
-                                           n_paths=0, seconds=1.0 if quick else 4.0, log=log)
+                                           probe=probe, n_paths=0, seconds=1.0 if quick else 4.0, log=log)
     summary["wall_seconds"] = time.perf_counter() - t0
     (out / "summary.json").write_text(json.dumps(_clean(summary), indent=1))
     log(f"[{system}] done in {summary['wall_seconds']:.1f} s; report in {res['path']}/report, summary {out / 'summary.json'}")
@@ -136,12 +137,23 @@ def standin_oracle(cfg, records: dict) -> dict:
     return out
 
 
-def novelty_study(model, out: Path, n_per_class: int = 20, n_paths: int = 128, seconds: float = 4.0,
-                  false_alarm_rates=(0.01, 0.05), log=None, probe: dict | None = None) -> dict:
+def monitor_probe(cfg) -> dict:
+    """The probe excitation of a monitoring config: the ``simulate`` excitation of its training
+    records (all must share it), without realization, duration or torque (e.g. a 0.15 V sine at 9 Hz)."""
+    keys = ("excitation", "amplitude", "freq", "f0", "f1", "rate")
+    probes = [{k: spec.simulate[k] for k in keys if k in spec.simulate}
+              for spec in cfg.records if "train" in spec.roles and spec.simulate]
+    if not probes or any(p != probes[0] for p in probes):
+        raise ValueError(f"{cfg.path}: the monitor's training records must share one simulated probe, got {probes}")
+    return probes[0]
+
+
+def novelty_study(model, out: Path, probe: dict, n_per_class: int = 20, n_paths: int = 128, seconds: float = 4.0,
+                  false_alarm_rates=(0.01, 0.05), log=None) -> dict:
     """Bolt-loosening study on the stand-in: calibration on healthy 5 N m realizations, false
     alarms on unseen 5 N m ones, detections at 7 and 9 N m (tighter) and 4 N m (partly loosened).
 
-    Records: the monitor's probe (default ``PROBE``: a steady 0.15 V sine at 9 Hz, in steady state),
+    Records: the monitor's probe (``monitor_probe``, e.g. a steady 0.15 V sine at 9 Hz, in steady state),
     ``seconds`` long, each a new seeded realization of the stand-in with 0.04 % output-noise energy;
     the free run starts from the record's first ny measured outputs, as a monitoring system would.
     Loosening is modelled by the stand-in as LOWER torque (less clamping: lower slip limits, a
@@ -153,7 +165,7 @@ def novelty_study(model, out: Path, n_per_class: int = 20, n_paths: int = 128, s
     from training.config import simulate_record
 
     log = log or (lambda m: None)
-    probe = dict(PROBE if probe is None else probe)
+    probe = dict(probe)
 
     def scores(torque, seeds):
         s = []
