@@ -261,3 +261,32 @@ def result(**kv) -> None:
 
 def loglog_slope(x, y) -> float:
     return float(np.polyfit(np.log(np.asarray(x, float)), np.log(np.asarray(y, float)), 1)[0])
+
+
+def free_port() -> int:
+    """A free loopback TCP port for a server started by a bench."""
+    import socket
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def wait_ready(url: str, proc, timeout: float, log_path: Path | None = None) -> None:
+    """Poll ``url``/health/ready until 200; exits with the server's log tail if ``proc`` dies."""
+    import httpx
+
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if proc.poll() is not None:
+            tail = f":\n{log_path.read_text()[-2000:]}" if log_path is not None else ""
+            raise SystemExit(f"server exited with code {proc.returncode}{tail}")
+        try:
+            if httpx.get(url + "/health/ready", timeout=2).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    raise SystemExit("server did not become ready")

@@ -29,7 +29,6 @@ import argparse
 import asyncio
 import json
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -38,6 +37,8 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
+import _common as C
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -88,30 +89,6 @@ def train_bundle(registry: Path, quick: bool) -> str:
                 physics={"mass": 2.0, "input_gain": 1.0, "output": "displacement"},
                 novelty=calibrate_threshold(scores, 0.01), training={"note": "bench_load"})
     return NAME
-
-
-def free_port() -> int:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
-def wait_ready(url: str, proc, log_path: Path, timeout=180.0):
-    import httpx
-
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if proc.poll() is not None:
-            raise SystemExit(f"server exited with code {proc.returncode}:\n{log_path.read_text()[-2000:]}")
-        try:
-            if httpx.get(url + "/health/ready", timeout=2).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    raise SystemExit("server did not become ready")
 
 
 def make_calls(model: str, n_calls: int, samples: int, paths: int) -> list[tuple[str, str, bytes]]:
@@ -306,7 +283,7 @@ def main(argv=None):
     long_body = json.dumps({"u": u_long.tolist(), "fs": FS, "mc_paths": paths, "seed": 0}).encode()
     print(f"[bench] set-up (bundle, {n_calls} calls) {time.perf_counter() - t_setup:.1f} s", file=sys.stderr)
 
-    port = free_port()
+    port = C.free_port()
     url = f"http://127.0.0.1:{port}"
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("GPNARX_API_KEY", None)
@@ -316,7 +293,7 @@ def main(argv=None):
            "--workers", str(args.workers), "--queue", str(queue_size), "--log-level", "warning"]
     proc = subprocess.Popen(cmd, cwd=str(ROOT), env=env, stdout=log_file, stderr=log_file)
     try:
-        wait_ready(url, proc, log_path)
+        C.wait_ready(url, proc, 180.0, log_path)
         # warm-up: one call of each type
         with httpx.Client(base_url=url, timeout=300) as c:
             for kind in TYPES:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -37,6 +36,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+import _common as C  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 FS = 750.0
 
@@ -61,30 +62,6 @@ def train_bundle(registry: Path) -> str:
     save_bundle(model, registry, "bench-boucwen", "1", fs=FS, units={"u": "N", "y": "m"},
                 physics={"mass": 2.0, "input_gain": 1.0, "output": "displacement"}, training={})
     return "bench-boucwen"
-
-
-def free_port() -> int:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
-def wait_ready(url: str, proc, timeout=600.0):
-    import httpx
-
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if proc.poll() is not None:
-            raise SystemExit(f"server exited with code {proc.returncode}")
-        try:
-            if httpx.get(url + "/health/ready", timeout=2).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    raise SystemExit("server did not become ready")
 
 
 def pct(a, q):
@@ -135,7 +112,7 @@ def main(argv=None):
     body = {"u": u.tolist(), "y": y.tolist(), "fs": fs, "mc_paths": args.paths, "seed": 0}
     payload = json.dumps(body).encode()
 
-    port = free_port()
+    port = C.free_port()
     url = f"http://127.0.0.1:{port}"
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     cmd = [sys.executable, "-m", "training.cli", "serve", "--registry", str(registry), "--port", str(port),
@@ -144,7 +121,7 @@ def main(argv=None):
         cmd += ["--workers", str(args.workers)]
     proc = subprocess.Popen(cmd, cwd=str(ROOT), env=env, stderr=subprocess.DEVNULL)
     try:
-        wait_ready(url, proc)
+        C.wait_ready(url, proc, 600.0)
         headers = {"content-type": "application/json"}
         with httpx.Client(base_url=url, timeout=600) as c:
             path = f"/v1/models/{name}/predict"
