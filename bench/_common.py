@@ -290,3 +290,15 @@ def wait_ready(url: str, proc, timeout: float, log_path: Path | None = None) -> 
             pass
         time.sleep(0.2)
     raise SystemExit("server did not become ready")
+
+
+def stop_server(proc, timeout: float = 30.0) -> None:
+    """Terminate a bench's server subprocess; kill it if it does not exit within ``timeout`` s."""
+    import subprocess
+
+    proc.terminate()
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=timeout)

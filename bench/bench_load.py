@@ -310,12 +310,7 @@ def main(argv=None):
         with httpx.Client(base_url=url, timeout=30) as c:
             metrics = c.get("/metrics").text
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=30)
+        C.stop_server(proc)
         log_file.close()
         server_log = log_path.read_text()
         log_path.unlink(missing_ok=True)

@@ -175,11 +175,7 @@ def main(argv=None):
         wall = time.perf_counter() - t0
         rps = sum(counts) / wall
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        C.stop_server(proc)
         if tmp is not None:
             tmp.cleanup()
 
