@@ -79,6 +79,9 @@ def test_multisine_and_noise_defaults(tmp_path):
         (["bouc-wen", "--excitation", "chirp", "--amplitude", "1"], "--excitation"),
         (["duffing", "--amplitude", "1"], "system"),
         (["bouc-wen", "--amplitude", "1", "--torque", "5"], "--torque"),
+        (["bouc-wen", "--amplitude", "1", "--scatter", "2"], "--scatter"),
+        (["bert-standin", "--amplitude", "0.1", "--scatter", "101"], "--scatter"),
+        (["bert-standin", "--amplitude", "0.1", "--scatter", "-1"], "--scatter"),
         (["bouc-wen", "--amplitude", "1", "--freq", "20"], "--freq"),
         (["bouc-wen", "--amplitude", "1", "--f1", "400"], "f1"),
         (["bouc-wen", "--amplitude", "abc"], "--amplitude"),
@@ -119,8 +122,8 @@ def test_local_writer_is_atomic_and_formats(tmp_path):
 class _FakeStandin:
     calls = []
 
-    def __init__(self, torque=5.0, seed=None):
-        self.torque, self.seed = torque, seed
+    def __init__(self, torque=5.0, seed=None, scatter=1.0):
+        self.torque, self.seed, self.scatter = torque, seed, scatter
 
     def simulate(self, u, fs=1024.0):
         _FakeStandin.calls.append((self.torque, self.seed, fs, u.size))

@@ -209,6 +209,36 @@ def test_simulate_option_errors(tmp_path):
     cfg = load_config(_write(tmp_path, text))
     with pytest.raises(ConfigError, match="records.sweep-10N.simulate: torque applies only to bert-standin"):
         cfg.records_for("train")
+    cfg = load_config(_write(tmp_path, SMALL.replace("rate = 200.0 }", "rate = 200.0, scatter = 2.0 }")))
+    with pytest.raises(ConfigError, match="records.sweep-10N.simulate: scatter applies only to bert-standin"):
+        cfg.records_for("train")
+
+
+def test_standin_scatter_reaches_the_simulator(tmp_path):
+    from training.simulators.bert_standin import BertStandin
+
+    text = """
+    name = "bert"
+    [system]
+    fs = 1024.0
+    output = "velocity"
+    [[records]]
+    name = "wide"
+    roles = ["train"]
+    simulate = { system = "bert-standin", excitation = "noise", amplitude = 0.05, duration = 1.0, seed = 3, scatter = 10.0 }
+    [[records]]
+    name = "bad"
+    roles = ["verify"]
+    simulate = { system = "bert-standin", excitation = "noise", amplitude = 0.05, duration = 1.0, seed = 3, scatter = 500.0 }
+    """
+    cfg = load_config(_write(tmp_path, text))
+    rec = cfg.records_for("train")[0]
+    assert rec.meta["scatter"] == 10.0
+    direct = BertStandin(seed=3, scatter=10.0).simulate(rec.u)["y"]
+    np.testing.assert_array_equal(rec.y, direct)
+    assert not np.array_equal(rec.y, BertStandin(seed=3).simulate(rec.u)["y"])
+    with pytest.raises(ConfigError, match="scatter must be between 0 and 100"):
+        cfg.records_for("verify")
 
 
 def test_bert_standin_and_real_data_records(tmp_path, monkeypatch):

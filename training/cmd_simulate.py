@@ -3,7 +3,7 @@
 ::
 
     gpnarx simulate bouc-wen|bert-standin --excitation sweep|sine|multisine|noise --amplitude A
-        [--f0 HZ --f1 HZ --rate HZ_PER_S --freq HZ --duration S --seed N --torque NM]
+        [--f0 HZ --f1 HZ --rate HZ_PER_S --freq HZ --duration S --seed N --torque NM --scatter K]
         [--noise-fraction F] --out FILE
 
 The record file holds 1-D float64 arrays ``u`` and ``y`` and a scalar ``fs`` [Hz] (``.npz``), or
@@ -17,7 +17,8 @@ Systems (defaults follow the paper's protocol, sections 3 and 4):
 - ``bert-standin``: the documented single-mode hysteretic *stand-in* for the BERT rig
   (``training.simulators.bert_standin``; never the rig's numbers), fs = 1024 Hz, u = shaker
   voltage [V], y = free-end velocity [m/s]. ``--torque`` [N m] (default 5) and ``--seed`` select
-  the tightening torque and the realization.
+  the tightening torque and the realization; ``--scatter`` (default 1) multiplies the realization
+  scatter of the stand-in's parameters (10 = the former, larger assumption; see the simulator).
 
 Excitations (``--amplitude`` is the *peak* for sweep and sine, the *RMS* for multisine and noise):
 
@@ -107,6 +108,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--duration", metavar="S", help="record (or multisine period) length [s]")
     p.add_argument("--seed", metavar="N", help="random seed (multisine phases, noise, stand-in realization)")
     p.add_argument("--torque", metavar="NM", help="BERT stand-in tightening torque [N m] (default 5)")
+    p.add_argument("--scatter", metavar="K", help="BERT stand-in realization scatter multiplier, 0-100 (default 1)")
     p.add_argument("--noise-fraction", dest="noise_fraction", metavar="F", help="output noise variance / mean(y^2)")
     p.add_argument("--out", metavar="FILE", help="record file to write (.npz or .csv)")
 
@@ -165,11 +167,11 @@ def _parse(args) -> dict:
         raise CLIError("--out FILE is required (.npz or .csv)")
     amplitude = _number(args, "amplitude", positive=True)
     spec = {"system": system, "excitation": exc, "amplitude": amplitude, "out": args.out}
-    uses = _USES[exc] | {"seed"} | ({"torque"} if system == "bert-standin" else set())
-    for name in ("f0", "f1", "rate", "freq", "duration", "seed", "torque"):
+    uses = _USES[exc] | {"seed"} | ({"torque", "scatter"} if system == "bert-standin" else set())
+    for name in ("f0", "f1", "rate", "freq", "duration", "seed", "torque", "scatter"):
         if getattr(args, name) is not None and name not in uses:
-            if name == "torque":
-                raise CLIError("--torque applies only to bert-standin")
+            if name in ("torque", "scatter"):
+                raise CLIError(f"--{name} applies only to bert-standin")
             raise CLIError(f"--{name} does not apply to --excitation {exc}")
     defaults = DEFAULTS[system][exc]
     for name in ("f0", "f1", "rate", "freq", "duration"):
@@ -178,9 +180,14 @@ def _parse(args) -> dict:
             spec[name] = defaults[name] if v is None else v
     spec["seed"] = _seed(args)
     spec["torque"] = None
+    spec["scatter"] = None
     if system == "bert-standin":
         t = _number(args, "torque", positive=True)
         spec["torque"] = 5.0 if t is None else t
+        k = _number(args, "scatter", nonnegative=True)
+        if k is not None and k > 100:
+            raise CLIError(f"--scatter must be between 0 and 100 (1 = calibrated default), got {k:g}")
+        spec["scatter"] = 1.0 if k is None else k
     nf = _number(args, "noise_fraction", nonnegative=True)
     spec["noise_fraction"] = 0.0 if nf is None else nf
     return spec
@@ -279,7 +286,7 @@ def _simulate_standin(u: np.ndarray, exc: str, spec: dict, fs: float) -> np.ndar
         if err.name and err.name.startswith("training.simulators.bert_standin"):
             raise CLIError("the bert-standin simulator is not available in this build") from None
         raise
-    sim = BertStandin(torque=spec["torque"], seed=spec["seed"])
+    sim = BertStandin(torque=spec["torque"], seed=spec["seed"], scatter=spec.get("scatter") or 1.0)
     if exc == "multisine":
         full, start = np.tile(u, 2), u.size
     elif exc == "sine":
@@ -393,6 +400,8 @@ def run(args) -> dict:
     }
     if spec["torque"] is not None:
         meta["torque"] = spec["torque"]
+    if spec.get("scatter") is not None:
+        meta["scatter"] = spec["scatter"]
     name = f"{system} {exc} {spec['amplitude']:g} {units['u']}"
     path = _write(spec["out"], u, y, fs, units, name, meta)
     return {

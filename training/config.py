@@ -57,7 +57,7 @@ Rules:
 - ``simulate`` takes the arguments of ``gpnarx simulate``: ``system`` ("bouc-wen" or
   "bert-standin"), ``excitation`` ("sweep", "sine", "multisine", "noise"), ``amplitude`` (peak for
   sweep/sine, RMS for multisine/noise), and optionally ``f0``, ``f1``, ``rate``, ``freq``,
-  ``duration``, ``seed``, ``torque`` (stand-in only), with the CLI's defaults and conventions
+  ``duration``, ``seed``, ``torque`` and ``scatter`` (stand-in only), with the CLI's defaults and conventions
   (sines returned in steady state, multisines in periodic steady state, sweeps and noise from
   rest). ``y`` is the displacement or the velocity according to ``system.output``.
 - ``noise`` adds Gaussian output noise of variance ``fraction * mean(y_ref^2)`` where ``y_ref`` is
@@ -104,7 +104,7 @@ SELECTIONS = ("stride", "random", "resonance")
 OUTPUTS = ("displacement", "velocity")
 SIM_SYSTEMS = ("bouc-wen", "bert-standin")
 SIM_EXCITATIONS = ("sweep", "sine", "multisine", "noise")
-_SIM_KEYS = {"system", "excitation", "amplitude", "f0", "f1", "rate", "freq", "duration", "seed", "torque"}
+_SIM_KEYS = {"system", "excitation", "amplitude", "f0", "f1", "rate", "freq", "duration", "seed", "torque", "scatter"}
 _RECORD_KEYS = {"name", "roles", "path", "simulate", "noise", "window", "meta", "fs"}
 _NOISE_KEYS = {"fraction", "reference", "seed"}
 
@@ -381,8 +381,9 @@ def simulate_record(sim: dict, output: str = "default", name: str | None = None)
         raise ConfigError(f"excitation must be one of {', '.join(SIM_EXCITATIONS)}, got {exc!r}")
     if "amplitude" not in sim:
         raise ConfigError("amplitude is required (peak for sweep/sine, RMS for multisine/noise)")
-    if "torque" in sim and system != "bert-standin":
-        raise ConfigError("torque applies only to bert-standin")
+    for key in ("torque", "scatter"):
+        if key in sim and system != "bert-standin":
+            raise ConfigError(f"{key} applies only to bert-standin")
     defaults = cs.DEFAULTS[system]
     uses = cs._USES[exc]
     for k in ("f0", "f1", "rate", "freq", "duration"):
@@ -397,6 +398,11 @@ def simulate_record(sim: dict, output: str = "default", name: str | None = None)
         raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
     spec["seed"] = seed
     spec["torque"] = _num(sim.get("torque", 5.0), "torque", positive=True) if system == "bert-standin" else None
+    spec["scatter"] = None
+    if system == "bert-standin":
+        spec["scatter"] = _num(sim.get("scatter", 1.0), "scatter")
+        if not 0.0 <= spec["scatter"] <= 100.0:
+            raise ConfigError(f"scatter must be between 0 and 100 (1 = calibrated default), got {spec['scatter']:g}")
     fs = float(defaults["fs"])
     u, used = cs._excitation(spec, fs)
     if output == "default":
@@ -419,7 +425,7 @@ def simulate_record(sim: dict, output: str = "default", name: str | None = None)
     else:
         from training.simulators.bert_standin import BertStandin
 
-        model = BertStandin(torque=spec["torque"], seed=seed)
+        model = BertStandin(torque=spec["torque"], seed=seed, scatter=spec["scatter"])
         key = "x" if output == "displacement" else "y"
         if exc == "multisine":
             full, start = np.tile(u, 2), u.size
@@ -434,6 +440,7 @@ def simulate_record(sim: dict, output: str = "default", name: str | None = None)
             "amplitude_kind": "peak" if exc in ("sweep", "sine") else "rms", "seed": seed, **used}
     if spec["torque"] is not None:
         meta["torque"] = spec["torque"]
+        meta["scatter"] = spec["scatter"]
     return Record(u, np.asarray(y, dtype=np.float64), fs, units, name or f"{system}-{exc}", meta)
 
 
