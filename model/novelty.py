@@ -17,6 +17,14 @@ the service's novelty route all use this rule, so scores and thresholds are comp
 Calibration: scores of healthy records are modelled as log-normal; the threshold is the
 (1 - false_alarm_rate) quantile of that fit, and never below the largest healthy score seen
 when fewer than 1/false_alarm_rate healthy records are available.
+
+Calibration envelope: the score is only meaningful in the regime the threshold was calibrated in.
+A record far outside it (a probe switched off, a sensor gain error, values around 1e30) can make the
+predicted band diverge with it and score like a healthy record. So calibration also stores the
+range of peak |u| and peak |y| over the healthy records (``record_envelope``), and a record whose
+peak |u| or |y| lies outside that range widened ``ENVELOPE_FACTOR`` (2x) each way is reported in
+``out_of_range`` and judged "novel" whatever its score (``verdict``). Bundles calibrated before the
+envelope existed have none and skip this check.
 """
 from __future__ import annotations
 
@@ -24,6 +32,37 @@ import numpy as np
 from scipy.special import ndtri
 
 STD_FLOOR_REL = 1e-6
+ENVELOPE_FACTOR = 2.0  # a record may be 2x smaller or larger (peak) than the healthy ones
+
+
+def record_envelope(records) -> dict:
+    """Peak-amplitude range of healthy (u, y) pairs: ``{"u": [min peak, max peak], "y": [...]}``,
+    in the records' input and output units (e.g. V and m/s)."""
+    pairs = [(np.asarray(u, float), np.asarray(y, float)) for u, y in records]
+    if not pairs:
+        raise ValueError("at least one healthy record is needed for the calibration envelope")
+    env = {}
+    for k, key in enumerate(("u", "y")):
+        peaks = [float(np.max(np.abs(p[k]))) for p in pairs]
+        env[key] = [min(peaks), max(peaks)]
+    return env
+
+
+def outside_envelope(u, y, envelope: dict | None, factor: float = ENVELOPE_FACTOR) -> list:
+    """Names of the fields ("u", "y") whose peak |value| lies outside ``envelope`` widened
+    ``factor`` times each way (non-finite values count as outside); [] when envelope is None."""
+    if not envelope:
+        return []
+    out = []
+    for key, values in (("u", u), ("y", y)):
+        lo_hi = envelope.get(key)
+        if values is None or not lo_hi:
+            continue
+        a = np.asarray(values, float)
+        peak = float(np.max(np.abs(a))) if a.size else 0.0
+        if not np.isfinite(peak) or peak > factor * float(lo_hi[1]) or peak < float(lo_hi[0]) / factor:
+            out.append(key)
+    return out
 
 
 def novelty_start(y, ny: int, y0=None):
@@ -68,6 +107,7 @@ def calibrate_threshold(healthy_scores, false_alarm_rate: float = 0.01) -> dict:
             "log_mean": mu, "log_std": sd, "healthy_scores": [float(v) for v in s]}
 
 
-def verdict(score: float, threshold: float) -> str:
-    """'novel' when the score exceeds the threshold, else 'healthy'."""
-    return "novel" if score > threshold else "healthy"
+def verdict(score: float, threshold: float, out_of_range=()) -> str:
+    """'novel' when the score exceeds the threshold or the record left the calibration envelope
+    (``out_of_range`` non-empty, see ``outside_envelope``), else 'healthy'."""
+    return "novel" if score > threshold or len(out_of_range) > 0 else "healthy"

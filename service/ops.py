@@ -15,7 +15,7 @@ import numpy as np
 
 from model.bundle import Bundle
 from model.metrics import summary
-from model.novelty import novelty_score, novelty_start, verdict
+from model.novelty import novelty_score, novelty_start, outside_envelope, verdict
 from model.restoring import loop_area, restoring_force
 
 from .problems import ProblemError
@@ -188,7 +188,9 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
             raise ProblemError(422, f"cannot score this record: {exc}", "y") from None
         thr = float(nov["threshold"])
         far = nov.get("false_alarm_rate")
-        out = {**head, "score": s["score"], "threshold": thr, "verdict": verdict(s["score"], thr),
+        outside = outside_envelope(req.u, req.y, nov.get("envelope"))
+        out = {**head, "score": s["score"], "threshold": thr, "verdict": verdict(s["score"], thr, outside),
+               "out_of_range": outside,
                "false_alarm_rate": float(far) if isinstance(far, (int, float)) else None,
                "nlpd": s["nlpd"], "n_samples": s["n_samples"], **common}
         return out, steps

@@ -176,7 +176,12 @@ class NoveltyResponse(BaseModel):
     score: float = Field(..., description="RMS standardised residual of y under the predictive distribution "
                          "(about 1 for a healthy record).")
     threshold: float = Field(..., description="Score above which the record is 'novel'.")
-    verdict: Literal["healthy", "novel"]
+    verdict: Literal["healthy", "novel"] = Field(..., description="'novel' when score > threshold or the record "
+                                                 "left the calibration envelope (out_of_range not empty).")
+    out_of_range: list[Literal["u", "y"]] = Field(
+        default_factory=list, description="Fields whose peak |value| lies outside the healthy calibration records' "
+        "peak range widened 2x each way: the model was not calibrated there, so the record is judged 'novel'. "
+        "Empty when inside, or when the bundle's calibration has no envelope (older bundles).")
     false_alarm_rate: float | None = Field(..., description="False-alarm rate the threshold was calibrated for "
                                               "(null if the calibration does not say).")
     nlpd: float = Field(..., description="Mean negative log predictive density.")

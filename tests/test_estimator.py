@@ -172,3 +172,24 @@ def test_novelty_start_rule():
     assert novelty_start(y, 3, y0=[5.0, 6.0, 7.0]) == [5.0, 6.0, 7.0]
     assert novelty_start(y[:3], 3) is None  # not longer than ny: from rest
     assert novelty_start(y, 3, y0=[]) is not None  # an empty y0 means "not given"
+
+
+def test_calibration_envelope_and_verdict():
+    from model.novelty import outside_envelope, record_envelope, verdict
+
+    t = np.linspace(0, 1, 200)
+    healthy = [(a * np.sin(20 * t), 0.1 * a * np.cos(20 * t)) for a in (1.0, 1.5)]
+    env = record_envelope(healthy)
+    assert env["u"][0] == pytest.approx(1.0, rel=1e-3) and env["u"][1] == pytest.approx(1.5, rel=1e-3)
+    assert env["y"][1] == pytest.approx(0.15, rel=1e-3)
+    u, y = healthy[0]
+    assert outside_envelope(u, y, env) == []
+    assert outside_envelope(2.9 * u, y, env) == []  # within 2x of the largest healthy peak
+    assert outside_envelope(3.1 * u, y, env) == ["u"]
+    assert outside_envelope(u, 0.4 * y, env) == ["y"]  # below half the smallest healthy peak
+    assert outside_envelope(u, np.full_like(y, np.inf), env) == ["y"]
+    assert outside_envelope(1e30 * u, 1e30 * y, None) == []  # no envelope (older bundle): no check
+    assert verdict(0.5, 1.0) == "healthy" and verdict(1.5, 1.0) == "novel"
+    assert verdict(0.5, 1.0, ["y"]) == "novel"
+    with pytest.raises(ValueError, match="healthy record"):
+        record_envelope([])

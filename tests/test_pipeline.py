@@ -72,6 +72,8 @@ def test_train_writes_bundle_and_report(trained):
     m = b.manifest
     assert m["lags"] == {"ny": 4, "nu": 4} and m["fs"] == 750.0 and m["units"] == {"u": "N", "y": "m"}
     assert m["novelty"]["threshold"] > 0 and m["novelty"]["false_alarm_rate"] == 0.05
+    env = m["novelty"]["envelope"]
+    assert 0 < env["u"][0] <= env["u"][1] and 0 < env["y"][0] <= env["y"][1]
     assert set(m["training"]["records"]) == {"lag-sweep", "h1", "h2"}
     assert m["training"]["records"]["lag-sweep"]["fit"] > 50
     assert all(len(v) == 64 for v in m["files"].values())
@@ -160,6 +162,15 @@ def test_predict_and_novelty_cli_json(trained, small_config, tmp_path, capsys):
     assert main(["novelty", "--registry", str(trained), "--model", "bw-small:1", str(rec), "--mc", "64", "--json"]) == 0
     nov = json.loads(capsys.readouterr().out)
     assert nov["verdict"] in ("healthy", "novel") and nov["false_alarm_rate"] == 0.05 and nov["score"] > 0
+    assert isinstance(nov["out_of_range"], list)
+    assert nov["verdict"] == ("novel" if nov["score"] > nov["threshold"] or nov["out_of_range"] else "healthy")
+    # a record 1000x larger than every healthy calibration record leaves the envelope: novel
+    big = tmp_path / "big.npz"
+    with np.load(rec) as d:
+        np.savez(big, u=d["u"] * 1000, y=d["y"] * 1000, fs=d["fs"])
+    assert main(["novelty", "--registry", str(trained), "--model", "bw-small:1", str(big), "--mc", "16", "--json"]) == 0
+    far = json.loads(capsys.readouterr().out)
+    assert far["out_of_range"] == ["u", "y"] and far["verdict"] == "novel", far
 
 
 @pytest.mark.parametrize("argv, needle", [

@@ -231,6 +231,24 @@ def test_novelty_healthy_and_damaged(client):
     assert_problem(client.post("/v1/models/plain/novelty", json={**base, "y": u.tolist()}), 409)
 
 
+def test_novelty_outside_the_calibration_envelope_is_novel(client):
+    u = multisine(384, 23)
+    y = noisy(simulate(u), 23)
+    base = {"u": u.tolist(), "fs": FS, "mc_paths": 32, "seed": 0}
+    inside = client.post("/v1/models/boucwen/novelty", json={**base, "y": y.tolist()}).json()
+    assert inside["out_of_range"] == [] and inside["verdict"] == "healthy", inside
+    huge = client.post("/v1/models/boucwen/novelty", json={**base, "y": (1e6 * y).tolist()}).json()
+    assert huge["out_of_range"] == ["y"] and huge["verdict"] == "novel", huge
+    # a probe at 1/10 of the calibrated amplitude, answered by the system: the model was not calibrated there
+    small = client.post("/v1/models/boucwen/novelty", json={**base, "u": (0.1 * u).tolist(),
+                                                             "y": noisy(simulate(0.1 * u), 23).tolist()}).json()
+    assert set(small["out_of_range"]) == {"u", "y"} and small["verdict"] == "novel", small
+    # version 1 was calibrated without an envelope: no range check, the score alone decides
+    old = client.post("/v1/models/boucwen/versions/1/novelty", json={**base, "u": (0.1 * u).tolist(),
+                                                                      "y": noisy(simulate(0.1 * u), 23).tolist()}).json()
+    assert old["out_of_range"] == [] and old["verdict"] == ("novel" if old["score"] > old["threshold"] else "healthy")
+
+
 def test_novelty_starts_from_the_measured_record_unless_y0_is_given(client):
     u = multisine(384, 22)
     y = noisy(simulate(u), 22)

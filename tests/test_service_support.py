@@ -55,7 +55,7 @@ def built_registry() -> Built:
     """Train once per session; returns the registry folder (do not modify it: copy it)."""
     from model.bundle import save_bundle
     from model.estimator import GPNARX
-    from model.novelty import calibrate_threshold, novelty_score
+    from model.novelty import calibrate_threshold, novelty_score, record_envelope
     from service.app import limit_blas_threads
     from training import excitations as ex
 
@@ -71,18 +71,21 @@ def built_registry() -> Built:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = GPNARX(ny=10, nu=10, max_train_points=400, n_restarts=0).fit(recs)
-        scores = []
+        scores, healthy = [], []
         for s in (11, 12, 13):
             u = multisine(384, s)
             y = noisy(simulate(u), 300 + s)
             run = model.simulate(u, n_paths=48, seed=0)
             scores.append(novelty_score(y, run.mean, run.std)["score"])
+            healthy.append((u, y))
     novelty = calibrate_threshold(scores, 0.01)
+    # version 1 keeps the calibration of bundles written before the envelope existed
+    with_envelope = {**novelty, "envelope": record_envelope(healthy)}
     physics = {"mass": 2.0, "input_gain": 1.0, "output": "displacement"}
     units = {"u": "N", "y": "m"}
     training = {"fit": 90.0, "note": "test fixture"}
-    for version in ("1", "2"):
-        save_bundle(model, root, "boucwen", version, fs=FS, units=units, physics=physics, novelty=novelty,
+    for version, nov in (("1", novelty), ("2", with_envelope)):
+        save_bundle(model, root, "boucwen", version, fs=FS, units=units, physics=physics, novelty=nov,
                     training=training)
     save_bundle(model, root, "plain", "1", fs=FS, units=units, physics=None, novelty=None, training={})
     test_u = multisine(1024, 3)

@@ -141,7 +141,7 @@ def _write_prediction(path, rec, run):
 
 
 def run_novelty(args):
-    from model.novelty import novelty_score, novelty_start, verdict
+    from model.novelty import novelty_score, novelty_start, outside_envelope, verdict
 
     bundle, rec, mc = load(args)
     if rec.y is None:
@@ -153,6 +153,7 @@ def run_novelty(args):
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method,
                                 y0=novelty_start(rec.y, bundle.model.ny))
     s = novelty_score(rec.y, run.mean, run.std)
+    outside = outside_envelope(rec.u, rec.y, nov.get("envelope"))
     return {"model": bundle.name, "version": bundle.version, "score": s["score"], "nlpd": s["nlpd"],
-            "threshold": nov["threshold"], "verdict": verdict(s["score"], nov["threshold"]),
-            "false_alarm_rate": nov["false_alarm_rate"]}
+            "threshold": nov["threshold"], "verdict": verdict(s["score"], nov["threshold"], outside),
+            "false_alarm_rate": nov["false_alarm_rate"], "out_of_range": outside}

@@ -16,7 +16,7 @@ import numpy as np
 
 from model.bundle import save_bundle
 from model.estimator import GPNARX
-from model.novelty import calibrate_threshold, novelty_score, novelty_start, verdict
+from model.novelty import calibrate_threshold, novelty_score, novelty_start, outside_envelope, record_envelope, verdict
 from model.records import Record
 from training.config import ConfigError, DatasetConfig, load_config
 from training.jsonsafe import to_json_safe
@@ -159,11 +159,13 @@ def train(config, registry, name: str | None = None, version: str | None = None,
         novelty = calibrate_threshold(score_records(model, healthy), far)
         novelty["method"] = "rms_standardised_residual"
         novelty["mc_paths"] = n_paths
+        novelty["envelope"] = record_envelope([(ev["u"], ev["y"]) for ev in healthy])
         for ev in evals:
             if ev["role"] in ("healthy", "damaged"):
                 s = novelty_score(ev["y"], ev["mean"], ev["std"])["score"]
                 ev["metrics"]["novelty_score"] = s
-                ev["metrics"]["verdict"] = verdict(s, novelty["threshold"])
+                ev["metrics"]["verdict"] = verdict(s, novelty["threshold"],
+                                                   outside_envelope(ev["u"], ev["y"], novelty["envelope"]))
     training_metrics = {
         "fit_seconds": model.fit_seconds_, "n_train": model.n_train_, "n_rows": model.n_rows_,
         "nlml": model.nlml_, "train_records": [r.name for r in train_recs],
