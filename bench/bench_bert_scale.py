@@ -2,15 +2,15 @@
 
 Section 4 of the paper propagates 4096 Monte Carlo paths through 16384-sample (16 s at 1024 Hz)
 free-run predictions of the BERT rig. Product: ``GPNARX`` built from the settings of
-``configs/bert-standin.toml`` (ny=16, nu=10, eq. 12 kernel, sparse mode, M=256 k-means inducing
-points over all training rows, ML-II on 1000 resonance-selected rows, no restarts), trained on that
+``configs/bert-standin.toml`` (ny=24, nu=10, eq. 12 kernel, sparse mode, M=256 k-means inducing
+points over all training rows, ML-II on 1000 stride-selected rows, no restarts), trained on that
 config's four train sweeps of the BERT STAND-IN (a calibrated simulator, never the rig), then
 ``simulate(u, n_paths=4096)`` on its 0.15 V validation sweep (16384 samples): the whole record,
 timed as one call (wall time printed; target < 10 minutes on 2 cores).
 
 Baseline (same run): the per-step loop a user would write around scikit-learn's
 ``GaussianProcessRegressor.predict(X, return_std=True)``, exact GP on the same 1000 ML-II rows
-and hyperparameters, D=26, with the same 4096 paths. It runs only a few steps (half before, half
+and hyperparameters, D=34, with the same 4096 paths. It runs only a few steps (half before, half
 after the product) and its time for the record is EXTRAPOLATED: record steps x measured seconds
 per step. ratio = baseline's extrapolated seconds / product's measured seconds.
 The product's fit % and 99 % coverage on the record are printed (stand-in numbers).
