@@ -152,6 +152,17 @@ class StandinParams:
 NOMINAL = StandinParams()
 
 
+def _bounded(value, name: str, lo: float, hi: float, kind: str, suffix: str) -> float:
+    """``value`` as a float in [lo, hi], else a ValueError naming ``name`` and the limits."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number {kind}, got {value!r}") from None
+    if not math.isfinite(v) or not lo <= v <= hi:
+        raise ValueError(f"{name} must be between {lo:g} and {hi:g}{suffix}, got {v}")
+    return v
+
+
 def _check_signal(u, label="u") -> np.ndarray:
     a = np.asarray(u, dtype=np.float64)
     if a.ndim != 1 or a.size == 0:
@@ -178,20 +189,11 @@ class BertStandin:
 
     def __init__(self, torque: float = NOMINAL_TORQUE, seed=None, substeps: int | None = None,
                  params: StandinParams | None = None, scatter: float = 1.0):
-        try:
-            torque = float(torque)
-        except (TypeError, ValueError):
-            raise ValueError(f"torque must be a number in N m, got {torque!r}") from None
-        if not math.isfinite(torque) or not 0.5 <= torque <= 50.0:
-            raise ValueError(f"torque must be between 0.5 and 50 N m, got {torque}")
+        torque = _bounded(torque, "torque", 0.5, 50.0, "in N m", " N m")
         if substeps is not None and (isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1):
             raise ValueError(f"substeps must be an integer >= 1, got {substeps!r}")
-        try:
-            scatter = float(scatter)
-        except (TypeError, ValueError):
-            raise ValueError(f"scatter must be a number (multiplier of the realization scatter), got {scatter!r}") from None
-        if not math.isfinite(scatter) or not 0.0 <= scatter <= 100.0:
-            raise ValueError(f"scatter must be between 0 and 100 (1 = calibrated default), got {scatter}")
+        scatter = _bounded(scatter, "scatter", 0.0, 100.0, "(multiplier of the realization scatter)",
+                           " (1 = calibrated default)")
         self.torque = torque
         self.seed = seed
         self.scatter = scatter
