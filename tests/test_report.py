@@ -63,6 +63,23 @@ def test_harmonics_and_physics_metrics():
     x, r = restoring_force(rec["u"], rec["mean"], FS, 2.0)
     assert m["loop_area_predicted"] == pytest.approx(loop_area(x, r))
     assert m["loop_area_measured"] > 0
+    # the noise-free loop (the paper's reference for simulated records) is scored on its own
+    xc, rc = restoring_force(rec["u"], rec["y_clean"], FS, 2.0)
+    assert m["loop_area_clean"] == pytest.approx(loop_area(xc, rc))
+    xm, rm = restoring_force(rec["u"], rec["y"], FS, 2.0)
+    assert m["loop_area_measured"] == pytest.approx(loop_area(xm, rm))
+    assert m["loop_area_clean"] != pytest.approx(m["loop_area_measured"], rel=1e-6)
+
+
+def test_report_table_has_noise_free_loop_column_only_when_known(tmp_path):
+    phys = {"mass": 2.0, "input_gain": 1.0, "output": "displacement"}
+    with_clean = rp.write_report(tmp_path / "a", "a", {}, [_sine_record(n=1024)], physics=phys)
+    assert "loop area noise-free" in with_clean["html"].read_text()
+    rec = _sine_record(n=1024)
+    rec["y_clean"] = None
+    without = rp.write_report(tmp_path / "b", "b", {}, [rec], physics=phys)
+    assert "loop area noise-free" not in without["html"].read_text()
+    assert "loop_area_clean" not in json.loads(without["json"].read_text())["records"][0]["metrics"]
 
 
 def test_write_report_full(tmp_path):

@@ -189,7 +189,8 @@ def record_metrics(rec: dict, physics: dict | None = None) -> dict:
 
     fit, rmse, nrmse, coverage, band_width against the measured ``y`` (when present);
     fit_clean, rmse_clean, coverage_clean against ``y_clean``; the 3 strongest PSD peaks [Hz] of
-    measured and predicted output; loop areas [J] when ``physics`` has a mass; for sine records
+    measured and predicted output; loop areas [J] when ``physics`` has a mass (measured, predicted and,
+    with ``y_clean``, noise-free ``loop_area_clean``); for sine records
     (``drive_freq``) the levels [dB] of harmonics 1..3 of measured and predicted output.
     """
     d = _unpack(rec)
@@ -219,6 +220,8 @@ def record_metrics(rec: dict, physics: dict | None = None) -> dict:
         out["loop_area_predicted"] = loop_area(*_loop(d["u"], mean, fs, physics))
         if d["y"] is not None:
             out["loop_area_measured"] = loop_area(*_loop(d["u"], d["y"], fs, physics))
+        if d["y_clean"] is not None:
+            out["loop_area_clean"] = loop_area(*_loop(d["u"], d["y_clean"], fs, physics))
 
     f0 = rec.get("drive_freq")
     if f0:
@@ -309,9 +312,13 @@ def record_figure(rec: dict, physics: dict | None, path: Path) -> Path:
     c.set_xlabel("frequency [Hz]")
     c.set_ylabel(f"PSD [dB re {d['uy'] or 'unit'}$^2$/Hz]")
 
-    # (d) hysteresis loop
+    # (d) hysteresis loop: against the noise-free response when it is known (the paper's Figs. 2-10
+    # compare with the numerically integrated loop; R = g u - m y'' from a noisy y is mostly noise)
     if physics and physics.get("mass") and d["u"] is not None:
-        if d["y"] is not None:
+        if d["y_clean"] is not None:
+            x, r = _loop(d["u"], d["y_clean"], fs, physics)
+            e.plot(x, r, "-", color=_C_CLEAN, lw=0.6, label="noise-free")
+        elif d["y"] is not None:
             x, r = _loop(d["u"], d["y"], fs, physics)
             e.plot(x, r, ".", color=_C_MEAS, ms=1.0, label="measured")
         x, r = _loop(d["u"], d["mean"], fs, physics)
@@ -554,13 +561,17 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
     parts.append(_table(head, rows, left_cols=2))
 
     # spectral / physics
-    head = ["record", "PSD peaks measured [Hz]", "PSD peaks predicted [Hz]", "loop area measured",
-            "loop area predicted", "drive [Hz]", "harmonics 1-3 measured [dB]", "harmonics 1-3 predicted [dB]"]
-    rows = [[esc(e["name"]), _fmt(e["metrics"].get("psd_peaks_measured")),
-             _fmt(e["metrics"].get("psd_peaks_predicted")), _fmt(e["metrics"].get("loop_area_measured")),
-             _fmt(e["metrics"].get("loop_area_predicted")), _fmt(e["metrics"].get("drive_freq")),
-             _fmt(e["metrics"].get("harmonics_db_measured")), _fmt(e["metrics"].get("harmonics_db_predicted"))]
-            for e in rec_entries]
+    has_clean_loop = any("loop_area_clean" in e["metrics"] for e in rec_entries)
+    head = ["record", "PSD peaks measured [Hz]", "PSD peaks predicted [Hz]", "loop area measured"] + \
+        (["loop area noise-free"] if has_clean_loop else []) + \
+        ["loop area predicted", "drive [Hz]", "harmonics 1-3 measured [dB]", "harmonics 1-3 predicted [dB]"]
+    rows = []
+    for e in rec_entries:
+        m = e["metrics"]
+        rows.append([esc(e["name"]), _fmt(m.get("psd_peaks_measured")), _fmt(m.get("psd_peaks_predicted")),
+                     _fmt(m.get("loop_area_measured"))] + ([_fmt(m.get("loop_area_clean"))] if has_clean_loop else [])
+                    + [_fmt(m.get("loop_area_predicted")), _fmt(m.get("drive_freq")),
+                       _fmt(m.get("harmonics_db_measured")), _fmt(m.get("harmonics_db_predicted"))])
     parts.append("<h2>Spectra and hysteresis</h2>")
     parts.append(_table(head, rows))
 
