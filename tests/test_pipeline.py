@@ -83,6 +83,27 @@ def test_train_writes_bundle_and_report(trained):
     assert list((trained / "bw-small" / "1" / "report").glob("*.png"))
 
 
+def test_record_with_two_roles_is_simulated_once(small_config, tmp_path, monkeypatch):
+    """lag-sweep has roles lags and verify: one free run, reported under both roles."""
+    import training.pipeline as pl
+
+    calls = []
+    real = pl.evaluate_record
+
+    def counting(model, rec, role, *a, **kw):
+        calls.append((rec.name, role))
+        return real(model, rec, role, *a, **kw)
+
+    monkeypatch.setattr(pl, "evaluate_record", counting)
+    res = pl.train(small_config, tmp_path, report=False, mc_paths=8)
+    assert [c for c in calls if c[0] == "lag-sweep"] == [("lag-sweep", "lags")]
+    assert sorted(name for name, _ in calls) == ["h1", "h2", "lag-sweep"]
+    roles = [(ev["name"], ev["role"]) for ev in res["evals"]]
+    assert ("lag-sweep", "lags") in roles and ("lag-sweep", "verify") in roles
+    lag, ver = (ev for ev in res["evals"] if ev["name"] == "lag-sweep")
+    assert lag["metrics"] == ver["metrics"] and lag["metrics"]["fit"] > 50
+
+
 def test_versions_increase_and_are_never_overwritten(trained):
     b = load_bundle(trained / "bw-small" / "1")
     p2 = save_bundle(b.model, trained, "bw-small", fs=750.0, units=b.manifest["units"])
