@@ -221,6 +221,9 @@ def test_lag_surface_joblib_resumes_and_matches_dask(small_config, tmp_path):
 
     s1 = lag_surface(small_config, [2, 4], [2, 4], jobs=2, cache_dir=tmp_path / "c1")
     assert s1["cached_cells"] == 0 and len(s1["cells"]) == 4
+    for c in s1["cells"]:  # per-record fits are kept; the cell's fit is their mean
+        assert set(c["fits"]) == {"lag-sweep"}
+        assert c["fit"] == pytest.approx(np.mean(list(c["fits"].values())))
     again = lag_surface(small_config, [2, 4], [2, 4], jobs=2, cache_dir=tmp_path / "c1")
     assert again["cached_cells"] == 4 and again["cells"] == s1["cells"]
     from dask.distributed import LocalCluster

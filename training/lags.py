@@ -35,7 +35,8 @@ def _load(config_path: str, mtime: float):
 
 
 def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
-    """Train at (ny, nu) and score free-run fit % on the ``lags`` records (mean of their fits).
+    """Train at (ny, nu) and score free-run fit % on the ``lags`` records: ``fit`` is the mean of their
+    fits, ``fits`` holds each record's fit by name.
 
     The free-run mean comes from the first-order propagation (deterministic); it equals feeding
     back the mean, as eq. (14) scores the model mean output.
@@ -51,18 +52,19 @@ def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
     t0 = time.perf_counter()
     try:
         model = model_from_config(cfg, ny, nu, **settings).fit(train)
-        fits = []
+        fits = {}
         for rec in lag_recs:
             y0 = rec.y[:ny] if rec.meta.get("initial") == "measured" else None  # steady-state records
             run = model.simulate(rec.u, method="linear", y0=y0)
             ref = rec.meta.get("clean_y", rec.y) if settings.get("score_clean") else rec.y
             f = fit_percent(ref, run.mean)
-            fits.append(f if np.isfinite(f) else -1e3)
-        fit = float(np.mean(fits))
+            fits[rec.name] = float(f) if np.isfinite(f) else -1e3
+        fit = float(np.mean(list(fits.values())))
         err = None
     except (ValueError, np.linalg.LinAlgError) as exc:
-        fit, err = float("nan"), str(exc)
-    return {"ny": int(ny), "nu": int(nu), "fit": fit, "seconds": time.perf_counter() - t0, "error": err}
+        fit, fits, err = float("nan"), {}, str(exc)
+    return {"ny": int(ny), "nu": int(nu), "fit": fit, "fits": fits, "seconds": time.perf_counter() - t0,
+            "error": err}
 
 
 def shorten(rec, seconds: float):
