@@ -195,14 +195,15 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "lags": {"ny": model.ny, "nu": model.nu},
             "mode": model.posterior_.kind,
-            "kernel": model.kernel_.to_dict(),
+            "kernel": model.posterior_.kernel.to_dict(),  # the posterior's (constant cap included)
             "hyperparameters": {**model.kernel_.params, "noise_var": model.noise_var_},
             "noise_var": model.noise_var_,
             "nlml": None if not np.isfinite(model.nlml_) else model.nlml_,
             "n_train": model.n_train_,
             "estimator": {"include_noise": bool(model.include_noise), "n_inducing": int(model.n_inducing),
                           "max_train_points": model.max_train_points, "selection": model.selection,
-                          "seed": int(model.seed), "hyper": model.hyper, "kernel_spec": model.kernel if isinstance(model.kernel, str) else None},
+                          "seed": int(model.seed), "hyper": model.hyper,
+                          "constant_cap": model.constant_cap, "kernel_spec": model.kernel if isinstance(model.kernel, str) else None},
             "fs": float(fs),
             "units": dict(units),
             "physics": dict(physics or {}),
@@ -296,7 +297,8 @@ def load_bundle(path) -> Bundle:
         model = GPNARX(ny=ny, nu=nu, kernel=est.get("kernel_spec") or kernel, mode=manifest["mode"],
                        n_inducing=int(est.get("n_inducing", 256)), max_train_points=est.get("max_train_points"),
                        selection=est.get("selection", "stride"), seed=int(est.get("seed", 0)),
-                       include_noise=bool(est.get("include_noise", True)), hyper=est.get("hyper", "subset"))
+                       include_noise=bool(est.get("include_noise", True)), hyper=est.get("hyper", "subset"),
+                       constant_cap=est.get("constant_cap"))  # None in bundles written before the cap
         model._validate_params()
         model.kernel_ = kernel
         model.theta_ = arrays["theta"]

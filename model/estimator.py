@@ -78,12 +78,17 @@ class GPNARX:
     hyper: how sparse mode sets hyperparameters: 'subset' (exact ML-II, eq. 13, on the capped
         rows) or 'vfe' (that, then refined on all rows by maximising the Titsias VFE bound with
         analytic gradients, O(N M^2) per evaluation; see ``model.vfe``).
+    constant_cap: cap on the constant term sigma_p^2 b^3 of the cubic kernel (eq. 11) in the
+        posterior, in standardised output variance units (None: no cap). ML-II can leave that term
+        at 1e4 while the latent variance is 1e-4, and the predictive variance (eq. 9) then cancels
+        below float64 precision; a cap of 1 (the variance of the standardised output) keeps the
+        offset's prior broad and the variance exact to ~1e-10 (see ``CubicPolynomial``).
     """
 
     def __init__(self, ny: int = 2, nu: int = 2, kernel: Kernel | str = "matern32+cubic", mode: str = "exact",
                  n_inducing: int = 256, max_train_points: int | None = 2000, selection: str = "stride",
                  n_restarts: int = 2, seed: int = 0, include_noise: bool = True,
-                 sparse_max_rows: int | None = 50000, hyper: str = "subset"):
+                 sparse_max_rows: int | None = 50000, hyper: str = "subset", constant_cap: float | None = 1.0):
         self.ny = ny
         self.nu = nu
         self.kernel = kernel
@@ -96,6 +101,7 @@ class GPNARX:
         self.include_noise = include_noise
         self.sparse_max_rows = sparse_max_rows
         self.hyper = hyper
+        self.constant_cap = constant_cap
 
     # ------------------------------------------------------------------------------------------
     def _validate_params(self) -> None:
@@ -112,6 +118,10 @@ class GPNARX:
             raise ValueError(f"hyper must be 'subset' or 'vfe', got {self.hyper!r}")
         if int(self.n_restarts) < 0:
             raise ValueError(f"n_restarts must be >= 0, got {self.n_restarts}")
+        cap = self.constant_cap
+        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, (int, float, np.floating))
+                                or not np.isfinite(cap) or cap <= 0):
+            raise ValueError(f"constant_cap must be a positive number or None, got {cap!r}")
 
     def fit(self, records, theta: np.ndarray | None = None) -> "GPNARX":
         """Learn standardisation, hyperparameters (ML-II, eq. 13) and the posterior.
@@ -133,7 +143,8 @@ class GPNARX:
         Ys = (Y - self.y_scaler_.mean_[0]) / self.y_scaler_.scale_[0]
         rows = select_rows(Ys, rec_idx, self.max_train_points, self.selection, self.seed)
         Xt, Yt = Xs[rows], Ys[rows]
-        self.kernel_ = make_kernel(self.kernel) if isinstance(self.kernel, str) else self.kernel.clone()
+        # ML-II works on the uncapped kernel (eq. 13); the posterior on the capped copy
+        self.kernel_ = make_kernel(self.kernel) if isinstance(self.kernel, str) else self.kernel.for_posterior(None)
         if theta is None:
             sub = default_warm_start_subset(Xt.shape[0])
             res = fit_ml2(self.kernel_, Xt, Yt, n_restarts=int(self.n_restarts), seed=int(self.seed),
@@ -145,7 +156,7 @@ class GPNARX:
             self.theta_, self.nlml_, self.ml2_restarts_ = theta, float("nan"), []
         self.noise_var_ = float(np.exp(self.theta_[-1]))
         if self.mode == "exact":
-            self.posterior_ = ExactPosterior.fit(self.kernel_, self.noise_var_, Xt, Yt)
+            self.posterior_ = ExactPosterior.fit(self._posterior_kernel(), self.noise_var_, Xt, Yt)
         else:
             all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed)
             Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
@@ -155,7 +166,8 @@ class GPNARX:
                 res = fit_vfe(self.kernel_, Xs[all_rows], Ys[all_rows], Z, theta0=self.theta_)
                 self.theta_, self.nlml_ = res.theta, res.nlml
                 self.noise_var_ = float(np.exp(self.theta_[-1]))
-            self.posterior_ = SparsePosterior.fit(self.kernel_, self.noise_var_, Xs[all_rows], Ys[all_rows], Z)
+            self.posterior_ = SparsePosterior.fit(self._posterior_kernel(), self.noise_var_, Xs[all_rows],
+                                                  Ys[all_rows], Z)
         self.n_train_ = int(Xt.shape[0])
         self.n_rows_ = int(X.shape[0])
         self.fit_seconds_ = time.perf_counter() - t0
@@ -185,6 +197,9 @@ class GPNARX:
             return mean
         noise = self.noise_var_ if self.include_noise else 0.0
         return mean, np.sqrt(var + noise) * ys
+
+    def _posterior_kernel(self) -> Kernel:
+        return self.kernel_.for_posterior(None if self.constant_cap is None else float(self.constant_cap))
 
     def simulate(self, u, n_paths: int = 1024, seed: int | None = 0, y0=None, confidence: float = 0.99,
                  method: str = "mc", float32: bool = False, keep_paths: bool = False, progress=None):

@@ -117,6 +117,11 @@ class Kernel:
     def clone(self) -> "Kernel":
         return kernel_from_dict(self.to_dict())
 
+    def for_posterior(self, constant_cap: float | None = None) -> "Kernel":
+        """The kernel a posterior is built with: a copy, with any constant term capped at
+        ``constant_cap`` (see ``CubicPolynomial``); kernels without one return a plain copy."""
+        return self.clone()
+
     def __repr__(self) -> str:
         ps = ", ".join(f"{k}={v:.4g}" for k, v in self.params.items())
         return f"{type(self).__name__}({ps})"
@@ -211,17 +216,43 @@ class RBF(Kernel):
 
 
 class CubicPolynomial(Kernel):
-    """Cubic polynomial kernel, eq. (11): sigma_p^2 (s x.x' + b)^3."""
+    """Cubic polynomial kernel, eq. (11): sigma_p^2 (s x.x' + b)^3.
+
+    Expanded, sigma_p^2 (t + b)^3 = sigma_p^2 [t (3 b^2 + 3 b t + t^2)] + sigma_p^2 b^3 with
+    t = s x.x': a constant term sigma_p^2 b^3 (the prior variance of a constant offset) plus terms
+    that vanish at x.x' = 0. ML-II (eq. 13) on standardised data often drives b up (the likelihood
+    is flat in the offset's prior variance once it is broad), e.g. sigma_p^2 b^3 = 1.55e4 on the BERT
+    stand-in against a latent variance near 1e-4: the predictive variance k(x,x) - k A k then cancels
+    to below float64 precision. ``constant_cap`` (standardised output variance units; None = no cap)
+    replaces the constant term by min(sigma_p^2 b^3, constant_cap) and evaluates the rest in the
+    expanded form, without that cancellation. Posteriors use the capped kernel (see
+    ``Kernel.for_posterior``); ML-II uses the uncapped one, so the hyperparameters are eq. 13's.
+    """
 
     param_names = ("variance", "scale", "bias")
 
-    def __init__(self, variance: float = 1.0, scale: float = 1.0, bias: float = 1.0) -> None:
+    def __init__(self, variance: float = 1.0, scale: float = 1.0, bias: float = 1.0,
+                 constant_cap: float | None = None) -> None:
         self.theta = np.log([variance, scale, bias]).astype(float)
+        self.constant_cap = None if constant_cap is None else float(constant_cap)
+
+    def _capped(self, T: np.ndarray) -> np.ndarray:
+        """sigma_p^2 [t (3b^2 + 3bt + t^2)] + min(sigma_p^2 b^3, cap) for t = T (modified in place)."""
+        var, _, b = np.exp(self.theta)
+        K = T * T
+        K += (3.0 * b) * T
+        K += 3.0 * b * b
+        K *= T
+        K *= var
+        K += min(var * b**3, self.constant_cap)
+        return K
 
     def __call__(self, X, X2=None):
         var, s, b = np.exp(self.theta)
         G = X @ (X if X2 is None else X2).T
         G *= s
+        if self.constant_cap is not None:
+            return self._capped(G)
         G += b
         K = G * G
         K *= G
@@ -229,6 +260,8 @@ class CubicPolynomial(Kernel):
         return K
 
     def K_and_grads(self, X):
+        if self.constant_cap is not None:
+            raise ValueError("a kernel with constant_cap is for posteriors; ML-II uses the uncapped kernel")
         var, s, b = np.exp(self.theta)
         D = X @ X.T
         G = s * D + b
@@ -238,16 +271,31 @@ class CubicPolynomial(Kernel):
 
     def diag(self, X):
         var, s, b = np.exp(self.theta)
+        if self.constant_cap is not None:
+            return self._capped(s * np.einsum("ij,ij->i", X, X))
         return var * (s * np.einsum("ij,ij->i", X, X) + b) ** 3
 
     def from_gram(self, G, sq1, sq2):
         var, s, b = np.exp(self.theta)
         H = G * s
+        if self.constant_cap is not None:
+            return self._capped(H)
         H += b
         K = H * H
         K *= H
         K *= var
         return K
+
+    def for_posterior(self, constant_cap: float | None = None) -> "CubicPolynomial":
+        k = self.clone()
+        k.constant_cap = None if constant_cap is None else float(constant_cap)
+        return k
+
+    def to_dict(self) -> dict:
+        d = super().to_dict()
+        if self.constant_cap is not None:
+            d["constant_cap"] = self.constant_cap
+        return d
 
     def grad_x(self, xs, X):
         var, s, b = np.exp(self.theta)
@@ -345,6 +393,9 @@ class Sum(Kernel):
     def to_dict(self):
         return {"type": "Sum", "parts": [p.to_dict() for p in self.parts]}
 
+    def for_posterior(self, constant_cap: float | None = None) -> "Sum":
+        return Sum(*[p.for_posterior(constant_cap) for p in self.parts])
+
     def __repr__(self):
         return " + ".join(repr(p) for p in self.parts)
 
@@ -366,6 +417,12 @@ def kernel_from_dict(d: dict) -> Kernel:
     if theta.shape != (len(cls.param_names),) or not np.all(np.isfinite(theta)):
         raise ValueError(f"kernel {d['type']} needs {len(cls.param_names)} finite log-parameters")
     k.theta = theta
+    if cls is CubicPolynomial:
+        cap = d.get("constant_cap")
+        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, (int, float))
+                                or not np.isfinite(cap) or cap <= 0):
+            raise ValueError(f"kernel CubicPolynomial constant_cap must be a positive number, got {cap!r}")
+        k.constant_cap = None if cap is None else float(cap)
     return k
 
 

@@ -193,3 +193,24 @@ def test_calibration_envelope_and_verdict():
     assert verdict(0.5, 1.0, ["y"]) == "novel"
     with pytest.raises(ValueError, match="healthy record"):
         record_envelope([])
+
+
+def test_constant_cap_keeps_the_predictive_variance_exact(sdof_data):
+    # hyperparameters where ML-II leaves the cubic kernel's constant sigma_p^2 b^3 at ~1.6e4 against a
+    # latent variance near 1e-4 (the BERT stand-in's eq. 13 optimum): without the cap the variance
+    # k(x,x) - k A k of eq. 9 cancels below float64 precision and is clipped at its floor
+    theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
+    data = [(sdof_data["u"][:2000], sdof_data["yn"][:2000])]
+    kw = dict(ny=8, nu=8, mode="sparse", n_inducing=128, max_train_points=500)
+    Xq = np.vstack([narx_regressors(sdof_data["u2"][:600], sdof_data["y2"][:600], 8, 8)[0]])
+    var = {}
+    for cap in (None, 1.0, 0.25):
+        m = GPNARX(constant_cap=cap, **kw).fit(data, theta=theta)
+        var[cap] = m.posterior_.predict(m.x_scaler_.transform(Xq))[1]
+    assert np.all(var[1.0] > 1e-8)  # a real latent variance, well above the 1e-300 floor
+    # with a well-conditioned offset prior the variance does not depend on the cap's value
+    assert np.allclose(var[1.0], var[0.25], rtol=0.02)
+    # the uncapped evaluation is wrong by orders of magnitude (mostly clipped at the floor)
+    assert np.median(np.abs(var[None] - var[1.0]) / var[1.0]) > 0.5
+    with pytest.raises(ValueError, match="constant_cap must be a positive number"):
+        GPNARX(constant_cap=0.0, **kw).fit(data, theta=theta)

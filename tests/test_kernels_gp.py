@@ -139,3 +139,30 @@ def test_kernel_round_trip_and_whitelist():
     with pytest.raises(ValueError, match="unknown part"):
         make_kernel("matern52")
     assert isinstance(make_kernel("matern32+cubic"), Sum)
+
+
+def test_capped_cubic_kernel_only_replaces_the_constant_term():
+    # sigma_p^2 (s x.x' + b)^3 with sigma_p^2 b^3 = 1e4: the cap replaces that constant, nothing else
+    k = CubicPolynomial(1e-2, 2e-3, 100.0)
+    c0 = 1e-2 * 100.0**3
+    capped = k.for_posterior(1.0)
+    assert k.constant_cap is None and capped.constant_cap == 1.0
+    rng = np.random.default_rng(0)
+    X, X2 = rng.normal(size=(6, 3)), rng.normal(size=(4, 3))
+    shift = c0 - 1.0
+    assert np.allclose(capped(X, X2), k(X, X2) - shift, rtol=0, atol=1e-8)
+    assert np.allclose(capped.diag(X), k.diag(X) - shift, rtol=0, atol=1e-8)
+    G = X @ X2.T
+    sq1, sq2 = np.einsum("ij,ij->i", X, X), np.einsum("ij,ij->i", X2, X2)
+    assert np.allclose(capped.from_gram(G, sq1, sq2), capped(X, X2), rtol=1e-12, atol=0)
+    assert np.allclose(capped.grad_x(X[0], X2), k.grad_x(X[0], X2))
+    # a cap above the constant changes nothing
+    assert np.allclose(k.for_posterior(1e6)(X, X2), k(X, X2), rtol=1e-12)
+    # the cap travels with the kernel (bundles), a Sum caps its cubic part, ML-II refuses a capped kernel
+    s = (Matern32(1.0, 2.0) + k).for_posterior(1.0)
+    s2 = kernel_from_dict(s.to_dict())
+    assert s2.parts[1].constant_cap == 1.0 and np.array_equal(s2(X, X2), s(X, X2))
+    with pytest.raises(ValueError, match="constant_cap"):
+        kernel_from_dict({"type": "CubicPolynomial", "theta": [0.0, 0.0, 0.0], "constant_cap": -1})
+    with pytest.raises(ValueError, match="ML-II uses the uncapped"):
+        capped.K_and_grads(X)
