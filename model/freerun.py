@@ -196,13 +196,18 @@ def simulate_linear(
     noise = posterior.noise_var if include_noise else 0.0
     x = np.empty(ny + nu)
     dscale = ys / xs[:ny]  # d y_out / d x_std for the lag columns
+    cap = VAR_CAP * ys * ys  # variance cap in output units
     for i in range(i0, n):
         x[:ny] = np.clip((m - xm[:ny]) / xs[:ny], -LAG_CLIP, LAG_CLIP)  # a diverging mean stays finite
         x[ny:] = Ulag[i]
         mu, var_f, grad = posterior.mean_grad(x)
         J = grad[:ny] / xs[:ny] * ys  # d mu_out / d y_lag (output units)
         SJ = S @ J
-        var_y = min((var_f + noise) * ys * ys + float(J @ SJ), VAR_CAP * ys * ys)
+        if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
+            SJ = np.nan_to_num(SJ, nan=cap, posinf=cap, neginf=-cap)
+        np.clip(SJ, -cap, cap, out=SJ)
+        var_y = (var_f + noise) * ys * ys + float(J @ SJ)
+        var_y = min(var_y, cap) if np.isfinite(var_y) else cap
         y_mean = mu * ys + ym
         mean[i] = y_mean
         std[i] = np.sqrt(max(var_y, 0.0))

@@ -214,3 +214,26 @@ def test_constant_cap_keeps_the_predictive_variance_exact(sdof_data):
     assert np.median(np.abs(var[None] - var[1.0]) / var[1.0]) > 0.5
     with pytest.raises(ValueError, match="constant_cap must be a positive number"):
         GPNARX(constant_cap=0.0, **kw).fit(data, theta=theta)
+
+
+def test_linearised_run_of_a_diverging_model_stays_finite_and_quiet():
+    # a model whose gradient explodes (a diverging free run, e.g. a bad lag-surface cell): the state
+    # covariance must stay finite, with no overflow/invalid RuntimeWarning from S @ J
+    import warnings
+    from types import SimpleNamespace
+
+    from model.freerun import VAR_CAP, simulate_linear
+
+    class Exploding:
+        noise_var = 1e-3
+
+        def mean_grad(self, x):
+            return 1.0, 1e-3, np.full(x.size, 1e200)
+
+    sc = SimpleNamespace(mean_=np.zeros(6), scale_=np.ones(6))
+    ysc = SimpleNamespace(mean_=np.zeros(1), scale_=np.ones(1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        run = simulate_linear(Exploding(), sc, ysc, 3, 3, np.ones(50))
+    assert np.all(np.isfinite(run.std)) and np.all(np.isfinite(run.lower))
+    assert run.std.max() <= np.sqrt(VAR_CAP) * 1.0000001
