@@ -78,11 +78,11 @@ class GPNARX:
     hyper: how sparse mode sets hyperparameters: 'subset' (exact ML-II, eq. 13, on the capped
         rows) or 'vfe' (that, then refined on all rows by maximising the Titsias VFE bound with
         analytic gradients, O(N M^2) per evaluation; see ``model.vfe``).
-    constant_cap: cap on the constant term sigma_p^2 b^3 of the cubic kernel (eq. 11) in the
-        posterior, in standardised output variance units (None: no cap). ML-II can leave that term
-        at 1e4 while the latent variance is 1e-4, and the predictive variance (eq. 9) then cancels
-        below float64 precision; a cap of 1 (the variance of the standardised output) keeps the
-        offset's prior broad and the variance exact to ~1e-10 (see ``CubicPolynomial``).
+    constant_cap: cap on the constant term sigma_p^2 b^3 of the cubic kernel (eq. 11) for the
+        predictive variance, in standardised output variance units (None: no cap). ML-II can leave
+        that term at 1e4 while the latent variance is 1e-4, and eq. 9 then cancels below float64
+        precision; with the cap (1: the variance of the standardised output) the variance is exact
+        to ~1e-10. The mean (eq. 8) keeps the uncapped kernel (see ``CubicPolynomial``).
     """
 
     def __init__(self, ny: int = 2, nu: int = 2, kernel: Kernel | str = "matern32+cubic", mode: str = "exact",
@@ -156,7 +156,7 @@ class GPNARX:
             self.theta_, self.nlml_, self.ml2_restarts_ = theta, float("nan"), []
         self.noise_var_ = float(np.exp(self.theta_[-1]))
         if self.mode == "exact":
-            self.posterior_ = ExactPosterior.fit(self._posterior_kernel(), self.noise_var_, Xt, Yt)
+            self.posterior_ = ExactPosterior.fit(self.kernel_, self.noise_var_, Xt, Yt, var_kernel=self._posterior_kernel())
         else:
             all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed)
             Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
@@ -166,8 +166,8 @@ class GPNARX:
                 res = fit_vfe(self.kernel_, Xs[all_rows], Ys[all_rows], Z, theta0=self.theta_)
                 self.theta_, self.nlml_ = res.theta, res.nlml
                 self.noise_var_ = float(np.exp(self.theta_[-1]))
-            self.posterior_ = SparsePosterior.fit(self._posterior_kernel(), self.noise_var_, Xs[all_rows],
-                                                  Ys[all_rows], Z)
+            self.posterior_ = SparsePosterior.fit(self.kernel_, self.noise_var_, Xs[all_rows], Ys[all_rows], Z,
+                                                  var_kernel=self._posterior_kernel())
         self.n_train_ = int(Xt.shape[0])
         self.n_rows_ = int(X.shape[0])
         self.fit_seconds_ = time.perf_counter() - t0

@@ -513,15 +513,30 @@ class ExactPosterior:
         self.Linv = np.ascontiguousarray(Linv)  # C order: Linv.T is its F-ordered (upper) view for BLAS
         self._sqX = np.einsum("ij,ij->i", X, X)
         self._LinvT32 = None
+        # kernel may be a capped copy (Kernel.for_posterior): K_full = K + shift, so the mean of
+        # eq. 8 is K alpha + shift * sum(alpha) while the variance uses the capped kernel
+        self.mean_shift = float(kernel.cap_shift()) * float(np.sum(alpha))
 
     @classmethod
-    def fit(cls, kernel: Kernel, noise_var: float, X: np.ndarray, y: np.ndarray) -> "ExactPosterior":
+    def fit(cls, kernel: Kernel, noise_var: float, X: np.ndarray, y: np.ndarray,
+            var_kernel: Kernel | None = None) -> "ExactPosterior":
+        """alpha from ``kernel`` (eq. 8); Linv from ``var_kernel`` when given (its capped copy,
+        ``Kernel.for_posterior``), which keeps eq. 9 exact when kernel carries a large constant."""
+        alpha, Linv = cls._solve(kernel, noise_var, X, y)
+        if var_kernel is None:
+            return cls(kernel, noise_var, X, alpha, Linv)
+        if var_kernel.cap_shift() > 0.0:
+            Linv = cls._solve(var_kernel, noise_var, X, y)[1]
+        return cls(var_kernel, noise_var, X, alpha, Linv)
+
+    @staticmethod
+    def _solve(kernel, noise_var, X, y):
         K = kernel(X)
         K[np.diag_indices_from(K)] += noise_var
         L, _ = cholesky_jitter(K, overwrite=True)
         alpha = linalg.cho_solve((L, True), y, check_finite=False)
         Linv = linalg.solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
-        return cls(kernel, noise_var, X, alpha, np.tril(Linv))
+        return alpha, np.tril(Linv)
 
     @property
     def n_points(self) -> int:
@@ -535,6 +550,7 @@ class ExactPosterior:
         """Latent mean (eq. 8) and variance (eq. 9) at Xs (standardised units)."""
         Ks = self.cross(Xs)
         mean = Ks @ self.alpha
+        mean += self.mean_shift
         if not return_var:
             return mean, None
         if float32:
@@ -557,7 +573,7 @@ class ExactPosterior:
     def mean_grad(self, xs: np.ndarray) -> tuple[float, float, np.ndarray]:
         """Mean, latent variance and d mean / d xs at one point xs (D,)."""
         k = self.cross(xs[None, :])[0]
-        mean = float(k @ self.alpha)
+        mean = float(k @ self.alpha) + self.mean_shift
         v = self.Linv @ k
         var = max(float(self.kernel.diag(xs[None, :])[0] - v @ v), 1e-300)
         grad = self.kernel.grad_x(xs, self.X).T @ self.alpha
@@ -606,9 +622,22 @@ class SparsePosterior:
         self.A = A
         self._sqZ = np.einsum("ij,ij->i", Z, Z)
         self._A32 = None
+        # as in ExactPosterior: with a capped kernel, mean = K w + shift * sum(w)
+        self.mean_shift = float(kernel.cap_shift()) * float(np.sum(w))
 
     @classmethod
-    def fit(cls, kernel: Kernel, noise_var: float, X: np.ndarray, y: np.ndarray, Z: np.ndarray) -> "SparsePosterior":
+    def fit(cls, kernel: Kernel, noise_var: float, X: np.ndarray, y: np.ndarray, Z: np.ndarray,
+            var_kernel: Kernel | None = None) -> "SparsePosterior":
+        """w from ``kernel``; A from ``var_kernel`` when given (see ``ExactPosterior.fit``)."""
+        w, A = cls._solve(kernel, noise_var, X, y, Z)
+        if var_kernel is None:
+            return cls(kernel, noise_var, Z, w, A)
+        if var_kernel.cap_shift() > 0.0:
+            A = cls._solve(var_kernel, noise_var, X, y, Z)[1]
+        return cls(var_kernel, noise_var, Z, w, A)
+
+    @staticmethod
+    def _solve(kernel, noise_var, X, y, Z):
         m = Z.shape[0]
         Kmm = kernel(Z)
         Lm, _ = cholesky_jitter(Kmm + 1e-8 * np.mean(np.diag(Kmm)) * np.eye(m), overwrite=True)
@@ -621,7 +650,7 @@ class SparsePosterior:
         A = Lm_inv.T @ (np.eye(m) - Binv) @ Lm_inv
         A = 0.5 * (A + A.T)
         w = Lm_inv.T @ (Binv @ (V @ y)) / noise_var
-        return cls(kernel, noise_var, Z, w, A)
+        return w, A
 
     @property
     def n_points(self) -> int:
@@ -651,6 +680,7 @@ class SparsePosterior:
             r1 = min(P, r0 + step)
             Ks = self.kernel.from_gram(Xs[r0:r1] @ self.X.T, sqs[r0:r1], self._sqZ)
             np.dot(Ks, self.w, out=mean[r0:r1])
+            mean[r0:r1] += self.mean_shift
             if not return_var:
                 continue
             if float32:
@@ -665,7 +695,7 @@ class SparsePosterior:
 
     def mean_grad(self, xs):
         k = self.cross(xs[None, :])[0]
-        mean = float(k @ self.w)
+        mean = float(k @ self.w) + self.mean_shift
         var = max(float(self.kernel.diag(xs[None, :])[0] - k @ self.A @ k), 1e-300)
         grad = self.kernel.grad_x(xs, self.X).T @ self.w
         return mean, var, grad

@@ -118,9 +118,13 @@ class Kernel:
         return kernel_from_dict(self.to_dict())
 
     def for_posterior(self, constant_cap: float | None = None) -> "Kernel":
-        """The kernel a posterior is built with: a copy, with any constant term capped at
-        ``constant_cap`` (see ``CubicPolynomial``); kernels without one return a plain copy."""
+        """A copy with any constant term capped at ``constant_cap`` (see ``CubicPolynomial``);
+        kernels without one return a plain copy. Posteriors take their variance from it."""
         return self.clone()
+
+    def cap_shift(self) -> float:
+        """How far the capped kernel lies below the uncapped one (a constant, >= 0; 0 if uncapped)."""
+        return 0.0
 
     def __repr__(self) -> str:
         ps = ", ".join(f"{k}={v:.4g}" for k, v in self.params.items())
@@ -225,8 +229,10 @@ class CubicPolynomial(Kernel):
     stand-in against a latent variance near 1e-4: the predictive variance k(x,x) - k A k then cancels
     to below float64 precision. ``constant_cap`` (standardised output variance units; None = no cap)
     replaces the constant term by min(sigma_p^2 b^3, constant_cap) and evaluates the rest in the
-    expanded form, without that cancellation. Posteriors use the capped kernel (see
-    ``Kernel.for_posterior``); ML-II uses the uncapped one, so the hyperparameters are eq. 13's.
+    expanded form, without that cancellation. Posteriors take their variance from the capped kernel
+    and their mean from the uncapped one (``gp.ExactPosterior`` / ``gp.SparsePosterior``: the two
+    kernels differ by the constant ``cap_shift()``); ML-II uses the uncapped kernel, so the
+    hyperparameters and the predicted means are eq. 13's and eq. 8's.
     """
 
     param_names = ("variance", "scale", "bias")
@@ -285,6 +291,12 @@ class CubicPolynomial(Kernel):
         K *= H
         K *= var
         return K
+
+    def cap_shift(self) -> float:
+        if self.constant_cap is None:
+            return 0.0
+        var, _, b = np.exp(self.theta)
+        return max(float(var * b**3) - self.constant_cap, 0.0)
 
     def for_posterior(self, constant_cap: float | None = None) -> "CubicPolynomial":
         k = self.clone()
@@ -395,6 +407,9 @@ class Sum(Kernel):
 
     def for_posterior(self, constant_cap: float | None = None) -> "Sum":
         return Sum(*[p.for_posterior(constant_cap) for p in self.parts])
+
+    def cap_shift(self) -> float:
+        return float(sum(p.cap_shift() for p in self.parts))
 
     def __repr__(self):
         return " + ".join(repr(p) for p in self.parts)

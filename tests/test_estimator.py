@@ -203,10 +203,18 @@ def test_constant_cap_keeps_the_predictive_variance_exact(sdof_data):
     data = [(sdof_data["u"][:2000], sdof_data["yn"][:2000])]
     kw = dict(ny=8, nu=8, mode="sparse", n_inducing=128, max_train_points=500)
     Xq = np.vstack([narx_regressors(sdof_data["u2"][:600], sdof_data["y2"][:600], 8, 8)[0]])
-    var = {}
+    var, mean, grad = {}, {}, {}
     for cap in (None, 1.0, 0.25):
         m = GPNARX(constant_cap=cap, **kw).fit(data, theta=theta)
-        var[cap] = m.posterior_.predict(m.x_scaler_.transform(Xq))[1]
+        Xs = m.x_scaler_.transform(Xq)
+        mean[cap], var[cap] = m.posterior_.predict(Xs)
+        grad[cap] = m.posterior_.mean_grad(Xs[5])
+    # the mean (eq. 8) is the uncapped kernel's: the cap only changes how the variance is computed
+    scale = np.abs(mean[None]).max()
+    assert np.allclose(mean[1.0], mean[None], rtol=0, atol=1e-6 * scale)
+    assert np.allclose(mean[0.25], mean[None], rtol=0, atol=1e-6 * scale)
+    assert grad[1.0][0] == pytest.approx(grad[None][0], abs=1e-6 * scale)
+    assert np.allclose(grad[1.0][2], grad[None][2], rtol=1e-6, atol=1e-9)
     assert np.all(var[1.0] > 1e-8)  # a real latent variance, well above the 1e-300 floor
     # with a well-conditioned offset prior the variance does not depend on the cap's value
     assert np.allclose(var[1.0], var[0.25], rtol=0.02)
@@ -214,6 +222,22 @@ def test_constant_cap_keeps_the_predictive_variance_exact(sdof_data):
     assert np.median(np.abs(var[None] - var[1.0]) / var[1.0]) > 0.5
     with pytest.raises(ValueError, match="constant_cap must be a positive number"):
         GPNARX(constant_cap=0.0, **kw).fit(data, theta=theta)
+
+
+def test_capped_model_round_trips_through_a_bundle(sdof_data, tmp_path):
+    from model.bundle import load_bundle, save_bundle
+
+    theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
+    for mode in ("sparse", "exact"):
+        m = GPNARX(ny=6, nu=6, mode=mode, n_inducing=64, max_train_points=400).fit(
+            [(sdof_data["u"][:1200], sdof_data["yn"][:1200])], theta=theta)
+        assert m.posterior_.kernel.cap_shift() > 1e4  # the cap is active
+        b = load_bundle(save_bundle(m, tmp_path, f"cap-{mode}", fs=1.0, units={"u": "N", "y": "m"}))
+        assert b.model.constant_cap == 1.0 and b.manifest["kernel"]["parts"][1]["constant_cap"] == 1.0
+        r1 = m.simulate(sdof_data["u2"][:300], n_paths=32, seed=3)
+        r2 = b.model.simulate(sdof_data["u2"][:300], n_paths=32, seed=3)
+        assert np.allclose(r1.mean, r2.mean, rtol=0, atol=1e-12 * np.abs(r1.mean).max())
+        assert np.allclose(r1.upper, r2.upper, rtol=0, atol=1e-12 * np.abs(r1.upper).max())
 
 
 def test_linearised_run_of_a_diverging_model_stays_finite_and_quiet():
