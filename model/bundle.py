@@ -23,6 +23,7 @@ import os
 import re
 import shutil
 import tempfile
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,6 +48,10 @@ REQUIRED_KEYS = ("schema_version", "name", "version", "created", "lags", "kernel
 
 class BundleError(ValueError):
     """A bundle is missing, malformed or fails its checksums."""
+
+
+class BundleWarning(UserWarning):
+    """A bundle loads and serves, but should be retrained (the message says why)."""
 
 
 def check_name(name: str, what: str = "model name") -> str:
@@ -317,6 +322,13 @@ def load_bundle(path) -> Bundle:
         D = ny + nu
         if model.x_scaler_.mean_.shape != (D,) or model.posterior_.X.shape[1] != D:
             raise BundleError(f"array shapes do not match lags ny={ny}, nu={nu}")
+        if "constant_cap" not in est:  # written before the variance fix of 2026-11-23
+            shift = kernel.for_posterior(1.0).cap_shift()
+            if shift > 1e6 * model.noise_var_:  # Bouc-Wen (73 vs 1.1e-2) stays quiet; the stand-in's warns
+                warnings.warn(f"{path}: built before the predictive-variance fix; its cubic kernel constant "
+                              f"(sigma_p^2 b^3 = {shift + 1.0:.3g}) makes eq. 9's variance cancel below float64 "
+                              "precision, so its 99% bands may carry the noise variance only. Retrain it "
+                              "(gpnarx train CONFIG --registry DIR writes a new version)", BundleWarning, stacklevel=2)
     except BundleError as exc:
         msg = str(exc)
         raise BundleError(msg if str(path) in msg else f"{path}: {msg}") from None

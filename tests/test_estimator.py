@@ -261,3 +261,29 @@ def test_linearised_run_of_a_diverging_model_stays_finite_and_quiet():
         run = simulate_linear(Exploding(), sc, ysc, 3, 3, np.ones(50))
     assert np.all(np.isfinite(run.std)) and np.all(np.isfinite(run.lower))
     assert run.std.max() <= np.sqrt(VAR_CAP) * 1.0000001
+
+
+def test_bundle_built_before_the_variance_fix_warns_on_load(sdof_data, tmp_path):
+    import json
+
+    from model.bundle import BundleWarning, _sha256, load_bundle, save_bundle
+
+    theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
+    m = GPNARX(ny=6, nu=6, mode="sparse", n_inducing=64, max_train_points=400, constant_cap=None).fit(
+        [(sdof_data["u"][:1200], sdof_data["yn"][:1200])], theta=theta)
+    p = save_bundle(m, tmp_path, "old", fs=1.0, units={"u": "N", "y": "m"})
+    man = json.loads((p / "manifest.json").read_text())
+    del man["estimator"]["constant_cap"]  # as written before the fix
+    (p / "manifest.json").write_text(json.dumps(man))
+    (p / "manifest.sha256").write_text(_sha256(p / "manifest.json") + "\n")
+    with pytest.warns(BundleWarning, match="Retrain it"):
+        b = load_bundle(p)
+    assert b.model.constant_cap is None  # it still loads and predicts as it was built
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        q = save_bundle(GPNARX(ny=6, nu=6, mode="sparse", n_inducing=64, max_train_points=400).fit(
+            [(sdof_data["u"][:1200], sdof_data["yn"][:1200])], theta=theta), tmp_path, "new", fs=1.0,
+            units={"u": "N", "y": "m"})
+        load_bundle(q)
