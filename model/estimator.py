@@ -143,7 +143,7 @@ class GPNARX:
         Ys = (Y - self.y_scaler_.mean_[0]) / self.y_scaler_.scale_[0]
         rows = select_rows(Ys, rec_idx, self.max_train_points, self.selection, self.seed)
         Xt, Yt = Xs[rows], Ys[rows]
-        # ML-II works on the uncapped kernel (eq. 13); the posterior on the capped copy
+        # ML-II and the posterior mean use the uncapped kernel (eqs. 13, 8); the variance its capped copy
         self.kernel_ = make_kernel(self.kernel) if isinstance(self.kernel, str) else self.kernel.for_posterior(None)
         if theta is None:
             sub = default_warm_start_subset(Xt.shape[0])
