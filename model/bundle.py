@@ -31,7 +31,7 @@ import numpy as np
 
 from .estimator import GPNARX
 from .gp import ExactPosterior, SparsePosterior
-from .kernels import kernel_from_dict
+from .kernels import DEFAULT_CONSTANT_CAP, kernel_from_dict
 from .scaling import Standardizer
 
 SCHEMA_VERSION = 1
@@ -323,10 +323,10 @@ def load_bundle(path) -> Bundle:
         if model.x_scaler_.mean_.shape != (D,) or model.posterior_.X.shape[1] != D:
             raise BundleError(f"array shapes do not match lags ny={ny}, nu={nu}")
         if "constant_cap" not in est:  # written before the variance fix of 2026-11-23
-            shift = kernel.for_posterior(1.0).cap_shift()
+            shift = kernel.for_posterior(DEFAULT_CONSTANT_CAP).cap_shift()
             if shift > 1e6 * model.noise_var_:  # Bouc-Wen (73 vs 1.1e-2) stays quiet; the stand-in's warns
                 warnings.warn(f"{path}: built before the predictive-variance fix; its cubic kernel constant "
-                              f"(sigma_p^2 b^3 = {shift + 1.0:.3g}) makes eq. 9's variance cancel below float64 "
+                              f"(sigma_p^2 b^3 = {shift + DEFAULT_CONSTANT_CAP:.3g}) makes eq. 9's variance cancel below float64 "
                               "precision, so its 99% bands may carry the noise variance only. Retrain it "
                               "(gpnarx train CONFIG --registry DIR writes a new version)", BundleWarning, stacklevel=2)
     except BundleError as exc:

@@ -14,7 +14,7 @@ import numpy as np
 
 from . import freerun
 from .gp import ExactPosterior, SparsePosterior, choose_inducing, default_warm_start_subset, fit_ml2
-from .kernels import Kernel, make_kernel
+from .kernels import DEFAULT_CONSTANT_CAP, Kernel, make_kernel
 from .records import Record, RecordError
 from .regressors import check_lags, first_index, narx_regressors, stack_regressors
 from .scaling import Standardizer
@@ -88,7 +88,8 @@ class GPNARX:
     def __init__(self, ny: int = 2, nu: int = 2, kernel: Kernel | str = "matern32+cubic", mode: str = "exact",
                  n_inducing: int = 256, max_train_points: int | None = 2000, selection: str = "stride",
                  n_restarts: int = 2, seed: int = 0, include_noise: bool = True,
-                 sparse_max_rows: int | None = 50000, hyper: str = "subset", constant_cap: float | None = 1.0):
+                 sparse_max_rows: int | None = 50000, hyper: str = "subset",
+                 constant_cap: float | None = DEFAULT_CONSTANT_CAP):
         self.ny = ny
         self.nu = nu
         self.kernel = kernel

@@ -219,6 +219,9 @@ class RBF(Kernel):
         return (-k / ls**2)[:, None] * diff
 
 
+DEFAULT_CONSTANT_CAP = 1.0  # variance of the standardised output; GPNARX(constant_cap=...) default
+
+
 class CubicPolynomial(Kernel):
     """Cubic polynomial kernel, eq. (11): sigma_p^2 (s x.x' + b)^3.
 
