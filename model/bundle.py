@@ -203,6 +203,7 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
             "kernel": model.posterior_.kernel.to_dict(),  # the posterior's (constant cap included)
             "hyperparameters": {**model.kernel_.params, "noise_var": model.noise_var_},
             "noise_var": model.noise_var_,
+            "noise_calibration": getattr(model, "noise_calibration_", None),
             "nlml": None if not np.isfinite(model.nlml_) else model.nlml_,
             "n_train": model.n_train_,
             "estimator": {"include_noise": bool(model.include_noise), "n_inducing": int(model.n_inducing),
@@ -308,6 +309,9 @@ def load_bundle(path) -> Bundle:
         model.kernel_ = kernel
         model.theta_ = arrays["theta"]
         model.noise_var_ = float(manifest["noise_var"])
+        model.noise_calibration_ = manifest.get("noise_calibration")  # absent before 2026-11-23 (session 6)
+        model.noise_var_ml2_ = float(model.noise_calibration_["noise_var_ml2"]) if model.noise_calibration_ \
+            else model.noise_var_
         model.nlml_ = float("nan") if manifest.get("nlml") is None else float(manifest["nlml"])
         model.n_train_ = int(manifest.get("n_train", 0))
         model.x_scaler_ = Standardizer.from_arrays(arrays["x_mean"], arrays["x_scale"])

@@ -124,11 +124,15 @@ class GPNARX:
                                 or not np.isfinite(cap) or cap <= 0):
             raise ValueError(f"constant_cap must be a positive number or None, got {cap!r}")
 
-    def fit(self, records, theta: np.ndarray | None = None) -> "GPNARX":
+    def fit(self, records, theta: np.ndarray | None = None, heldout=None) -> "GPNARX":
         """Learn standardisation, hyperparameters (ML-II, eq. 13) and the posterior.
 
         records: Record objects or (u, y) pairs; each must have more than max(ny, nu-1) samples.
         theta: optional fixed log-hyperparameters (kernel then log sigma_y^2); skips ML-II.
+        heldout: optional records NOT in ``records`` (Record objects or (u, y) pairs). When given,
+            sigma_y^2 is raised to the held-out maximum-likelihood value of their one-step residuals
+            (``model.calibration``; never below ML-II's) and the posterior is rebuilt with it. The
+            ML-II value stays in ``noise_var_ml2_``; ``noise_calibration_`` records what was done.
         """
         self._validate_params()
         t0 = time.perf_counter()
@@ -137,6 +141,16 @@ class GPNARX:
         for k, (u, y) in enumerate(pairs):
             if u.size < need:
                 raise ValueError(f"records[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} need at least {need}")
+        held = None
+        if heldout is not None:  # checked before ML-II, so a bad held-out record fails fast
+            try:
+                held = _as_pairs(heldout)
+            except ValueError as exc:
+                raise ValueError(f"heldout: {exc}") from None
+            for k, (u, y) in enumerate(held):
+                if u.size < need:
+                    raise ValueError(f"heldout[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} "
+                                     f"need at least {need}")
         X, Y, rec_idx = stack_regressors(pairs, self.ny, self.nu)
         self.x_scaler_ = Standardizer().fit(X)
         self.y_scaler_ = Standardizer().fit(Y[:, None])
@@ -157,7 +171,8 @@ class GPNARX:
             self.theta_, self.nlml_, self.ml2_restarts_ = theta, float("nan"), []
         self.noise_var_ = float(np.exp(self.theta_[-1]))
         if self.mode == "exact":
-            self.posterior_ = ExactPosterior.fit(self.kernel_, self.noise_var_, Xt, Yt, var_kernel=self._posterior_kernel())
+            def build(nv):
+                return ExactPosterior.fit(self.kernel_, nv, Xt, Yt, var_kernel=self._posterior_kernel())
         else:
             all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed)
             Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
@@ -167,12 +182,36 @@ class GPNARX:
                 res = fit_vfe(self.kernel_, Xs[all_rows], Ys[all_rows], Z, theta0=self.theta_)
                 self.theta_, self.nlml_ = res.theta, res.nlml
                 self.noise_var_ = float(np.exp(self.theta_[-1]))
-            self.posterior_ = SparsePosterior.fit(self.kernel_, self.noise_var_, Xs[all_rows], Ys[all_rows], Z,
-                                                  var_kernel=self._posterior_kernel())
+            def build(nv):
+                return SparsePosterior.fit(self.kernel_, nv, Xs[all_rows], Ys[all_rows], Z,
+                                           var_kernel=self._posterior_kernel())
+        self.posterior_ = build(self.noise_var_)
+        self.noise_var_ml2_ = self.noise_var_
+        self.noise_calibration_ = None
+        if held is not None:
+            self._calibrate_noise(held, build)
         self.n_train_ = int(Xt.shape[0])
         self.n_rows_ = int(X.shape[0])
         self.fit_seconds_ = time.perf_counter() - t0
         return self
+
+    def _calibrate_noise(self, pairs, build) -> None:
+        """Raise sigma_y^2 to its held-out ML value (model.calibration) and rebuild the posterior."""
+        from .calibration import heldout_noise_var
+
+        X, Y, _ = stack_regressors(pairs, self.ny, self.nu)
+        mu, var = self.posterior_.predict(self.x_scaler_.transform(X))
+        resid = (Y - self.y_scaler_.mean_[0]) / self.y_scaler_.scale_[0] - mu
+        s2 = max(self.noise_var_, heldout_noise_var(resid, var, floor=self.noise_var_))
+        self.noise_calibration_ = {
+            "method": "heldout_ml", "n_records": len(pairs), "n_residuals": int(resid.size),
+            "noise_var_ml2": self.noise_var_, "noise_var": s2,
+            "residual_var": float(np.mean(resid * resid)), "latent_var_mean": float(np.mean(var)),
+        }
+        if s2 > self.noise_var_:
+            self.noise_var_ = s2
+            self.theta_ = np.concatenate([np.asarray(self.theta_, dtype=float)[:-1], [np.log(s2)]])
+            self.posterior_ = build(s2)
 
     # ------------------------------------------------------------------------------------------
     def _check_fitted(self) -> None:

@@ -181,6 +181,12 @@ def test_unit_mismatch(tmp_path):
         ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\npath='x'\ncolour='red'\n",
          "unknown key(s) colour"),
         ("name = [broken", "invalid TOML"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nnoise_calibration='cv'\n[[records]]\nname='a'\nroles=['train']\n"
+         "path='x'\n", "model.noise_calibration: must be one of 'none', 'lags', got 'cv'"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nnoise_calibration='lags'\n[[records]]\nname='a'\nroles=['train']\n"
+         "path='x'\n", "model.noise_calibration: 'lags' needs at least one record with role 'lags'"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nnoise_calibration='lags'\n[[records]]\nname='a'\n"
+         "roles=['train', 'lags']\npath='x'\n", "records.a.roles: a 'lags' record calibrates the noise"),
     ],
 )
 def test_config_errors(tmp_path, text, fragment):

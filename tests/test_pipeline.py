@@ -257,3 +257,20 @@ def test_lags_cli_writes_surface_and_png(small_config, tmp_path, capsys):
     data = json.loads(out.read_text())
     assert len(data["cells"]) == 2
     assert out.with_suffix(".png").is_file()
+
+
+def test_noise_calibration_on_the_lags_record_reaches_the_bundle(tmp_path):
+    from training.pipeline import train
+
+    p = tmp_path / "cal.toml"
+    p.write_text(SMALL_CONFIG.format(ny=4, nu=4).replace("restarts = 0", "restarts = 0\nnoise_calibration = \"lags\""))
+    logs = []
+    out = train(p, tmp_path / "reg", report=False, mc_paths=8, baselines={}, log=logs.append)
+    nc = out["model"].noise_calibration_
+    # lag-sweep (1 s at 750 Hz, ny = nu = 4) is the held-out record
+    assert nc["n_records"] == 1 and nc["n_residuals"] == 750 - 4
+    assert nc["noise_var"] >= nc["noise_var_ml2"] and out["model"].noise_var_ == nc["noise_var"]
+    assert any("noise calibrated on 1 held-out 'lags' record(s)" in m for m in logs), logs
+    manifest = load_bundle(out["path"]).manifest
+    assert manifest["noise_calibration"] == pytest.approx(nc)
+    assert manifest["training"]["noise_calibration"]["noise_var"] == pytest.approx(nc["noise_var"])

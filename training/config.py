@@ -27,6 +27,8 @@ key name below is a contract)::
     selection = "stride"              # "stride" | "random" | "resonance" (largest-|y| windows, sec 4.2)
     restarts = 3                      # ML-II restarts
     seed = 0
+    noise_calibration = "none"        # "none" (ML-II's sigma_y^2, the paper) | "lags": raise sigma_y^2 to
+                                      # its held-out ML value on the 'lags' records (model.calibration)
 
     [lags]                            # lag-surface ranges, LO:HI inclusive, optional step LO:HI:STEP
     ny = "1:24"
@@ -116,7 +118,9 @@ MODEL_DEFAULTS = {
     "selection": "stride",
     "restarts": 3,
     "seed": 0,
+    "noise_calibration": "none",
 }
+NOISE_CALIBRATIONS = ("none", "lags")
 PREDICT_DEFAULTS = {"mc_paths": 1024, "confidence": 0.99}
 NOVELTY_DEFAULTS = {"false_alarm_rate": 0.01}
 PHYSICS_DEFAULTS = {"mass": None, "input_gain": 1.0}
@@ -542,6 +546,8 @@ def _build(doc: dict, path: Path) -> DatasetConfig:
     model["max_train_points"] = _pos_int(model["max_train_points"], "model.max_train_points", path)
     model["restarts"] = _pos_int(model["restarts"], "model.restarts", path, minimum=0)
     model["seed"] = _pos_int(model["seed"], "model.seed", path, minimum=0)
+    model["noise_calibration"] = _choice(model["noise_calibration"], "model.noise_calibration", path,
+                                         NOISE_CALIBRATIONS)
 
     lags = _table(doc, "lags", path)
     for k, v in lags.items():
@@ -579,6 +585,15 @@ def _build(doc: dict, path: Path) -> DatasetConfig:
             raise _err(path, f"records.{s.name}.noise.reference", f"no record named {s.noise['reference']!r}")
     if not any("train" in s.roles for s in specs):
         raise _err(path, "records", "no record has role 'train'")
+    if model["noise_calibration"] == "lags":
+        held = [s for s in specs if "lags" in s.roles]
+        if not held:
+            raise _err(path, "model.noise_calibration", "'lags' needs at least one record with role 'lags' "
+                       "(held out from training)")
+        for s in held:
+            if "train" in s.roles:
+                raise _err(path, f"records.{s.name}.roles", "a 'lags' record calibrates the noise "
+                           "(model.noise_calibration = 'lags') and must not also have role 'train'")
 
     known = {"name", "description", "system", "physics", "model", "lags", "predict", "novelty", "records"}
     extra = {k: v for k, v in doc.items() if k not in known}

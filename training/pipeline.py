@@ -128,8 +128,13 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     train_recs = records("train")
     model = model_from_config(cfg, ny, nu, **(model_overrides or {}))
     log(f"training {cfg.name}: ny={model.ny} nu={model.nu} mode={model.mode} on {len(train_recs)} record(s)")
-    model.fit(train_recs)
+    calibrate = cfg.model.get("noise_calibration", "none") == "lags"
+    model.fit(train_recs, heldout=records("lags") if calibrate else None)
     log(f"ML-II done in {model.fit_seconds_:.1f} s (N={model.n_train_}, NLML={model.nlml_:.1f})")
+    if model.noise_calibration_ is not None:
+        nc = model.noise_calibration_
+        log(f"noise calibrated on {nc['n_records']} held-out 'lags' record(s), {nc['n_residuals']} one-step "
+            f"residuals: sigma_y^2 {nc['noise_var_ml2']:.3g} (ML-II) -> {nc['noise_var']:.3g} (standardised)")
     n_paths = int(mc_paths or cfg.predict.get("mc_paths", 1024))
     conf = float(cfg.predict.get("confidence", 0.99))
     method = cfg.predict.get("method", "mc")
@@ -179,6 +184,7 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     training_metrics = {
         "fit_seconds": model.fit_seconds_, "n_train": model.n_train_, "n_rows": model.n_rows_,
         "nlml": model.nlml_, "train_records": [r.name for r in train_recs],
+        "noise_var": model.noise_var_, "noise_calibration": model.noise_calibration_,
         "records": {ev["name"]: {"role": ev["role"], **{k: v for k, v in ev["metrics"].items()}} for ev in evals},
         "mc_paths": n_paths, "confidence": conf, "wall_seconds": None, "baselines": baselines,
     }
@@ -192,7 +198,8 @@ def train(config, registry, name: str | None = None, version: str | None = None,
             report_dir = Path(tmp) / "report"
             full = write_report(report_dir, f"GP-NARX {cfg.name}", {
                 "config": str(cfg.path), "ny": model.ny, "nu": model.nu, "mode": model.mode,
-                "kernel": repr(model.kernel_), "noise_var": model.noise_var_, "n_train": model.n_train_,
+                "kernel": repr(model.kernel_), "noise_var": model.noise_var_,
+                "noise_calibration": model.noise_calibration_, "n_train": model.n_train_,
                 "fit_seconds": model.fit_seconds_, "mc_paths": n_paths, "novelty": novelty,
             }, evals + list(extra_evals or []), physics=physics, lag_surface=lag_surface, baselines=baselines, paper=paper)
             # the report's richer per-record metrics (PSD peaks, loop areas) go into the manifest too
