@@ -1,8 +1,8 @@
 """Held-out calibration of the likelihood noise variance sigma_y^2 (eq. 2).
 
 ML-II (eq. 13) can drive sigma_y^2 to its lower bound when the GP interpolates its training rows:
-on the real BERT records it stops at 1e-8 (standardised), below the laser vibrometer's own noise
-(3-8e-9) and 10-20x under the one-step error on a record not trained on. The posterior is then
+on the real BERT records it stops at 1e-8 (standardised), about the laser vibrometer's own noise floor
+(2.6e-9 to 9.8e-9) and 3-24x under the one-step error on records not trained on. The posterior is then
 built from an ill-conditioned system, eq. 9's variance cancels to zero on most regressors, and
 the free-run 99% bands are far too narrow.
 
