@@ -499,7 +499,8 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
         return {"name": b.name, "version": b.version, "versions": state.registry.versions(b.name),
                 "created": m.get("created"), "lags": {"ny": b.model.ny, "nu": b.model.nu}, "mode": m.get("mode"),
                 "fs": b.fs, "units": m.get("units") or {}, "kernel": m.get("kernel") or {},
-                "hyperparameters": m.get("hyperparameters") or {}, "n_train": m.get("n_train"),
+                "hyperparameters": m.get("hyperparameters") or {},
+                "noise_calibration": m.get("noise_calibration"), "n_train": m.get("n_train"),
                 "training": m.get("training") or {}, "novelty": m.get("novelty"), "physics": m.get("physics") or {},
                 "package_versions": m.get("package_versions") or {}}
 

@@ -226,6 +226,10 @@ class ModelDetail(BaseModel):
     units: Units
     kernel: dict[str, Any]
     hyperparameters: dict[str, Any]
+    noise_calibration: dict[str, Any] | None = Field(
+        None, description="Held-out calibration of the noise variance (method, n_records, n_residuals, "
+                          "noise_var_ml2, noise_var, residual_var, latent_var_mean; standardised output "
+                          "units) or null when the bundle keeps ML-II's value.")
     n_train: int | None = None
     training: dict[str, Any] = Field(..., description="Training metrics.")
     novelty: dict[str, Any] | None = Field(None, description="Novelty calibration (threshold, "

@@ -125,6 +125,7 @@ def test_health_models_and_metrics(client):
     assert d["version"] == "2" and d["versions"] == ["1", "2"] and d["fs"] == FS
     assert d["lags"] == {"ny": 10, "nu": 10} and d["units"] == {"u": "N", "y": "m"}
     assert {"kernel", "hyperparameters", "training", "novelty", "physics"} <= set(d)
+    assert d["noise_calibration"] is None  # trained with ML-II's noise variance
     assert d["novelty"]["false_alarm_rate"] == 0.01 and d["physics"]["mass"] == 2.0
     assert client.get("/v1/models/boucwen/versions/1").json()["version"] == "1"
     assert_problem(client.get("/v1/models/nope"), 404, "name")
@@ -654,3 +655,19 @@ def test_cli_serve_subprocess_and_sighup_reload(tmp_path):
             proc.wait(timeout=30)
         except subprocess.TimeoutExpired:  # pragma: no cover
             proc.kill()
+
+
+def test_model_detail_reports_a_held_out_noise_calibration(tmp_path):
+    from model.bundle import save_bundle
+    from model.estimator import GPNARX
+
+    u, y = short_record(600, 1)
+    u2, y2 = short_record(300, 2)
+    y2 = y2 + 0.05 * np.std(y2) * np.random.default_rng(0).normal(size=y2.size)
+    m = GPNARX(ny=4, nu=4, max_train_points=300, n_restarts=0).fit([(u, y)], heldout=[(u2, y2)])
+    save_bundle(m, tmp_path, "cal", fs=FS, units={"u": "N", "y": "m"})
+    c = TestClient(create_app(tmp_path, settings()), raise_server_exceptions=False)
+    d = c.get("/v1/models/cal").json()
+    assert d["noise_calibration"]["method"] == "heldout_ml"
+    assert d["noise_calibration"]["noise_var"] == pytest.approx(m.noise_var_)
+    assert d["hyperparameters"]["noise_var"] == pytest.approx(m.noise_var_)
