@@ -42,6 +42,10 @@ def test_reproduce_bert_real_quick(tmp_path, capsys):
     held_out = {k for k, v in res["records"].items() if v["role"] == "validate"}
     assert {"heldout-09Hz", "heldout-09p75Hz", "heldout-06p75Hz"} <= held_out
     assert not any(k.startswith("train-") for k in res["records"])  # training records are not scored as held out
+    # the config calibrates the noise variance on its held-out 'lags' record (9 Hz)
+    nc = json.loads((Path(res["bundle"]) / "manifest.json").read_text())["noise_calibration"]
+    assert nc["method"] == "heldout_ml" and nc["n_records"] == 1 and nc["n_residuals"] > 0
+    assert nc["noise_var"] >= nc["noise_var_ml2"] > 0
 
 
 @pytest.mark.slow
