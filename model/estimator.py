@@ -137,19 +137,17 @@ class GPNARX:
         self._validate_params()
         t0 = time.perf_counter()
         pairs = _as_pairs(records)
-        need = first_index(self.ny, self.nu) + 2
-        for k, (u, y) in enumerate(pairs):
-            if u.size < need:
-                raise ValueError(f"records[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} need at least {need}")
         held = None
         if heldout is not None:  # checked before ML-II, so a bad held-out record fails fast
             try:
                 held = _as_pairs(heldout)
             except ValueError as exc:
                 raise ValueError(f"heldout: {exc}") from None
-            for k, (u, y) in enumerate(held):
+        need = first_index(self.ny, self.nu) + 2
+        for label, group in (("records", pairs), ("heldout", held or [])):
+            for k, (u, y) in enumerate(group):
                 if u.size < need:
-                    raise ValueError(f"heldout[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} "
+                    raise ValueError(f"{label}[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} "
                                      f"need at least {need}")
         X, Y, rec_idx = stack_regressors(pairs, self.ny, self.nu)
         self.x_scaler_ = Standardizer().fit(X)
@@ -202,7 +200,7 @@ class GPNARX:
         X, Y, _ = stack_regressors(pairs, self.ny, self.nu)
         mu, var = self.posterior_.predict(self.x_scaler_.transform(X))
         resid = (Y - self.y_scaler_.mean_[0]) / self.y_scaler_.scale_[0] - mu
-        s2 = max(self.noise_var_, heldout_noise_var(resid, var, floor=self.noise_var_))
+        s2 = heldout_noise_var(resid, var, floor=self.noise_var_)  # >= the ML-II value
         self.noise_calibration_ = {
             "method": "heldout_ml", "n_records": len(pairs), "n_residuals": int(resid.size),
             "noise_var_ml2": self.noise_var_, "noise_var": s2,

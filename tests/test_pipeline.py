@@ -273,4 +273,4 @@ def test_noise_calibration_on_the_lags_record_reaches_the_bundle(tmp_path):
     assert any("noise calibrated on 1 held-out 'lags' record(s)" in m for m in logs), logs
     manifest = load_bundle(out["path"]).manifest
     assert manifest["noise_calibration"] == pytest.approx(nc)
-    assert manifest["training"]["noise_calibration"]["noise_var"] == pytest.approx(nc["noise_var"])
+    assert manifest["noise_var"] == pytest.approx(nc["noise_var"])

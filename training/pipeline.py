@@ -184,7 +184,6 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     training_metrics = {
         "fit_seconds": model.fit_seconds_, "n_train": model.n_train_, "n_rows": model.n_rows_,
         "nlml": model.nlml_, "train_records": [r.name for r in train_recs],
-        "noise_var": model.noise_var_, "noise_calibration": model.noise_calibration_,
         "records": {ev["name"]: {"role": ev["role"], **{k: v for k, v in ev["metrics"].items()}} for ev in evals},
         "mc_paths": n_paths, "confidence": conf, "wall_seconds": None, "baselines": baselines,
     }
