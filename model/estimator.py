@@ -14,7 +14,7 @@ import numpy as np
 
 from . import freerun
 from .gp import ExactPosterior, SparsePosterior, choose_inducing, default_warm_start_subset, fit_ml2
-from .kernels import DEFAULT_CONSTANT_CAP, Kernel, make_kernel
+from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, make_kernel
 from .records import Record, RecordError
 from .regressors import check_lags, first_index, narx_regressors, stack_regressors
 from .scaling import Standardizer
@@ -119,10 +119,7 @@ class GPNARX:
             raise ValueError(f"hyper must be 'subset' or 'vfe', got {self.hyper!r}")
         if int(self.n_restarts) < 0:
             raise ValueError(f"n_restarts must be >= 0, got {self.n_restarts}")
-        cap = self.constant_cap
-        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, (int, float, np.floating))
-                                or not np.isfinite(cap) or cap <= 0):
-            raise ValueError(f"constant_cap must be a positive number or None, got {cap!r}")
+        check_constant_cap(self.constant_cap)
 
     def fit(self, records, theta: np.ndarray | None = None, heldout=None) -> "GPNARX":
         """Learn standardisation, hyperparameters (ML-II, eq. 13) and the posterior.

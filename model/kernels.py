@@ -222,6 +222,14 @@ class RBF(Kernel):
 DEFAULT_CONSTANT_CAP = 1.0  # variance of the standardised output; GPNARX(constant_cap=...) default
 
 
+def check_constant_cap(cap, name: str = "constant_cap") -> float | None:
+    """``cap`` as a float (or None); anything else that is not a finite positive number is refused."""
+    if cap is not None and (isinstance(cap, bool) or not isinstance(cap, (int, float, np.floating))
+                            or not np.isfinite(cap) or cap <= 0):
+        raise ValueError(f"{name} must be a positive number or None, got {cap!r}")
+    return None if cap is None else float(cap)
+
+
 class CubicPolynomial(Kernel):
     """Cubic polynomial kernel, eq. (11): sigma_p^2 (s x.x' + b)^3.
 
@@ -436,11 +444,7 @@ def kernel_from_dict(d: dict) -> Kernel:
         raise ValueError(f"kernel {d['type']} needs {len(cls.param_names)} finite log-parameters")
     k.theta = theta
     if cls is CubicPolynomial:
-        cap = d.get("constant_cap")
-        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, (int, float))
-                                or not np.isfinite(cap) or cap <= 0):
-            raise ValueError(f"kernel CubicPolynomial constant_cap must be a positive number, got {cap!r}")
-        k.constant_cap = None if cap is None else float(cap)
+        k.constant_cap = check_constant_cap(d.get("constant_cap"), "kernel CubicPolynomial constant_cap")
     return k
 
 
