@@ -259,6 +259,40 @@ def test_lags_cli_writes_surface_and_png(small_config, tmp_path, capsys):
     assert out.with_suffix(".png").is_file()
 
 
+def test_grid_edge_names_the_axes_where_the_best_cell_is_the_largest_tried():
+    from training.lags import grid_edge
+
+    assert grid_edge({"ny": 24, "nu": 10}, [2, 8, 24], [2, 10, 20]) == ["ny"]
+    assert grid_edge({"ny": 24, "nu": 20}, [2, 8, 24], [2, 10, 20]) == ["ny", "nu"]
+    assert grid_edge({"ny": 8, "nu": 10}, [2, 8, 24], [2, 10, 20]) == []
+    assert grid_edge({"ny": 2, "nu": 20}, [2, 8, 24], [20]) == []  # a fixed axis is not an edge
+
+
+def test_lags_cli_warns_when_the_best_cell_is_on_the_grid_edge(small_config, tmp_path, capsys, monkeypatch):
+    import training.lags as lags_mod
+
+    def fake_cell(config_path, ny, nu, settings):  # fit rises with ny, peaks inside the nu range
+        return {"ny": ny, "nu": nu, "fit": 80.0 + ny - abs(nu - 4), "fits": {}, "seconds": 0.0}
+
+    monkeypatch.setattr(lags_mod, "lag_cell", fake_cell)
+    out = tmp_path / "surface.json"
+    assert main(["lags", str(small_config), "--ny", "2:6:2", "--nu", "2:6:2", "--jobs", "1", "--out", str(out),
+                 "--cache-dir", str(tmp_path / "cache"), "--json"]) == 0
+    cap = capsys.readouterr()
+    res = json.loads(cap.out)
+    assert res["best"] == {"ny": 6, "nu": 4, "fit": 86.0} and res["edge"] == ["ny"]
+    assert "warning" in cap.err and "largest ny=6 tried" in cap.err and "--ny" in cap.err
+    assert json.loads(out.read_text())["edge"] == ["ny"]
+    # the best cell inside the grid: no warning
+    out2 = tmp_path / "surface2.json"
+    monkeypatch.setattr(lags_mod, "lag_cell", lambda c, ny, nu, s: {"ny": ny, "nu": nu, "fit": 90.0 - abs(ny - 4)
+                                                                     - abs(nu - 4), "fits": {}, "seconds": 0.0})
+    assert main(["lags", str(small_config), "--ny", "2:6:2", "--nu", "2:6:2", "--jobs", "1", "--out", str(out2),
+                 "--cache-dir", str(tmp_path / "cache3"), "--json"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["edge"] == [] and "warning" not in cap.err
+
+
 def test_noise_calibration_on_the_lags_record_reaches_the_bundle(tmp_path):
     from training.pipeline import train
 

@@ -112,6 +112,7 @@ def test_write_report_full(tmp_path):
     assert rep["lag_surface"]["chosen"] == [8, 6]
     assert rep["lag_surface"]["paper"] == [8, 6, 92.4]
     assert rep["lag_surface"]["best"]["fit"] == pytest.approx(90.0)
+    assert rep["lag_surface"]["edge"] == []  # the best cell (8, 6) is inside the grid
     assert len(rep["lag_surface"]["table"]) == len(_surface())
     assert rep["baselines"]["sweep <med> & co"]["NARX-poly"]["fit"] is None
     assert rep["comparison"]["sine_low"]["best"] == "GP-NARX"
@@ -176,6 +177,8 @@ def test_lag_surface_figure(tmp_path):
     paths = rp.write_report(tmp_path / "r", "lags", {}, [], lag_surface={"cells": rows, "chosen": {"ny": 4, "nu": 6}})
     rep = json.loads(paths["json"].read_text())
     assert rep["lag_surface"]["chosen"] == [4, 6] and rep["lag_surface"]["best"]["fit"] == 50.0
+    assert rep["lag_surface"]["edge"] == ["nu"]  # best at nu=6, the largest tried
+    assert "lag grid edge" in paths["html"].read_text()
     assert rep["lag_surface"]["table"][0]["fit"] is None and rep["lag_surface"]["table"][2]["error"] == "singular"
     assert paths["lag_surface"].exists()
 

@@ -30,6 +30,11 @@ def test_reproduce_bouc_wen_quick(tmp_path, capsys):
     report = Path(res["bundle"]) / "report"
     rj = json.loads((report / "report.json").read_text())
     assert rj["lag_surface"] and rj["paper"]["lags"]["fit"] == 92.4
+    # the summary and the report say whether the best cell sits on the grid's largest ny / nu
+    from training.lags import grid_edge
+
+    surf = json.loads((tmp_path / "lag_surface.json").read_text())
+    assert summary["lag_grid_edge"] == grid_edge(surf["best"], surf["ny"], surf["nu"]) == rj["lag_surface"]["edge"]
     html = (report / "report.html").read_text()
     assert "linear ARX" in html and "sine-50N" in html
     assert (tmp_path / "lag_surface.png").is_file()

@@ -1,6 +1,8 @@
 """``gpnarx lags CONFIG.toml --ny LO:HI --nu LO:HI [--jobs N] [--scheduler ADDRESS] --out FILE``."""
 from __future__ import annotations
 
+import sys
+
 from training.cli import CLIError
 
 
@@ -20,7 +22,7 @@ def add_parser(sub):
 
 def run(args):
     from training.config import load_config, parse_range
-    from training.lags import lag_surface, write_surface
+    from training.lags import edge_message, lag_surface, write_surface
 
     cfg = load_config(args.config)
     ny_spec = args.ny or cfg.lags.get("ny")
@@ -45,7 +47,9 @@ def run(args):
                           tolerance=args.tolerance)
     paths = write_surface(surface, args.out)
     ch = surface["chosen"]
+    if surface["edge"]:
+        print(f"gpnarx lags: warning: {edge_message(surface)}", file=sys.stderr)
     return {"chosen": {"ny": ch["ny"], "nu": ch["nu"], "fit": ch["fit"]},
             "best": {"ny": surface["best"]["ny"], "nu": surface["best"]["nu"], "fit": surface["best"]["fit"]},
-            "cells": len(surface["cells"]), "cached_cells": surface["cached_cells"],
+            "edge": surface["edge"], "cells": len(surface["cells"]), "cached_cells": surface["cached_cells"],
             "seconds": surface["seconds"], "files": [str(p) for p in paths]}

@@ -9,6 +9,11 @@ settings), so an interrupted surface resumes where it stopped.
 Choice rule ("the best fit with a minimal number of lags"): among cells whose fit is within
 ``tolerance`` (default 0.5) points of the best fit, take the smallest ny + nu; ties go to the
 higher fit.
+
+Grid edge: when the best cell lies on the largest ny or nu tried (and that axis has more than one
+value), the fit may still rise beyond the grid. ``lag_surface`` lists such axes in ``edge`` (for
+example ``["nu"]``) so the caller can warn and the user can extend the range; the choice itself is
+not changed.
 """
 from __future__ import annotations
 
@@ -96,10 +101,32 @@ def choose_lags(cells: list[dict], tolerance: float = DEFAULT_TOLERANCE) -> dict
     return min(near, key=lambda c: (c["ny"] + c["nu"], -c["fit"]))
 
 
+def grid_edge(cell: dict, ny_values, nu_values) -> list[str]:
+    """Lag axes ("ny", "nu") on which ``cell`` sits at the largest value tried (axes of one value are
+    never an edge: the user fixed them)."""
+    edge = []
+    for axis, values in (("ny", ny_values), ("nu", nu_values)):
+        values = [int(v) for v in values]
+        if len(set(values)) > 1 and int(cell[axis]) == max(values):
+            edge.append(axis)
+    return edge
+
+
+def edge_message(surface: dict) -> str:
+    """One line telling which lag axes the best cell reached the grid's largest value on."""
+    best = surface["best"]
+    axes = " and ".join(f"{a}={best[a]}" for a in surface["edge"])
+    return (f"the best cell (ny={best['ny']}, nu={best['nu']}, fit {best['fit']:.2f} %) is at the largest "
+            f"{axes} tried; the fit may still rise beyond the grid: extend "
+            + " and ".join(f"--{a}" for a in surface["edge"]) + " to check")
+
+
+
 def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler: str | None = None,
                 cache_dir=None, settings: dict | None = None, progress: bool = False,
                 tolerance: float = DEFAULT_TOLERANCE) -> dict:
-    """Compute the surface; returns {"cells": [...], "chosen": {...}, "best": {...}, ...}."""
+    """Compute the surface; returns {"cells": [...], "chosen": {...}, "best": {...}, "edge": [...], ...}
+    (``edge``: the axes on which the best cell is at the grid's largest value, see module docstring)."""
     from joblib import Parallel, delayed
 
     config_path = Path(config_path).resolve()
@@ -151,7 +178,8 @@ def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler:
     chosen = choose_lags(ordered, tolerance)
     best = max((c for c in ordered if np.isfinite(c["fit"])), key=lambda c: c["fit"])
     return {"config": str(config_path), "ny": list(ny_values), "nu": list(nu_values), "cells": ordered,
-            "chosen": chosen, "best": best, "tolerance": tolerance, "settings": settings,
+            "chosen": chosen, "best": best, "edge": grid_edge(best, ny_values, nu_values),
+            "tolerance": tolerance, "settings": settings,
             "seconds": time.perf_counter() - t0, "cached_cells": len(grid) - len(todo)}
 
 

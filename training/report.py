@@ -34,6 +34,7 @@ import numpy as np  # noqa: E402
 from model import metrics as _metrics  # noqa: E402
 from model import psd as _psd  # noqa: E402
 from model.restoring import loop_area, restoring_force  # noqa: E402
+from training.lags import grid_edge  # noqa: E402
 
 GP_NAME = "GP-NARX"
 ZOOM_SECONDS = 0.25
@@ -450,6 +451,17 @@ def _norm_lag_surface(lag_surface, paper: dict | None):
     return rows, (tuple(int(v) for v in chosen[:2]) if chosen is not None else None), (tuple(pp) if pp else None)
 
 
+def _best_cell(rows: list[dict]) -> dict | None:
+    """The lag-surface row with the highest finite fit (None when no row has one)."""
+    return max((r for r in rows if r["fit"] is not None), key=lambda r: r["fit"], default=None)
+
+
+def _lag_edge(rows: list[dict]) -> list[str]:
+    """Lag axes on which the best row sits at the largest value tried (training.lags.grid_edge)."""
+    best = _best_cell(rows)
+    return grid_edge(best, [r["ny"] for r in rows], [r["nu"] for r in rows]) if best else []
+
+
 def _fmt(v, nd=3) -> str:
     if v is None:
         return "&ndash;"
@@ -533,6 +545,11 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
         if pp is not None:
             srows.append(["paper lags (ny, nu)", f"{_fmt(pp[0])}, {_fmt(pp[1])}"
                           + (f" (fit {_fmt(pp[2])} %)" if len(pp) > 2 and pp[2] is not None else "")])
+        edge = _lag_edge(rows)
+        if edge:
+            best = _best_cell(rows)
+            srows.append(["lag grid edge", esc(f"the best cell (ny={best['ny']}, nu={best['nu']}) is at the largest "
+                                             + " and ".join(edge) + " tried; the fit may still rise beyond the grid")])
     if srows:
         parts.append(_table(["item", "value"], srows))
     else:
@@ -683,7 +700,8 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
         "lag_surface": None if lag is None else {
             "table": lag[0], "chosen": list(lag[1]) if lag[1] else None,
             "paper": _jsonable(list(lag[2])) if lag[2] else None,
-            "best": _jsonable(max((r for r in lag[0] if r["fit"] is not None), key=lambda r: r["fit"], default=None)),
+            "best": _jsonable(_best_cell(lag[0])),
+            "edge": _lag_edge(lag[0]),
             "figure": lag_png},
         "baselines": baselines_json,
         "comparison": None if baselines_tab is None else _jsonable(

@@ -48,7 +48,7 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
               mc_paths: int | None = None, novelty_n: int = 20, log=None, progress: bool = False) -> dict:
     """Run one protocol; returns the summary (also written to OUT/report.json with figures)."""
     from training.config import load_config
-    from training.lags import lag_surface, write_surface
+    from training.lags import edge_message, lag_surface, write_surface
     from training.pipeline import train
 
     if system not in SYSTEMS:
@@ -72,6 +72,8 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
     ch = surface["chosen"]
     log(f"[{system}] chosen lags ny={ch['ny']} nu={ch['nu']} fit={ch['fit']:.2f}% "
         f"(paper: ny={PAPER[system]['lags']['ny']} nu={PAPER[system]['lags']['nu']} fit={PAPER[system]['lags']['fit']}%)")
+    if surface["edge"]:
+        log(f"[{system}] note: {edge_message(surface)}")
     n_paths = int(mc_paths or (QUICK["mc_paths"] if quick else MC_PATHS[system]))
     registry = out / "registry"
     res = train(cfg, registry, progress=progress, mc_paths=n_paths, ny=ch["ny"], nu=ch["nu"],
@@ -79,7 +81,7 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
                 model_overrides=QUICK["model"] if quick else None)
     summary = {
         "system": system, "quick": quick, "chosen_lags": {"ny": ch["ny"], "nu": ch["nu"], "fit": ch["fit"]},
-        "paper_lags": PAPER[system]["lags"], "mc_paths": n_paths, "bundle": res["path"],
+        "paper_lags": PAPER[system]["lags"], "lag_grid_edge": surface["edge"], "mc_paths": n_paths, "bundle": res["path"],
         "records": {k: v for k, v in res["metrics"]["records"].items()},
         "baselines": res["metrics"].get("baselines"),
     }
