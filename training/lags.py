@@ -121,7 +121,6 @@ def edge_message(surface: dict) -> str:
             + " and ".join(f"--{a}" for a in surface["edge"]) + " to check")
 
 
-
 def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler: str | None = None,
                 cache_dir=None, settings: dict | None = None, progress: bool = False,
                 tolerance: float = DEFAULT_TOLERANCE) -> dict:

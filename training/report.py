@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 from model import metrics as _metrics  # noqa: E402
 from model import psd as _psd  # noqa: E402
 from model.restoring import loop_area, restoring_force  # noqa: E402
-from training.lags import grid_edge  # noqa: E402
+from training.lags import edge_message, grid_edge  # noqa: E402
 
 GP_NAME = "GP-NARX"
 ZOOM_SECONDS = 0.25
@@ -547,9 +547,7 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
                           + (f" (fit {_fmt(pp[2])} %)" if len(pp) > 2 and pp[2] is not None else "")])
         edge = _lag_edge(rows)
         if edge:
-            best = _best_cell(rows)
-            srows.append(["lag grid edge", esc(f"the best cell (ny={best['ny']}, nu={best['nu']}) is at the largest "
-                                             + " and ".join(edge) + " tried; the fit may still rise beyond the grid")])
+            srows.append(["lag grid edge", esc(edge_message({"best": _best_cell(rows), "edge": edge}))])
     if srows:
         parts.append(_table(["item", "value"], srows))
     else:
