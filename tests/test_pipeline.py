@@ -194,7 +194,35 @@ def test_predict_and_novelty_cli_json(trained, small_config, tmp_path, capsys):
     assert far["out_of_range"] == ["u", "y"] and far["verdict"] == "novel", far
 
 
+def test_predict_and_novelty_cli_window_and_measured_start(trained, tmp_path, capsys):
+    rec = tmp_path / "r.npz"
+    assert main(["simulate", "bouc-wen", "--excitation", "sine", "--amplitude", "35", "--freq", "40",
+                 "--duration", "1.0", "--out", str(rec)]) == 0
+    capsys.readouterr()
+    base = ["--registry", str(trained), "--model", "bw-small", str(rec), "--mc", "32", "--json"]
+    assert main(["predict", *base, "--window", "0.4:0.8"]) == 0
+    rest = json.loads(capsys.readouterr().out)
+    assert len(rest["mean"]) == 300 and rest["start"] == "rest"  # 0.4 s at 750 Hz
+    assert main(["predict", *base, "--window", "0.4:0.8", "--start", "measured"]) == 0
+    meas = json.loads(capsys.readouterr().out)
+    with np.load(rec) as d:
+        y = d["y"][300:600]
+    assert meas["start"] == "measured" and len(meas["mean"]) == 300
+    assert np.allclose(meas["mean"][:4], y[:4])  # ny = 4 measured outputs start the free run
+    assert not np.allclose(rest["mean"][:4], y[:4], rtol=0.1)  # from rest they are predicted, near 0
+    # mid-oscillation, a run from the measured state tracks the record better than one from rest
+    assert meas["fit"] > rest["fit"]
+    assert "novelty_score" not in rest  # a run from rest is not scored by the novelty rule
+    assert main(["novelty", *base, "--window", "0.4:0.8"]) == 0
+    nov = json.loads(capsys.readouterr().out)
+    assert nov["score"] > 0 and nov["verdict"] in ("healthy", "novel")
+    assert meas["novelty_score"] == pytest.approx(nov["score"], rel=1e-12)  # same start rule, same paths
+
+
 @pytest.mark.parametrize("argv, needle", [
+    (["predict", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "2"], "--window must be START:END"),
+    (["predict", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "0.05:0.01"], "START < END"),
+    (["novelty", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "0:9"], "outside the record"),
     (["predict", "--registry", "{reg}", "--model", "nope", "{rec}"], "not found"),
     (["predict", "--registry", "{reg}", "--model", "../etc", "{rec}"], "invalid"),
     (["predict", "--registry", "{reg}", "--model", "bw-small", "{missing}"], "missing.npz"),

@@ -19,6 +19,23 @@ def _common(p):
     p.add_argument("--method", choices=("mc", "linear"), default="mc", help="uncertainty propagation")
     p.add_argument("--blas-threads", type=int, default=None,
                    help="BLAS threads for the free run (default: $GPNARX_BLAS_THREADS or 1; 0 leaves BLAS as it is)")
+    p.add_argument("--window", default=None, metavar="START:END",
+                   help="use only this time window of the record [s], start inclusive, end exclusive "
+                        "(e.g. 30:32 for a steady-state part of a 64 s LMS run)")
+
+
+def parse_window(spec: str) -> tuple[float, float]:
+    """``"START:END"`` in seconds to (start, end); a CLIError naming --window otherwise."""
+    parts = spec.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        t0, t1 = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise CLIError(f"--window must be START:END in seconds, got {spec!r}") from None
+    if not (np.isfinite(t0) and np.isfinite(t1) and 0 <= t0 < t1):
+        raise CLIError(f"--window needs 0 <= START < END (finite seconds), got {spec!r}")
+    return t0, t1
 
 
 def add_parser(sub):
@@ -26,6 +43,9 @@ def add_parser(sub):
     _common(p)
     p.add_argument("--out", default=None, help="write mean/lower/upper/std (and y) to this .npz or .csv")
     p.add_argument("--confidence", type=float, default=0.99, help="band level (default 0.99)")
+    p.add_argument("--start", choices=("rest", "measured"), default="rest",
+                   help="initial state of the free run: 'rest' (default) or 'measured', the record's first ny "
+                        "measured outputs (the service's y0; for steady-state records such as sines)")
     p.set_defaults(func=run_predict)
     q = sub.add_parser("novelty", help="bolt-loosening novelty score, threshold and verdict for a measured record")
     _common(q)
@@ -73,6 +93,9 @@ def load(args):
             raise CLIError(f"model {name}:{version} not found in {root}")
         bundle = load_bundle(path)
     rec = read_record(args.record, fs_default=bundle.fs)  # files without fs take the model's
+    if args.window:
+        t0, t1 = parse_window(args.window)
+        rec = rec.window(t0, t1)  # a RecordError (ValueError) names the record's span
     if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
         raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {bundle.fs} Hz")
     mc = args.mc if args.mc is not None else 1024
@@ -99,17 +122,27 @@ def run_predict(args):
     from model.metrics import summary
 
     bundle, rec, mc = load(args)
+    y0 = None
+    if args.start == "measured":
+        if rec.y is None or rec.n <= bundle.model.ny:
+            raise CLIError(f"--start measured needs the record's measured output y, longer than ny={bundle.model.ny} "
+                           "samples")
+        y0 = rec.y[: bundle.model.ny]
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, confidence=args.confidence,
-                                method=args.method, progress=cb)
+                                method=args.method, progress=cb, y0=y0)
     if bar is not None:
         bar.close()
-    out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "mc_paths": run.n_paths,
+    out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "start": args.start, "mc_paths": run.n_paths,
            "method": run.method, "confidence": run.confidence, "seconds": run.seconds,
            "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std}
     if rec.y is not None:
         m = summary(rec.y, run.mean, run.lower, run.upper)
         out.update({"fit": m["fit"], "rmse": m["rmse"], "coverage": m["coverage"], "band_width": m["band_width"]})
+        if args.start == "measured":  # the novelty rule's start (model.novelty.novelty_start): comparable scores
+            from model.novelty import novelty_score
+
+            out["novelty_score"] = novelty_score(rec.y, run.mean, run.std)["score"]
     if args.out:
         _write_prediction(args.out, rec, run)
         out["out"] = args.out
