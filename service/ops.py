@@ -15,7 +15,7 @@ import numpy as np
 
 from model.bundle import Bundle
 from model.metrics import summary
-from model.novelty import novelty_score, novelty_start, outside_envelope, verdict
+from model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
 from model.restoring import loop_area, restoring_force
 
 from .problems import ProblemError
@@ -183,7 +183,7 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
     if plan.operation == "novelty":
         nov = novelty_of(b)
         try:
-            s = novelty_score(np.asarray(req.y, float), run.mean, run.std)
+            s = novelty_score(np.asarray(req.y, float), run.mean, run.std, method_of(nov))
         except ValueError as exc:
             raise ProblemError(422, f"cannot score this record: {exc}", "y") from None
         thr = float(nov["threshold"])
@@ -192,6 +192,6 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
         out = {**head, "score": s["score"], "threshold": thr, "verdict": verdict(s["score"], thr, outside),
                "out_of_range": outside,
                "false_alarm_rate": float(far) if isinstance(far, (int, float)) else None,
-               "nlpd": s["nlpd"], "n_samples": s["n_samples"], **common}
+               "nlpd": s["nlpd"], "n_samples": s["n_samples"], "score_method": s["method"], **common}
         return out, steps
     raise ProblemError(422, f"operation must be one of {OPERATIONS}", "operation")

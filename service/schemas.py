@@ -174,7 +174,11 @@ class NoveltyResponse(BaseModel):
     model: str
     version: str
     score: float = Field(..., description="RMS standardised residual of y under the predictive distribution "
-                         "(about 1 for a healthy record).")
+                         "(about 1 for a healthy record); with score_method 'segment_median_rms', the median of "
+                         "that RMS over 16 contiguous segments (robust to isolated spikes).")
+    score_method: Literal["rms_standardised_residual", "segment_median_rms"] = Field(
+        "rms_standardised_residual", description="How the score was computed: the bundle's calibrated method, "
+        "so score and threshold are always comparable.")
     threshold: float = Field(..., description="Score above which the record is 'novel'.")
     verdict: Literal["healthy", "novel"] = Field(..., description="'novel' when score > threshold or the record "
                                                  "left the calibration envelope (out_of_range not empty).")

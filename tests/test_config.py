@@ -61,6 +61,7 @@ def test_small_config_loads_and_materialises(tmp_path):
     assert cfg.model["ny"] == 3 and cfg.model["kernel"] == "rbf+cubic" and cfg.model["mode"] == "exact"
     assert cfg.model["max_train_points"] == 2000 and cfg.predict == {"mc_paths": 64, "confidence": 0.99}
     assert cfg.novelty["false_alarm_rate"] == 0.01 and cfg.physics["mass"] == 2.0
+    assert cfg.novelty["method"] == "rms_standardised_residual"  # the default score
     assert parse_range(cfg.lags["nu"]) == [2, 5, 8]
     assert [s.name for s in cfg.records] == ["sweep-10N", "sine-10N"]
     assert cfg.records_for("damaged") == []
@@ -187,6 +188,8 @@ def test_unit_mismatch(tmp_path):
          "path='x'\n", "model.noise_calibration: 'lags' needs at least one record with role 'lags'"),
         ("name='x'\n[system]\nfs=750.0\n[model]\nnoise_calibration='lags'\n[[records]]\nname='a'\n"
          "roles=['train', 'lags']\npath='x'\n", "records.a.roles: a 'lags' record calibrates the noise"),
+        ("name='x'\n[system]\nfs=750.0\n[novelty]\nmethod='max'\n[[records]]\nname='a'\nroles=['train']\npath='x'\n",
+         "novelty.method: must be one of rms_standardised_residual, segment_median_rms, got 'max'"),
     ],
 )
 def test_config_errors(tmp_path, text, fragment):

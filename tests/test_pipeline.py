@@ -219,6 +219,43 @@ def test_predict_and_novelty_cli_window_and_measured_start(trained, tmp_path, ca
     assert meas["novelty_score"] == pytest.approx(nov["score"], rel=1e-12)  # same start rule, same paths
 
 
+def test_segment_median_novelty_method_reaches_bundle_cli_and_service(small_config, tmp_path, capsys):
+    """A config choosing the spike-robust score: the threshold, the CLI and the service all use it."""
+    from fastapi.testclient import TestClient
+
+    from model.novelty import SEGMENT_METHOD, novelty_score, novelty_start
+    from service.app import create_app
+
+    cfg = tmp_path / "seg.toml"
+    cfg.write_text(small_config.read_text().replace("false_alarm_rate = 0.05",
+                                                    f'false_alarm_rate = 0.05\nmethod = "{SEGMENT_METHOD}"'))
+    reg = tmp_path / "reg"
+    assert main(["train", str(cfg), "--registry", str(reg), "--json"]) == 0
+    capsys.readouterr()
+    b = load_bundle(reg / "bw-small" / "1")
+    nov = b.manifest["novelty"]
+    assert nov["method"] == SEGMENT_METHOD
+    # the stored healthy scores are segment-median scores of the healthy records' own predictions
+    h1 = b.manifest["training"]["records"]["h1"]
+    assert h1["novelty_score"] == pytest.approx(nov["healthy_scores"][0])
+    rec = tmp_path / "r.npz"
+    assert main(["simulate", "bouc-wen", "--excitation", "sweep", "--amplitude", "30", "--f0", "20", "--f1", "60",
+                 "--duration", "0.5", "--seed", "5", "--out", str(rec)]) == 0
+    capsys.readouterr()
+    assert main(["novelty", "--registry", str(reg), "--model", "bw-small", str(rec), "--mc", "32", "--json"]) == 0
+    cli = json.loads(capsys.readouterr().out)
+    assert cli["score_method"] == SEGMENT_METHOD
+    with np.load(rec) as d:
+        u, y = d["u"], d["y"]
+    run = b.model.simulate(u, n_paths=32, seed=0, y0=novelty_start(y, b.model.ny))
+    assert cli["score"] == pytest.approx(novelty_score(y, run.mean, run.std, SEGMENT_METHOD)["score"], rel=1e-9)
+    with TestClient(create_app(reg)) as client:
+        r = client.post("/v1/models/bw-small/novelty", json={"u": u.tolist(), "y": y.tolist(), "fs": 750.0,
+                                                             "mc_paths": 32, "seed": 0})
+    assert r.status_code == 200, r.text
+    assert r.json()["score_method"] == SEGMENT_METHOD and r.json()["score"] == pytest.approx(cli["score"], rel=1e-9)
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["predict", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "2"], "--window must be START:END"),
     (["predict", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "0.05:0.01"], "START < END"),

@@ -225,6 +225,7 @@ def test_novelty_healthy_and_damaged(client):
     healthy = client.post("/v1/models/boucwen/novelty", json={**base, "y": noisy(simulate(u), 21).tolist()}).json()
     assert healthy["verdict"] == "healthy", healthy
     assert healthy["false_alarm_rate"] == 0.01 and healthy["threshold"] > 0 and "nlpd" in healthy
+    assert healthy["score_method"] == "rms_standardised_residual"  # a bundle calibrated without a method
     y_dmg = noisy(BoucWen(k=3.0e4).simulate(u)["y"], 21)  # stiffness loss: a loosened joint
     damaged = client.post("/v1/models/boucwen/novelty", json={**base, "y": y_dmg.tolist()}).json()
     assert damaged["verdict"] == "novel" and damaged["score"] > damaged["threshold"]

@@ -140,9 +140,10 @@ def run_predict(args):
         m = summary(rec.y, run.mean, run.lower, run.upper)
         out.update({"fit": m["fit"], "rmse": m["rmse"], "coverage": m["coverage"], "band_width": m["band_width"]})
         if args.start == "measured":  # the novelty rule's start (model.novelty.novelty_start): comparable scores
-            from model.novelty import novelty_score
+            from model.novelty import method_of, novelty_score
 
-            out["novelty_score"] = novelty_score(rec.y, run.mean, run.std)["score"]
+            out["novelty_score"] = novelty_score(rec.y, run.mean, run.std,
+                                                 method_of(bundle.manifest.get("novelty")))["score"]
     if args.out:
         _write_prediction(args.out, rec, run)
         out["out"] = args.out
@@ -174,7 +175,7 @@ def _write_prediction(path, rec, run):
 
 
 def run_novelty(args):
-    from model.novelty import novelty_score, novelty_start, outside_envelope, verdict
+    from model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
 
     bundle, rec, mc = load(args)
     if rec.y is None:
@@ -185,8 +186,8 @@ def run_novelty(args):
                        "the default bert-standin-monitor bundle has one)")
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method,
                                 y0=novelty_start(rec.y, bundle.model.ny))
-    s = novelty_score(rec.y, run.mean, run.std)
+    s = novelty_score(rec.y, run.mean, run.std, method_of(nov))
     outside = outside_envelope(rec.u, rec.y, nov.get("envelope"))
     return {"model": bundle.name, "version": bundle.version, "score": s["score"], "nlpd": s["nlpd"],
             "threshold": nov["threshold"], "verdict": verdict(s["score"], nov["threshold"], outside),
-            "false_alarm_rate": nov["false_alarm_rate"], "out_of_range": outside}
+            "false_alarm_rate": nov["false_alarm_rate"], "out_of_range": outside, "score_method": s["method"]}

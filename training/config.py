@@ -40,6 +40,7 @@ key name below is a contract)::
 
     [novelty]
     false_alarm_rate = 0.01
+    method = "rms_standardised_residual"   # or "segment_median_rms" (robust to spikes, model.novelty)
 
     [[records]]                       # one table per record
     name = "sweep-10N"                # unique (required)
@@ -122,7 +123,7 @@ MODEL_DEFAULTS = {
 }
 NOISE_CALIBRATIONS = ("none", "lags")
 PREDICT_DEFAULTS = {"mc_paths": 1024, "confidence": 0.99}
-NOVELTY_DEFAULTS = {"false_alarm_rate": 0.01}
+NOVELTY_DEFAULTS = {"false_alarm_rate": 0.01, "method": "rms_standardised_residual"}  # model.novelty.METHODS
 PHYSICS_DEFAULTS = {"mass": None, "input_gain": 1.0}
 
 
@@ -568,6 +569,10 @@ def _build(doc: dict, path: Path) -> DatasetConfig:
     if isinstance(far, bool) or not isinstance(far, (int, float)) or not 0 < far < 1:
         raise _err(path, "novelty.false_alarm_rate", f"must be between 0 and 1, got {far!r}")
     novelty["false_alarm_rate"] = float(far)
+    from model.novelty import METHODS
+
+    if novelty["method"] not in METHODS:
+        raise _err(path, "novelty.method", f"must be one of {', '.join(METHODS)}, got {novelty['method']!r}")
 
     raw_records = doc.get("records")
     if raw_records is None:

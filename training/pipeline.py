@@ -16,7 +16,8 @@ import numpy as np
 
 from model.bundle import save_bundle
 from model.estimator import GPNARX
-from model.novelty import calibrate_threshold, novelty_score, novelty_start, outside_envelope, record_envelope, verdict
+from model.novelty import (RMS_METHOD, calibrate_threshold, novelty_score, novelty_start, outside_envelope,
+                           record_envelope, verdict)
 from model.records import Record
 from training.config import ConfigError, DatasetConfig, load_config
 from training.jsonsafe import to_json_safe
@@ -80,8 +81,9 @@ def basic_metrics(ev: dict) -> dict:
     return res
 
 
-def score_records(model: GPNARX, evals: list[dict]) -> list[float]:
-    return [novelty_score(ev["y"], ev["mean"], ev["std"])["score"] for ev in evals]
+def score_records(evals: list[dict], method: str = RMS_METHOD) -> list[float]:
+    """Novelty scores (model.novelty, by ``method``) of evaluated records (evaluate_record output)."""
+    return [novelty_score(ev["y"], ev["mean"], ev["std"], method)["score"] for ev in evals]
 
 
 class _Progress:
@@ -171,13 +173,14 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     healthy = [ev for ev in evals if ev["role"] == "healthy"]
     if len(healthy) >= 2:
         far = float(cfg.novelty.get("false_alarm_rate", 0.01))
-        novelty = calibrate_threshold(score_records(model, healthy), far)
-        novelty["method"] = "rms_standardised_residual"
+        method = cfg.novelty.get("method", RMS_METHOD)
+        novelty = calibrate_threshold(score_records(healthy, method), far)
+        novelty["method"] = method
         novelty["mc_paths"] = n_paths
         novelty["envelope"] = record_envelope([(ev["u"], ev["y"]) for ev in healthy])
         for ev in evals:
             if ev["role"] in ("healthy", "damaged"):
-                s = novelty_score(ev["y"], ev["mean"], ev["std"])["score"]
+                s = novelty_score(ev["y"], ev["mean"], ev["std"], method)["score"]
                 ev["metrics"]["novelty_score"] = s
                 ev["metrics"]["verdict"] = verdict(s, novelty["threshold"],
                                                    outside_envelope(ev["u"], ev["y"], novelty["envelope"]))

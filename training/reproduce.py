@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from model.novelty import RMS_METHOD
 from training.defaults import shipped_config
 
 PAPER = {
@@ -97,7 +98,8 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
         summary["monitor"] = {"bundle": mon["path"], "records": mon["metrics"]["records"],
                               "novelty": mon["novelty"]}
         summary["novelty"] = novelty_study(mon["model"], out, n_per_class=QUICK["novelty_n"] if quick else novelty_n,
-                                           probe=probe, n_paths=0, seconds=1.0 if quick else 4.0, log=log)
+                                           probe=probe, n_paths=0, seconds=1.0 if quick else 4.0, log=log,
+                                           method=mon_cfg.novelty["method"])
     summary["wall_seconds"] = time.perf_counter() - t0
     (out / "summary.json").write_text(json.dumps(_clean(summary), indent=1))
     log(f"[{system}] done in {summary['wall_seconds']:.1f} s; report in {res['path']}/report, summary {out / 'summary.json'}")
@@ -151,7 +153,7 @@ def monitor_probe(cfg) -> dict:
 
 
 def novelty_study(model, out: Path, probe: dict, n_per_class: int = 20, n_paths: int = 128, seconds: float = 4.0,
-                  false_alarm_rates=(0.01, 0.05), log=None) -> dict:
+                  false_alarm_rates=(0.01, 0.05), log=None, method: str = RMS_METHOD) -> dict:
     """Bolt-loosening study on the stand-in: calibration on healthy 5 N m realizations, false
     alarms on unseen 5 N m ones, detections at 7 and 9 N m (tighter) and 4 N m (partly loosened).
 
@@ -160,6 +162,7 @@ def novelty_study(model, out: Path, probe: dict, n_per_class: int = 20, n_paths:
     the free run starts from the record's first ny measured outputs, as a monitoring system would.
     Loosening is modelled by the stand-in as LOWER torque (less clamping: lower slip limits, a
     stronger contact nonlinearity); the 5 N m model flags changes in either direction.
+    ``method``: the novelty score method (model.novelty.METHODS), the monitor config's ``[novelty] method``.
     ``n_paths=0`` scores with the linearised propagation (deterministic, one pass per record; the
     same as ``"method": "linear"`` on the service's novelty route), else Monte Carlo.
     """
@@ -179,7 +182,7 @@ def novelty_study(model, out: Path, probe: dict, n_per_class: int = 20, n_paths:
             y0 = novelty_start(y, model.ny)
             run = model.simulate(rec.u, method="linear", y0=y0) if n_paths == 0 else \
                 model.simulate(rec.u, n_paths=n_paths, seed=int(seed), y0=y0)
-            s.append(novelty_score(y, run.mean, run.std)["score"])
+            s.append(novelty_score(y, run.mean, run.std, method)["score"])
         return np.array(s)
 
     n = int(n_per_class)
@@ -189,7 +192,8 @@ def novelty_study(model, out: Path, probe: dict, n_per_class: int = 20, n_paths:
                "7 N m": scores(7.0, range(3000, 3000 + n)),
                "9 N m": scores(9.0, range(4000, 4000 + n)),
                "4 N m (partly loosened)": scores(4.0, range(5000, 5000 + n))}
-    result = {"n_per_class": n, "mc_paths": n_paths, "record_seconds": seconds, "probe": probe, "direction":
+    result = {"n_per_class": n, "mc_paths": n_paths, "record_seconds": seconds, "probe": probe, "method": method,
+              "direction":
               "stand-in loosening = lower torque; 7/9 N m are tighter than the 5 N m training state",
               "calibration_scores": calib.tolist(), "thresholds": {}, "rates": {}}
     for far in false_alarm_rates:
