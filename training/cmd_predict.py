@@ -123,11 +123,13 @@ def run_predict(args):
 
     bundle, rec, mc = load(args)
     y0 = None
-    if args.start == "measured":
-        if rec.y is None or rec.n <= bundle.model.ny:
+    if args.start == "measured":  # the novelty rule's start, so novelty_score below matches gpnarx novelty
+        from model.novelty import novelty_start
+
+        y0 = None if rec.y is None else novelty_start(rec.y, bundle.model.ny)
+        if y0 is None:
             raise CLIError(f"--start measured needs the record's measured output y, longer than ny={bundle.model.ny} "
                            "samples")
-        y0 = rec.y[: bundle.model.ny]
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, confidence=args.confidence,
                                 method=args.method, progress=cb, y0=y0)
@@ -139,7 +141,7 @@ def run_predict(args):
     if rec.y is not None:
         m = summary(rec.y, run.mean, run.lower, run.upper)
         out.update({"fit": m["fit"], "rmse": m["rmse"], "coverage": m["coverage"], "band_width": m["band_width"]})
-        if args.start == "measured":  # the novelty rule's start (model.novelty.novelty_start): comparable scores
+        if args.start == "measured":
             from model.novelty import method_of, novelty_score
 
             out["novelty_score"] = novelty_score(rec.y, run.mean, run.std,

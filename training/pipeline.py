@@ -174,16 +174,16 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     if len(healthy) >= 2:
         far = float(cfg.novelty.get("false_alarm_rate", 0.01))
         method = cfg.novelty.get("method", RMS_METHOD)
-        novelty = calibrate_threshold(score_records(healthy, method), far)
+        scored = [ev for ev in evals if ev["role"] in ("healthy", "damaged")]
+        for ev, score in zip(scored, score_records(scored, method)):
+            ev["metrics"]["novelty_score"] = score
+        novelty = calibrate_threshold([ev["metrics"]["novelty_score"] for ev in healthy], far)
         novelty["method"] = method
         novelty["mc_paths"] = n_paths
         novelty["envelope"] = record_envelope([(ev["u"], ev["y"]) for ev in healthy])
-        for ev in evals:
-            if ev["role"] in ("healthy", "damaged"):
-                s = novelty_score(ev["y"], ev["mean"], ev["std"], method)["score"]
-                ev["metrics"]["novelty_score"] = s
-                ev["metrics"]["verdict"] = verdict(s, novelty["threshold"],
-                                                   outside_envelope(ev["u"], ev["y"], novelty["envelope"]))
+        for ev in scored:
+            ev["metrics"]["verdict"] = verdict(ev["metrics"]["novelty_score"], novelty["threshold"],
+                                               outside_envelope(ev["u"], ev["y"], novelty["envelope"]))
     training_metrics = {
         "fit_seconds": model.fit_seconds_, "n_train": model.n_train_, "n_rows": model.n_rows_,
         "nlml": model.nlml_, "train_records": [r.name for r in train_recs],
