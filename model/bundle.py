@@ -326,6 +326,12 @@ def load_bundle(path) -> Bundle:
         D = ny + nu
         if model.x_scaler_.mean_.shape != (D,) or model.posterior_.X.shape[1] != D:
             raise BundleError(f"array shapes do not match lags ny={ny}, nu={nu}")
+        if manifest["mode"] == "sparse" and "posterior_A" in arrays:  # written before 2026-11-24
+            warnings.warn(f"{path}: stores the sparse predictive variance as one matrix A = Kmm^-1 - Sigma^-1, "
+                          "whose entries reach 1/jitter; when sigma_y^2 is small, eq. 9's variance then carries "
+                          "rounding error larger than itself (and depends on the BLAS thread count). Retrain it "
+                          "(gpnarx train CONFIG --registry DIR writes a new version) for the factored form",
+                          BundleWarning, stacklevel=2)
         if "constant_cap" not in est:  # written before the variance fix of 2026-11-23
             shift = kernel.for_posterior(DEFAULT_CONSTANT_CAP).cap_shift()
             if shift > 1e6 * model.noise_var_:  # Bouc-Wen (73 vs 1.1e-2) stays quiet; the stand-in's warns

@@ -606,35 +606,60 @@ def choose_inducing(X: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
 class SparsePosterior:
     """Sparse (VFE / DTC predictive) posterior with M inducing inputs Z.
 
-    With Kmm = K(Z, Z), Kmn = K(Z, X), Sigma = Kmm + sigma_y^-2 Kmn Knm:
-    mean = K(Xs, Z) w, w = sigma_y^-2 Sigma^-1 Kmn y, and
-    var_f = k(Xs, Xs) - K(Xs, Z) A K(Z, Xs), A = Kmm^-1 - Sigma^-1.
-    Building costs O(N M^2); each prediction O(M^2) per test point.
+    With Kmm = K(Z, Z) = Lm Lm^T, Kmn = K(Z, X) and Sigma = Kmm + sigma_y^-2 Kmn Knm = Ls Ls^T:
+    mean = K(Xs, Z) w, w = sigma_y^-2 Sigma^-1 Kmn y (eq. 8), and the latent variance (eq. 9)
+
+        var_f = k(Xs, Xs) - |Lm^-1 k|^2 + |Ls^-1 k|^2,   k = K(Z, Xs),
+
+    from the two lower-triangular factors ``Lm_inv`` = Lm^-1 and ``Ls_inv`` = Ls^-1 = LB^-1 Lm^-1
+    (B = I + sigma_y^-2 Lm^-1 Kmn Knm Lm^-T = LB LB^T). The earlier single-matrix form
+    k(Xs, Xs) - k^T A k with A = Kmm^-1 - Sigma^-1 is the same number in exact arithmetic, but A's
+    entries reach 1/jitter (1e8 here) while the variance is 1e-7: on the real BERT model
+    (sigma_y^2 = 1e-8) it came out at 5.2e-7 or 6.4e-7 depending on the BLAS thread count against
+    3.41e-7 from this form (which agrees with QR-based evaluations to 4 digits). Here each term is
+    a sum of squares of O(1) numbers, so the error stays near 1e-12. Bundles written before hold
+    ``A`` and still load (``legacy_A``; the loader warns).
+    Building costs O(N M^2); each prediction two triangular products, M^2 flops per test point.
     """
 
     kind = "sparse"
 
-    def __init__(self, kernel: Kernel, noise_var: float, Z: np.ndarray, w: np.ndarray, A: np.ndarray):
+    def __init__(self, kernel: Kernel, noise_var: float, Z: np.ndarray, w: np.ndarray,
+                 Lm_inv: np.ndarray | None = None, Ls_inv: np.ndarray | None = None,
+                 legacy_A: np.ndarray | None = None):
         self.kernel = kernel
         self.noise_var = float(noise_var)
         self.X = Z
         self.w = w
-        self.A = A
+        if legacy_A is None and (Lm_inv is None or Ls_inv is None):
+            raise ValueError("SparsePosterior needs Lm_inv and Ls_inv (or legacy_A from an old bundle)")
+        self.legacy_A = legacy_A
+        # C order: .T is the F-ordered upper view that dtrmm takes without a copy (as ExactPosterior)
+        self.Lm_inv = None if Lm_inv is None else np.ascontiguousarray(np.tril(Lm_inv))
+        self.Ls_inv = None if Ls_inv is None else np.ascontiguousarray(np.tril(Ls_inv))
         self._sqZ = np.einsum("ij,ij->i", Z, Z)
-        self._A32 = None
+        self._f32 = None
         # as in ExactPosterior: with a capped kernel, mean = K w + shift * sum(w)
         self.mean_shift = float(kernel.cap_shift()) * float(np.sum(w))
+
+    @property
+    def A(self) -> np.ndarray:
+        """Kmm^-1 - Sigma^-1 (for inspection; predictions never use it outside legacy bundles)."""
+        if self.legacy_A is not None:
+            return self.legacy_A
+        return self.Lm_inv.T @ self.Lm_inv - self.Ls_inv.T @ self.Ls_inv
 
     @classmethod
     def fit(cls, kernel: Kernel, noise_var: float, X: np.ndarray, y: np.ndarray, Z: np.ndarray,
             var_kernel: Kernel | None = None) -> "SparsePosterior":
-        """w from ``kernel``; A from ``var_kernel`` when given (see ``ExactPosterior.fit``)."""
-        w, A = cls._solve(kernel, noise_var, X, y, Z)
+        """w from ``kernel``; the variance factors from ``var_kernel`` when given (see
+        ``ExactPosterior.fit``)."""
+        w, Lm_inv, Ls_inv = cls._solve(kernel, noise_var, X, y, Z)
         if var_kernel is None:
-            return cls(kernel, noise_var, Z, w, A)
+            return cls(kernel, noise_var, Z, w, Lm_inv, Ls_inv)
         if var_kernel.cap_shift() > 0.0:
-            A = cls._solve(var_kernel, noise_var, X, y, Z)[1]
-        return cls(var_kernel, noise_var, Z, w, A)
+            _, Lm_inv, Ls_inv = cls._solve(var_kernel, noise_var, X, y, Z)
+        return cls(var_kernel, noise_var, Z, w, Lm_inv, Ls_inv)
 
     @staticmethod
     def _solve(kernel, noise_var, X, y, Z):
@@ -647,10 +672,9 @@ class SparsePosterior:
         LB, _ = cholesky_jitter(B, overwrite=True)
         Binv = chol_inverse(LB)
         Lm_inv = linalg.solve_triangular(Lm, np.eye(m), lower=True, check_finite=False)
-        A = Lm_inv.T @ (np.eye(m) - Binv) @ Lm_inv
-        A = 0.5 * (A + A.T)
+        Ls_inv = linalg.solve_triangular(LB, Lm_inv, lower=True, check_finite=False)  # (Lm LB)^-1
         w = Lm_inv.T @ (Binv @ (V @ y)) / noise_var
-        return w, A
+        return w, np.tril(Lm_inv), np.tril(Ls_inv)
 
     @property
     def n_points(self) -> int:
@@ -661,33 +685,48 @@ class SparsePosterior:
 
     ROW_BLOCK = 256  # test rows per block: the (rows x M) kernel block and its temporaries stay in cache
 
+    def _reduction(self, Ks: np.ndarray, float32: bool) -> np.ndarray:
+        """k^T A k per row of Ks (rows x M), as |Lm^-1 k|^2 - |Ls^-1 k|^2 (two dtrmm products)."""
+        if self.legacy_A is not None:
+            if float32:
+                if self._f32 is None:
+                    self._f32 = (self.legacy_A.astype(np.float32),)
+                Ks32 = Ks.astype(np.float32)
+                return np.einsum("ij,ij->i", Ks32 @ self._f32[0], Ks32, dtype=np.float64)
+            return np.einsum("ij,ij->i", Ks @ self.legacy_A, Ks)
+        if float32:
+            if self._f32 is None:
+                self._f32 = (np.ascontiguousarray(self.Lm_inv, dtype=np.float32).T,
+                             np.ascontiguousarray(self.Ls_inv, dtype=np.float32).T)
+            trmm, KsT, (LmT, LsT) = linalg.blas.strmm, Ks.astype(np.float32).T, self._f32
+        else:
+            trmm, KsT, LmT, LsT = linalg.blas.dtrmm, np.ascontiguousarray(Ks).T, self.Lm_inv.T, self.Ls_inv.T
+        # L^-1 Ks^T in place (side=0: left; L^-1 = (L^-1 ^T)^T, hence lower=0, trans_a=1)
+        T1 = trmm(1.0, LmT, KsT, side=0, lower=0, trans_a=1, overwrite_b=0)
+        T2 = trmm(1.0, LsT, KsT, side=0, lower=0, trans_a=1, overwrite_b=1)
+        return (np.einsum("ij,ij->j", T1, T1, dtype=np.float64)
+                - np.einsum("ij,ij->j", T2, T2, dtype=np.float64))
+
     def predict(self, Xs, return_var=True, float32=False):
         """Sparse predictive mean and latent variance at Xs (standardised units), in row blocks.
 
         Each block of ``ROW_BLOCK`` rows computes its kernel block K(Xs_b, Z) (one Gram product),
-        mean K w and variance k(x, x) - rowsum((K A) * K), so the elementwise kernel work and the
-        reduction run on cache-resident (rows x M) arrays instead of one (P x M) pass per operation.
+        mean K w and variance k(x, x) - |Lm^-1 k|^2 + |Ls^-1 k|^2, so the elementwise kernel work
+        and the reductions run on cache-resident (rows x M) arrays.
         """
         Xs = np.asarray(Xs, dtype=float)
         P = Xs.shape[0]
         mean = np.empty(P)
         var = self.kernel.diag(Xs) if return_var else None
         sqs = np.einsum("ij,ij->i", Xs, Xs)
-        if float32 and return_var and self._A32 is None:
-            self._A32 = self.A.astype(np.float32)
         step = self.ROW_BLOCK
         for r0 in range(0, P, step):
             r1 = min(P, r0 + step)
             Ks = self.kernel.from_gram(Xs[r0:r1] @ self.X.T, sqs[r0:r1], self._sqZ)
             np.dot(Ks, self.w, out=mean[r0:r1])
             mean[r0:r1] += self.mean_shift
-            if not return_var:
-                continue
-            if float32:
-                Ks32 = Ks.astype(np.float32)
-                var[r0:r1] -= np.einsum("ij,ij->i", Ks32 @ self._A32, Ks32, dtype=np.float64)
-            else:
-                var[r0:r1] -= np.einsum("ij,ij->i", Ks @ self.A, Ks)
+            if return_var:
+                var[r0:r1] -= self._reduction(Ks, float32)
         if not return_var:
             return mean, None
         np.maximum(var, 1e-300, out=var)
@@ -696,13 +735,17 @@ class SparsePosterior:
     def mean_grad(self, xs):
         k = self.cross(xs[None, :])[0]
         mean = float(k @ self.w) + self.mean_shift
-        var = max(float(self.kernel.diag(xs[None, :])[0] - k @ self.A @ k), 1e-300)
+        var = max(float(self.kernel.diag(xs[None, :])[0] - self._reduction(k[None, :], False)[0]), 1e-300)
         grad = self.kernel.grad_x(xs, self.X).T @ self.w
         return mean, var, grad
 
     def arrays(self) -> dict:
-        return {"Z": self.X, "w": self.w, "A": self.A}
+        if self.legacy_A is not None:
+            return {"Z": self.X, "w": self.w, "A": self.legacy_A}
+        return {"Z": self.X, "w": self.w, "Lm_inv": self.Lm_inv, "Ls_inv": self.Ls_inv}
 
     @classmethod
     def from_arrays(cls, kernel, noise_var, arrays) -> "SparsePosterior":
-        return cls(kernel, noise_var, arrays["Z"], arrays["w"], arrays["A"])
+        if "Lm_inv" in arrays or "Ls_inv" in arrays:
+            return cls(kernel, noise_var, arrays["Z"], arrays["w"], arrays["Lm_inv"], arrays["Ls_inv"])
+        return cls(kernel, noise_var, arrays["Z"], arrays["w"], legacy_A=arrays["A"])

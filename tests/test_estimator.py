@@ -218,8 +218,10 @@ def test_constant_cap_keeps_the_predictive_variance_exact(sdof_data):
     assert np.all(var[1.0] > 1e-8)  # a real latent variance, well above the 1e-300 floor
     # with a well-conditioned offset prior the variance does not depend on the cap's value
     assert np.allclose(var[1.0], var[0.25], rtol=0.02)
-    # the uncapped evaluation is wrong by orders of magnitude (mostly clipped at the floor)
-    assert np.median(np.abs(var[None] - var[1.0]) / var[1.0]) > 0.5
+    # the uncapped evaluation is wrong: Kmm's jitter is relative to its diagonal, which the constant
+    # inflates 1e4-fold, and biases the variance by about 30 % (before the factored sparse variance of
+    # 2026-11-24 it was also lost to cancellation, mostly clipped at the floor)
+    assert np.median(np.abs(var[None] - var[1.0]) / var[1.0]) > 0.1
     with pytest.raises(ValueError, match="constant_cap must be a positive number"):
         GPNARX(constant_cap=0.0, **kw).fit(data, theta=theta)
 
@@ -287,3 +289,88 @@ def test_bundle_built_before_the_variance_fix_warns_on_load(sdof_data, tmp_path)
             [(sdof_data["u"][:1200], sdof_data["yn"][:1200])], theta=theta), tmp_path, "new", fs=1.0,
             units={"u": "N", "y": "m"})
         load_bundle(q)
+
+
+def _qr_reference_variance(post, kernel, X, Xs, nv):
+    """eq. 9's sparse variance k** - k^T Kmm^-1 k + k^T Sigma^-1 k with Sigma factored by QR of
+    [Lm^T; Knm / sigma] (no Gram product, no explicit inverse): an independent evaluation."""
+    from scipy import linalg
+
+    from model.gp import cholesky_jitter
+
+    Z = post.X
+    Kmm = kernel(Z)
+    Lm, _ = cholesky_jitter(Kmm + 1e-8 * np.mean(np.diag(Kmm)) * np.eye(Z.shape[0]))
+    R = np.linalg.qr(np.vstack([Lm.T, kernel.cross(X, Z) / np.sqrt(nv)]), mode="r")
+    Ks = kernel.cross(Xs, Z).T
+    t1 = linalg.solve_triangular(Lm, Ks, lower=True)
+    t2 = linalg.solve_triangular(R, Ks, trans="T", lower=False)
+    return kernel.diag(Xs) - np.sum(t1 ** 2, 0) + np.sum(t2 ** 2, 0)
+
+
+def test_sparse_variance_is_accurate_when_the_noise_is_at_its_floor(sdof_data, tmp_path):
+    # sigma_y^2 at ML-II's 1e-8 floor (the real BERT model's case): A = Kmm^-1 - Sigma^-1 then has
+    # entries near 1/jitter and the single-matrix form k^T A k loses the 1e-6 variance to rounding;
+    # the factored form |Lm^-1 k|^2 - |Ls^-1 k|^2 must match an independent QR evaluation, whatever
+    # the BLAS thread count, and survive the bundle round trip bit for bit
+    from threadpoolctl import threadpool_limits
+
+    from model.bundle import load_bundle, save_bundle
+    from model.regressors import stack_regressors
+
+    # the real-BERT optimum's shape: a long Matérn length scale and a large cubic offset, so Kmm is
+    # jitter-conditioned and the variance (1e-5) sits far below k(x, x) (1.2)
+    theta = np.log([1e-3, 12.9, 0.017, 3.7e-5, 70.9, 1e-8])
+    data = [(sdof_data["u"][:2000], sdof_data["y"][:2000])]
+    m = GPNARX(ny=8, nu=8, mode="sparse", n_inducing=256, max_train_points=500).fit(data, theta=theta)
+    post = m.posterior_
+    X, _, _ = stack_regressors(data, 8, 8)
+    Xt = m.x_scaler_.transform(X)
+    Xs = m.x_scaler_.transform(narx_regressors(sdof_data["u2"][:800], sdof_data["y2"][:800], 8, 8)[0])
+    ref = _qr_reference_variance(post, post.kernel, Xt, Xs, post.noise_var)
+    var = {}
+    for n in (1, 2):
+        with threadpool_limits(limits=n, user_api="blas"):
+            var[n] = post.predict(Xs)[1]
+    assert np.median(ref) > 1e-7  # a resolved variance, not the clip floor
+    err = np.abs(var[1] - ref) / ref
+    assert np.max(err) < 1e-6  # measured: median 2e-10
+    assert np.allclose(var[2], var[1], rtol=1e-8, atol=0)
+    # the old single-matrix evaluation of the same posterior is off by far more (measured: 2e-4)
+    Ks = post.cross(Xs)
+    old = post.kernel.diag(Xs) - np.einsum("ij,ij->i", Ks @ post.A, Ks)
+    assert np.median(np.abs(old - ref) / ref) > 1e-5 > 100 * np.median(err)
+    # the linearised path (mean_grad) uses the same factors
+    assert post.mean_grad(Xs[7])[1] == pytest.approx(var[1][7], rel=1e-9)
+    b = load_bundle(save_bundle(m, tmp_path, "floor", fs=1.0, units={"u": "N", "y": "m"}))
+    assert set(b.manifest["files"]) >= {"posterior_Lm_inv.npy", "posterior_Ls_inv.npy"}
+    assert np.array_equal(b.model.posterior_.predict(Xs)[1], var[1])
+
+
+def test_sparse_bundle_with_the_single_matrix_variance_loads_and_warns(sdof_data, tmp_path):
+    # bundles written before 2026-11-24 hold posterior_A.npy instead of the two factors: they load,
+    # predict as they did (k** - k^T A k), and warn to retrain
+    import json
+
+    from model.bundle import BundleWarning, _sha256, load_bundle, save_bundle
+
+    theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
+    m = GPNARX(ny=6, nu=6, mode="sparse", n_inducing=64, max_train_points=400).fit(
+        [(sdof_data["u"][:1200], sdof_data["yn"][:1200])], theta=theta)
+    p = save_bundle(m, tmp_path, "single", fs=1.0, units={"u": "N", "y": "m"})
+    A = m.posterior_.A
+    np.save(p / "posterior_A.npy", A)
+    man = json.loads((p / "manifest.json").read_text())
+    for fn in ("posterior_Lm_inv.npy", "posterior_Ls_inv.npy"):
+        del man["files"][fn]
+        (p / fn).unlink()
+    man["files"]["posterior_A.npy"] = _sha256(p / "posterior_A.npy")
+    (p / "manifest.json").write_text(json.dumps(man))
+    (p / "manifest.sha256").write_text(_sha256(p / "manifest.json") + "\n")
+    with pytest.warns(BundleWarning, match="one matrix A"):
+        b = load_bundle(p)
+    Xs = m.x_scaler_.transform(narx_regressors(sdof_data["u2"][:300], sdof_data["y2"][:300], 6, 6)[0])
+    Ks = m.posterior_.cross(Xs)
+    want = np.maximum(m.posterior_.kernel.diag(Xs) - np.einsum("ij,ij->i", Ks @ A, Ks), 1e-300)
+    assert np.allclose(b.model.posterior_.predict(Xs)[1], want, rtol=1e-12, atol=0)
+    assert b.model.posterior_.predict(Xs[:5], float32=True)[1].shape == (5,)
