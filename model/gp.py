@@ -606,60 +606,58 @@ def choose_inducing(X: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
 class SparsePosterior:
     """Sparse (VFE / DTC predictive) posterior with M inducing inputs Z.
 
-    With Kmm = K(Z, Z) = Lm Lm^T, Kmn = K(Z, X) and Sigma = Kmm + sigma_y^-2 Kmn Knm = Ls Ls^T:
+    With Kmm = K(Z, Z) = Lm Lm^T, Kmn = K(Z, X), Sigma = Kmm + sigma_y^-2 Kmn Knm:
     mean = K(Xs, Z) w, w = sigma_y^-2 Sigma^-1 Kmn y (eq. 8), and the latent variance (eq. 9)
 
-        var_f = k(Xs, Xs) - |Lm^-1 k|^2 + |Ls^-1 k|^2,   k = K(Z, Xs),
+        var_f = k(Xs, Xs) - k^T A k,   A = Kmm^-1 - Sigma^-1,   k = K(Z, Xs),
 
-    from the two lower-triangular factors ``Lm_inv`` = Lm^-1 and ``Ls_inv`` = Ls^-1 = LB^-1 Lm^-1
-    (B = I + sigma_y^-2 Lm^-1 Kmn Knm Lm^-T = LB LB^T). The earlier single-matrix form
-    k(Xs, Xs) - k^T A k with A = Kmm^-1 - Sigma^-1 is the same number in exact arithmetic, but A's
-    entries reach 1/jitter (1e8 here) while the variance is 1e-7: on the real BERT model
-    (sigma_y^2 = 1e-8) it came out at 5.2e-7 or 6.4e-7 depending on the BLAS thread count against
-    3.41e-7 from this form (which agrees with QR-based evaluations to 4 digits). Here each term is
-    a sum of squares of O(1) numbers, so the error stays near 1e-12. Bundles written before hold
-    ``A`` and still load (``legacy_A``; the loader warns).
-    Building costs O(N M^2); each prediction two triangular products, M^2 flops per test point.
+    evaluated as k(Xs, Xs) - |G k|^2 with the factor A = G^T G,
+    G = diag(sqrt(s / (1 + s))) Q^T Lm^-1, where S = Q diag(s) Q^T is the eigendecomposition of
+    sigma_y^-2 Lm^-1 Kmn Knm Lm^-T (so Kmm^-1 - Sigma^-1 = Lm^-T (I - (I + S)^-1) Lm^-1).
+    Forming A itself is the same number in exact arithmetic, but its entries reach 1/jitter (1e8)
+    while the variance is 1e-7: on the real BERT model (sigma_y^2 = 1e-8) k^T A k gave 5.2e-7 or
+    6.4e-7 depending on the BLAS thread count against 3.41e-7 here, which agrees with a QR
+    evaluation of Sigma^-1 (no Gram product, no explicit inverse) to 5e-6. |G k|^2 is a sum of
+    squares of O(1) numbers, and it costs the same one (rows x M x M) product as k^T A k did.
+    Bundles written before 2026-11-24 hold ``A``; they still load (``legacy_A``; the loader warns).
+    Building costs O(N M^2 + M^3).
     """
 
     kind = "sparse"
 
     def __init__(self, kernel: Kernel, noise_var: float, Z: np.ndarray, w: np.ndarray,
-                 Lm_inv: np.ndarray | None = None, Ls_inv: np.ndarray | None = None,
-                 legacy_A: np.ndarray | None = None):
+                 G: np.ndarray | None = None, legacy_A: np.ndarray | None = None):
         self.kernel = kernel
         self.noise_var = float(noise_var)
         self.X = Z
         self.w = w
-        if legacy_A is None and (Lm_inv is None or Ls_inv is None):
-            raise ValueError("SparsePosterior needs Lm_inv and Ls_inv (or legacy_A from an old bundle)")
+        if (G is None) == (legacy_A is None):
+            raise ValueError("SparsePosterior needs the variance factor G (or legacy_A from an old bundle)")
+        self.G = None if G is None else np.asarray(G, dtype=float)
         self.legacy_A = legacy_A
-        # C order: .T is the F-ordered upper view that dtrmm takes without a copy (as ExactPosterior)
-        self.Lm_inv = None if Lm_inv is None else np.ascontiguousarray(np.tril(Lm_inv))
-        self.Ls_inv = None if Ls_inv is None else np.ascontiguousarray(np.tril(Ls_inv))
+        # the right-hand operand of the per-block product: G^T (C order), or the legacy A
+        self._right = np.ascontiguousarray(self.G.T) if G is not None else legacy_A
+        self._right32 = None
         self._sqZ = np.einsum("ij,ij->i", Z, Z)
-        self._f32 = None
         # as in ExactPosterior: with a capped kernel, mean = K w + shift * sum(w)
         self.mean_shift = float(kernel.cap_shift()) * float(np.sum(w))
 
     @property
     def A(self) -> np.ndarray:
-        """Kmm^-1 - Sigma^-1 (for inspection; predictions never use it outside legacy bundles)."""
-        if self.legacy_A is not None:
-            return self.legacy_A
-        return self.Lm_inv.T @ self.Lm_inv - self.Ls_inv.T @ self.Ls_inv
+        """Kmm^-1 - Sigma^-1 (for inspection; only legacy bundles predict with it)."""
+        return self.legacy_A if self.legacy_A is not None else self.G.T @ self.G
 
     @classmethod
     def fit(cls, kernel: Kernel, noise_var: float, X: np.ndarray, y: np.ndarray, Z: np.ndarray,
             var_kernel: Kernel | None = None) -> "SparsePosterior":
-        """w from ``kernel``; the variance factors from ``var_kernel`` when given (see
+        """w from ``kernel``; the variance factor G from ``var_kernel`` when given (see
         ``ExactPosterior.fit``)."""
-        w, Lm_inv, Ls_inv = cls._solve(kernel, noise_var, X, y, Z)
+        w, G = cls._solve(kernel, noise_var, X, y, Z)
         if var_kernel is None:
-            return cls(kernel, noise_var, Z, w, Lm_inv, Ls_inv)
+            return cls(kernel, noise_var, Z, w, G)
         if var_kernel.cap_shift() > 0.0:
-            _, Lm_inv, Ls_inv = cls._solve(var_kernel, noise_var, X, y, Z)
-        return cls(var_kernel, noise_var, Z, w, Lm_inv, Ls_inv)
+            G = cls._solve(var_kernel, noise_var, X, y, Z)[1]
+        return cls(var_kernel, noise_var, Z, w, G)
 
     @staticmethod
     def _solve(kernel, noise_var, X, y, Z):
@@ -668,13 +666,16 @@ class SparsePosterior:
         Lm, _ = cholesky_jitter(Kmm + 1e-8 * np.mean(np.diag(Kmm)) * np.eye(m), overwrite=True)
         Kmn = kernel.cross(Z, X)
         V = linalg.solve_triangular(Lm, Kmn, lower=True, check_finite=False)  # M x N
-        B = np.eye(m) + (V @ V.T) / noise_var
-        LB, _ = cholesky_jitter(B, overwrite=True)
+        S = (V @ V.T) / noise_var
+        B = np.eye(m) + S
+        LB, _ = cholesky_jitter(B, overwrite=False)
         Binv = chol_inverse(LB)
         Lm_inv = linalg.solve_triangular(Lm, np.eye(m), lower=True, check_finite=False)
-        Ls_inv = linalg.solve_triangular(LB, Lm_inv, lower=True, check_finite=False)  # (Lm LB)^-1
         w = Lm_inv.T @ (Binv @ (V @ y)) / noise_var
-        return w, np.tril(Lm_inv), np.tril(Ls_inv)
+        s, Q = linalg.eigh(S, check_finite=False)
+        s = np.maximum(s, 0.0)
+        G = (np.sqrt(s / (1.0 + s))[:, None] * Q.T) @ np.tril(Lm_inv)
+        return w, G
 
     @property
     def n_points(self) -> int:
@@ -686,33 +687,23 @@ class SparsePosterior:
     ROW_BLOCK = 256  # test rows per block: the (rows x M) kernel block and its temporaries stay in cache
 
     def _reduction(self, Ks: np.ndarray, float32: bool) -> np.ndarray:
-        """k^T A k per row of Ks (rows x M), as |Lm^-1 k|^2 - |Ls^-1 k|^2 (two dtrmm products)."""
-        if self.legacy_A is not None:
-            if float32:
-                if self._f32 is None:
-                    self._f32 = (self.legacy_A.astype(np.float32),)
-                Ks32 = Ks.astype(np.float32)
-                return np.einsum("ij,ij->i", Ks32 @ self._f32[0], Ks32, dtype=np.float64)
-            return np.einsum("ij,ij->i", Ks @ self.legacy_A, Ks)
+        """k^T A k per row of Ks (rows x M): |G k|^2, or k^T A k for a legacy bundle."""
         if float32:
-            if self._f32 is None:
-                self._f32 = (np.ascontiguousarray(self.Lm_inv, dtype=np.float32).T,
-                             np.ascontiguousarray(self.Ls_inv, dtype=np.float32).T)
-            trmm, KsT, (LmT, LsT) = linalg.blas.strmm, Ks.astype(np.float32).T, self._f32
+            if self._right32 is None:
+                self._right32 = self._right.astype(np.float32)
+            K, R = Ks.astype(np.float32), self._right32
         else:
-            trmm, KsT, LmT, LsT = linalg.blas.dtrmm, np.ascontiguousarray(Ks).T, self.Lm_inv.T, self.Ls_inv.T
-        # L^-1 Ks^T in place (side=0: left; L^-1 = (L^-1 ^T)^T, hence lower=0, trans_a=1)
-        T1 = trmm(1.0, LmT, KsT, side=0, lower=0, trans_a=1, overwrite_b=0)
-        T2 = trmm(1.0, LsT, KsT, side=0, lower=0, trans_a=1, overwrite_b=1)
-        return (np.einsum("ij,ij->j", T1, T1, dtype=np.float64)
-                - np.einsum("ij,ij->j", T2, T2, dtype=np.float64))
+            K, R = Ks, self._right
+        T = K @ R
+        other = T if self.legacy_A is None else K
+        return np.einsum("ij,ij->i", T, other, dtype=np.float64)
 
     def predict(self, Xs, return_var=True, float32=False):
         """Sparse predictive mean and latent variance at Xs (standardised units), in row blocks.
 
         Each block of ``ROW_BLOCK`` rows computes its kernel block K(Xs_b, Z) (one Gram product),
-        mean K w and variance k(x, x) - |Lm^-1 k|^2 + |Ls^-1 k|^2, so the elementwise kernel work
-        and the reductions run on cache-resident (rows x M) arrays.
+        mean K w and variance k(x, x) - |G k|^2, so the elementwise kernel work and the reduction
+        run on cache-resident (rows x M) arrays instead of one (P x M) pass per operation.
         """
         Xs = np.asarray(Xs, dtype=float)
         P = Xs.shape[0]
@@ -733,19 +724,19 @@ class SparsePosterior:
         return mean, var
 
     def mean_grad(self, xs):
-        k = self.cross(xs[None, :])[0]
-        mean = float(k @ self.w) + self.mean_shift
-        var = max(float(self.kernel.diag(xs[None, :])[0] - self._reduction(k[None, :], False)[0]), 1e-300)
+        k = self.cross(xs[None, :])
+        mean = float(k[0] @ self.w) + self.mean_shift
+        var = max(float(self.kernel.diag(xs[None, :])[0] - self._reduction(k, False)[0]), 1e-300)
         grad = self.kernel.grad_x(xs, self.X).T @ self.w
         return mean, var, grad
 
     def arrays(self) -> dict:
         if self.legacy_A is not None:
             return {"Z": self.X, "w": self.w, "A": self.legacy_A}
-        return {"Z": self.X, "w": self.w, "Lm_inv": self.Lm_inv, "Ls_inv": self.Ls_inv}
+        return {"Z": self.X, "w": self.w, "G": self.G}
 
     @classmethod
     def from_arrays(cls, kernel, noise_var, arrays) -> "SparsePosterior":
-        if "Lm_inv" in arrays or "Ls_inv" in arrays:
-            return cls(kernel, noise_var, arrays["Z"], arrays["w"], arrays["Lm_inv"], arrays["Ls_inv"])
+        if "G" in arrays:
+            return cls(kernel, noise_var, arrays["Z"], arrays["w"], G=arrays["G"])
         return cls(kernel, noise_var, arrays["Z"], arrays["w"], legacy_A=arrays["A"])

@@ -343,7 +343,7 @@ def test_sparse_variance_is_accurate_when_the_noise_is_at_its_floor(sdof_data, t
     # the linearised path (mean_grad) uses the same factors
     assert post.mean_grad(Xs[7])[1] == pytest.approx(var[1][7], rel=1e-9)
     b = load_bundle(save_bundle(m, tmp_path, "floor", fs=1.0, units={"u": "N", "y": "m"}))
-    assert set(b.manifest["files"]) >= {"posterior_Lm_inv.npy", "posterior_Ls_inv.npy"}
+    assert set(b.manifest["files"]) >= {"posterior_G.npy"}
     assert np.array_equal(b.model.posterior_.predict(Xs)[1], var[1])
 
 
@@ -361,7 +361,7 @@ def test_sparse_bundle_with_the_single_matrix_variance_loads_and_warns(sdof_data
     A = m.posterior_.A
     np.save(p / "posterior_A.npy", A)
     man = json.loads((p / "manifest.json").read_text())
-    for fn in ("posterior_Lm_inv.npy", "posterior_Ls_inv.npy"):
+    for fn in ("posterior_G.npy",):
         del man["files"][fn]
         (p / fn).unlink()
     man["files"]["posterior_A.npy"] = _sha256(p / "posterior_A.npy")
