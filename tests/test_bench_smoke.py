@@ -14,7 +14,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py",
            "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
-           "bench_sparse_accuracy.py"]
+           "bench_sparse_accuracy.py", "bench_sparse_variance.py"]
 # fields of the new benches' RESULT lines that must be finite numbers (besides ratio and baseline)
 FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "baseline_record_s_extrapolated"),
           "bench_predict_e2e.py": ("wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s")}
@@ -45,6 +45,8 @@ def test_bench_quick(script):
     assert math.isfinite(float(kv["baseline"])), kv
     for key in FINITE.get(script, ()):
         assert key in kv and math.isfinite(float(kv[key])) and float(kv[key]) > 0, (key, kv)
+    if script == "bench_sparse_variance.py":  # the factored variance matches the QR reference
+        assert float(kv["product_rel_err"]) < 1e-6 < float(kv["baseline_rel_err"]), kv
 
 
 def test_parse_result_rejects_garbage():

@@ -1,0 +1,94 @@
+"""Sparse eq. (9) variance: accuracy and cost of the factored form |G k|^2 against k^T A k.
+
+The product (``SparsePosterior``, since 2026-11-24) stores G with A = Kmm^-1 - Sigma^-1 = G^T G and
+computes the latent variance as k(x,x) - |G k|^2. The baseline is the single-matrix form the
+product used before, k(x,x) - k^T A k, on the same posterior (``legacy_A``: what an older bundle
+still does). Reference: an independent evaluation k(x,x) - |Lm^-1 k|^2 + |R^-T k|^2 with
+Sigma = R^T R from the QR factorisation of [Lm^T; Knm / sigma] (no Gram product, no explicit
+inverse), in float64.
+
+Case: the Bouc-Wen training rows (10 N and 80 N sweeps, ny=20, nu=17, D=37, 4064 rows, M=512
+k-means inducing points) with hyperparameters shaped like the real-BERT ML-II optimum, where the
+noise variance sits at ML-II's 1e-8 floor: Matérn variance 1e-3 and length scale 12.9, cubic
+sigma_p^2 0.017, s 3.7e-5, b 70.9 (constant capped at 1 for the variance, as the product does).
+Queries: 1024 rows of the 50 N sweep (standardised). Printed: the median relative error of each
+form against the reference, the largest change between 1 and 2 BLAS threads, and the time of one
+1024-row predict (median of interleaved repetitions; ratio = factored / single-matrix time, so
+1.0 means the same cost).
+
+    python bench/bench_sparse_variance.py [--quick] [--threads N]
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from scipy import linalg
+from threadpoolctl import threadpool_limits
+
+import _common as C
+from model.gp import SparsePosterior, choose_inducing, cholesky_jitter
+from model.kernels import make_kernel
+from model.regressors import stack_regressors
+
+THETA_FLOOR = np.log([1e-3, 12.9, 0.017, 3.7e-5, 70.9, 1e-8])
+
+
+def reference_variance(kernel, Z, X, Xq, noise_var):
+    Kmm = kernel(Z)
+    Lm, _ = cholesky_jitter(Kmm + 1e-8 * np.mean(np.diag(Kmm)) * np.eye(Z.shape[0]))
+    R = np.linalg.qr(np.vstack([Lm.T, kernel.cross(X, Z) / np.sqrt(noise_var)]), mode="r")
+    Kq = kernel.cross(Xq, Z).T
+    t1 = linalg.solve_triangular(Lm, Kq, lower=True)
+    t2 = linalg.solve_triangular(R, Kq, trans="T", lower=False)
+    return kernel.diag(Xq) - np.sum(t1 ** 2, 0) + np.sum(t2 ** 2, 0)
+
+
+def main() -> None:
+    args = C.parse_args(__doc__)
+    m = 128 if args.quick else 512
+    n_query = 256 if args.quick else 1024
+    reps = 3 if args.quick else 9
+    X, y, xsc, _ = C.training_set(1000 if args.quick else C.n_rows())
+    kernel = make_kernel("matern32+cubic")
+    kernel.set_theta(THETA_FLOOR[:-1])
+    var_kernel = kernel.for_posterior(1.0)
+    noise_var = float(np.exp(THETA_FLOOR[-1]))
+    Z = choose_inducing(X, m, 0)
+    t0 = time.perf_counter()
+    post = SparsePosterior.fit(kernel, noise_var, X, y, Z, var_kernel=var_kernel)
+    build_s = time.perf_counter() - t0
+    old = SparsePosterior(post.kernel, noise_var, post.X, post.w, legacy_A=post.A)
+    _, _, r50 = C.protocol()
+    Xq_raw, _, _ = stack_regressors([(r50.u, r50.y)], C.NY, C.NU)
+    Xq = np.ascontiguousarray(xsc.transform(Xq_raw)[200:200 + n_query])
+    ref = reference_variance(post.kernel, Z, X, Xq, noise_var)
+    var, err, thread_diff = {}, {}, {}
+    for name, p in (("factored", post), ("single", old)):
+        with threadpool_limits(limits=1, user_api="blas"):
+            v1 = p.predict(Xq)[1]
+        with threadpool_limits(limits=2, user_api="blas"):
+            v2 = p.predict(Xq)[1]
+        var[name] = v1
+        err[name] = float(np.median(np.abs(v1 - ref) / ref))
+        thread_diff[name] = float(np.max(np.abs(v2 - v1) / ref))
+    times = {"factored": [], "single": []}
+    for _ in range(reps):  # interleaved, so load from other processes hits both
+        for name, p in (("factored", post), ("single", old)):
+            t0 = time.perf_counter()
+            p.predict(Xq)
+            times[name].append(time.perf_counter() - t0)
+    ms = {k: 1e3 * C.median(v) for k, v in times.items()}
+    print(f"M={m}, {n_query} queries, D={C.D}, reference latent variance median {np.median(ref):.3e} "
+          f"(k(x,x) median {np.median(post.kernel.diag(Xq)):.3f}); build {build_s:.2f} s; {C.env_note()}")
+    for name in ("factored", "single"):
+        print(f"  {name:8s}: median rel. error {err[name]:.2e}, 1 vs 2 threads max change {thread_diff[name]:.2e}, "
+              f"predict {ms[name]:.1f} ms")
+    C.result(product=ms["factored"], baseline=ms["single"], unit="ms", ratio=ms["factored"] / ms["single"],
+             product_rel_err=err["factored"], baseline_rel_err=err["single"],
+             product_thread_change=thread_diff["factored"], baseline_thread_change=thread_diff["single"],
+             m=m, queries=n_query)
+
+
+if __name__ == "__main__":
+    main()
