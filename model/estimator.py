@@ -242,6 +242,10 @@ class GPNARX:
 
         method: 'mc' (Monte Carlo over n_paths, seeded) or 'linear' (first-order propagation).
         y0: optional first ny measured outputs; else the system starts from rest.
+        float32: the variance product of eq. 9 in single precision (faster; predictive std within
+            2 % on the Bouc-Wen model). Not for models whose noise variance sits near ML-II's
+            floor (real BERT): their latent variance (1e-7, standardised) is below float32's
+            resolution of k(x, x) (about 1), and the band would be rounding noise.
         Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units).
         """
         self._check_fitted()
