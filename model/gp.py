@@ -587,6 +587,21 @@ class ExactPosterior:
         return cls(kernel, noise_var, arrays["X"], arrays["alpha"], arrays["Linv"])
 
 
+def sparse_variance_reference(kernel: Kernel, Z: np.ndarray, X: np.ndarray, Xs: np.ndarray,
+                              noise_var: float) -> np.ndarray:
+    """eq. 9's sparse latent variance at Xs by an independent route, for checks (slow: one QR of an
+    (N + M) x M matrix per call): k(x,x) - |Lm^-1 k|^2 + |R^-T k|^2 with Sigma = R^T R from the QR
+    factorisation of [Lm^T; Knm / sigma_y] (no Gram product, no explicit inverse), Kmm jittered as in
+    ``SparsePosterior``. X: the posterior's training rows; all inputs standardised."""
+    Kmm = kernel(Z)
+    Lm, _ = cholesky_jitter(Kmm + 1e-8 * np.mean(np.diag(Kmm)) * np.eye(Z.shape[0]))
+    R = np.linalg.qr(np.vstack([Lm.T, kernel.cross(X, Z) / np.sqrt(noise_var)]), mode="r")
+    Kq = kernel.cross(Xs, Z).T
+    t1 = linalg.solve_triangular(Lm, Kq, lower=True, check_finite=False)
+    t2 = linalg.solve_triangular(R, Kq, trans="T", lower=False, check_finite=False)
+    return kernel.diag(Xs) - np.sum(t1 ** 2, 0) + np.sum(t2 ** 2, 0)
+
+
 def choose_inducing(X: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
     """M inducing inputs by k-means (k-means++ start, seeded) on the standardised regressors."""
     from scipy.cluster.vq import kmeans2

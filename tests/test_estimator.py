@@ -291,23 +291,6 @@ def test_bundle_built_before_the_variance_fix_warns_on_load(sdof_data, tmp_path)
         load_bundle(q)
 
 
-def _qr_reference_variance(post, kernel, X, Xs, nv):
-    """eq. 9's sparse variance k** - k^T Kmm^-1 k + k^T Sigma^-1 k with Sigma factored by QR of
-    [Lm^T; Knm / sigma] (no Gram product, no explicit inverse): an independent evaluation."""
-    from scipy import linalg
-
-    from model.gp import cholesky_jitter
-
-    Z = post.X
-    Kmm = kernel(Z)
-    Lm, _ = cholesky_jitter(Kmm + 1e-8 * np.mean(np.diag(Kmm)) * np.eye(Z.shape[0]))
-    R = np.linalg.qr(np.vstack([Lm.T, kernel.cross(X, Z) / np.sqrt(nv)]), mode="r")
-    Ks = kernel.cross(Xs, Z).T
-    t1 = linalg.solve_triangular(Lm, Ks, lower=True)
-    t2 = linalg.solve_triangular(R, Ks, trans="T", lower=False)
-    return kernel.diag(Xs) - np.sum(t1 ** 2, 0) + np.sum(t2 ** 2, 0)
-
-
 def test_sparse_variance_is_accurate_when_the_noise_is_at_its_floor(sdof_data, tmp_path):
     # sigma_y^2 at ML-II's 1e-8 floor (the real BERT model's case): A = Kmm^-1 - Sigma^-1 then has
     # entries near 1/jitter and the single-matrix form k^T A k loses the 1e-6 variance to rounding;
@@ -316,6 +299,7 @@ def test_sparse_variance_is_accurate_when_the_noise_is_at_its_floor(sdof_data, t
     from threadpoolctl import threadpool_limits
 
     from model.bundle import load_bundle, save_bundle
+    from model.gp import sparse_variance_reference
     from model.regressors import stack_regressors
 
     # the real-BERT optimum's shape: a long Matérn length scale and a large cubic offset, so Kmm is
@@ -327,7 +311,7 @@ def test_sparse_variance_is_accurate_when_the_noise_is_at_its_floor(sdof_data, t
     X, _, _ = stack_regressors(data, 8, 8)
     Xt = m.x_scaler_.transform(X)
     Xs = m.x_scaler_.transform(narx_regressors(sdof_data["u2"][:800], sdof_data["y2"][:800], 8, 8)[0])
-    ref = _qr_reference_variance(post, post.kernel, Xt, Xs, post.noise_var)
+    ref = sparse_variance_reference(post.kernel, post.X, Xt, Xs, post.noise_var)
     var = {}
     for n in (1, 2):
         with threadpool_limits(limits=n, user_api="blas"):
