@@ -587,14 +587,21 @@ class ExactPosterior:
         return cls(kernel, noise_var, arrays["X"], arrays["alpha"], arrays["Linv"])
 
 
+def kmm_cholesky(kernel: Kernel, Z: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factor of K(Z, Z) + 1e-8 mean(diag) I, the inducing-point Gram matrix as every
+    sparse computation jitters it (``SparsePosterior``, ``sparse_variance_reference``)."""
+    Kmm = kernel(Z)
+    Kmm[np.diag_indices_from(Kmm)] += 1e-8 * np.mean(np.diag(Kmm))
+    return cholesky_jitter(Kmm, overwrite=True)[0]
+
+
 def sparse_variance_reference(kernel: Kernel, Z: np.ndarray, X: np.ndarray, Xs: np.ndarray,
                               noise_var: float) -> np.ndarray:
     """eq. 9's sparse latent variance at Xs by an independent route, for checks (slow: one QR of an
     (N + M) x M matrix per call): k(x,x) - |Lm^-1 k|^2 + |R^-T k|^2 with Sigma = R^T R from the QR
-    factorisation of [Lm^T; Knm / sigma_y] (no Gram product, no explicit inverse), Kmm jittered as in
-    ``SparsePosterior``. X: the posterior's training rows; all inputs standardised."""
-    Kmm = kernel(Z)
-    Lm, _ = cholesky_jitter(Kmm + 1e-8 * np.mean(np.diag(Kmm)) * np.eye(Z.shape[0]))
+    factorisation of [Lm^T; Knm / sigma_y] (no Gram product, no explicit inverse), Kmm jittered by
+    ``kmm_cholesky`` as in ``SparsePosterior``. X: the posterior's training rows; all inputs standardised."""
+    Lm = kmm_cholesky(kernel, Z)
     R = np.linalg.qr(np.vstack([Lm.T, kernel.cross(X, Z) / np.sqrt(noise_var)]), mode="r")
     Kq = kernel.cross(Xs, Z).T
     t1 = linalg.solve_triangular(Lm, Kq, lower=True, check_finite=False)
@@ -666,31 +673,27 @@ class SparsePosterior:
     def fit(cls, kernel: Kernel, noise_var: float, X: np.ndarray, y: np.ndarray, Z: np.ndarray,
             var_kernel: Kernel | None = None) -> "SparsePosterior":
         """w from ``kernel``; the variance factor G from ``var_kernel`` when given (see
-        ``ExactPosterior.fit``)."""
-        w, G = cls._solve(kernel, noise_var, X, y, Z)
+        ``ExactPosterior.fit``). Each is computed once, from its own kernel."""
+        Lm_inv, V, S = cls._whitened(kernel, noise_var, X, Z)
+        LB, _ = cholesky_jitter(np.eye(Z.shape[0]) + S, overwrite=True)
+        w = Lm_inv.T @ (chol_inverse(LB) @ (V @ y)) / noise_var
         if var_kernel is None:
-            return cls(kernel, noise_var, Z, w, G)
-        if var_kernel.cap_shift() > 0.0:
-            G = cls._solve(var_kernel, noise_var, X, y, Z)[1]
-        return cls(var_kernel, noise_var, Z, w, G)
-
-    @staticmethod
-    def _solve(kernel, noise_var, X, y, Z):
-        m = Z.shape[0]
-        Kmm = kernel(Z)
-        Lm, _ = cholesky_jitter(Kmm + 1e-8 * np.mean(np.diag(Kmm)) * np.eye(m), overwrite=True)
-        Kmn = kernel.cross(Z, X)
-        V = linalg.solve_triangular(Lm, Kmn, lower=True, check_finite=False)  # M x N
-        S = (V @ V.T) / noise_var
-        B = np.eye(m) + S
-        LB, _ = cholesky_jitter(B, overwrite=False)
-        Binv = chol_inverse(LB)
-        Lm_inv = linalg.solve_triangular(Lm, np.eye(m), lower=True, check_finite=False)
-        w = Lm_inv.T @ (Binv @ (V @ y)) / noise_var
+            var_kernel = kernel
+        elif var_kernel.cap_shift() > 0.0:
+            Lm_inv, _, S = cls._whitened(var_kernel, noise_var, X, Z)
         s, Q = linalg.eigh(S, check_finite=False)
         s = np.maximum(s, 0.0)
         G = (np.sqrt(s / (1.0 + s))[:, None] * Q.T) @ np.tril(Lm_inv)
-        return w, G
+        return cls(var_kernel, noise_var, Z, w, G)
+
+    @staticmethod
+    def _whitened(kernel, noise_var, X, Z):
+        """Lm^-1 (as LAPACK returns it), V = Lm^-1 Kmn (M x N) and S = sigma_y^-2 V V^T for one kernel."""
+        m = Z.shape[0]
+        Lm = kmm_cholesky(kernel, Z)
+        V = linalg.solve_triangular(Lm, kernel.cross(Z, X), lower=True, check_finite=False)
+        Lm_inv = linalg.solve_triangular(Lm, np.eye(m), lower=True, check_finite=False)
+        return Lm_inv, V, (V @ V.T) / noise_var
 
     @property
     def n_points(self) -> int:
