@@ -28,11 +28,13 @@ COPY model ./model
 COPY training ./training
 COPY service ./service
 COPY configs ./configs
+COPY gpnarx ./gpnarx
+COPY cli ./cli
 COPY openapi ./openapi
 # Editable install: the shipped dataset configs are read from /app/configs next to the packages.
 # orjson renders the long float arrays of predictions (the service falls back to json without it).
 RUN pip install -e . orjson \
-    && python -c "import service.app, model.bundle, training.cli"
+    && python -c "import gpnarx.service.app, gpnarx.model.bundle, gpnarx.cli.main"
 
 USER gpnarx
 # Default registry at image build (training runs as the unprivileged user into its own folder).

@@ -26,11 +26,11 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from model.gp import ExactPosterior, fit_ml2  # noqa: E402
-from model.kernels import make_kernel  # noqa: E402
-from model.regressors import stack_regressors  # noqa: E402
-from model.scaling import Standardizer  # noqa: E402
-from model.selection import select_rows  # noqa: E402
+from gpnarx.model.gp import ExactPosterior, fit_ml2  # noqa: E402
+from gpnarx.model.kernels import make_kernel  # noqa: E402
+from gpnarx.model.regressors import stack_regressors  # noqa: E402
+from gpnarx.model.scaling import Standardizer  # noqa: E402
+from gpnarx.model.selection import select_rows  # noqa: E402
 
 NY, NU = 20, 17
 D = NY + NU
@@ -73,7 +73,7 @@ def blas_threads() -> int:
 
 @lru_cache(maxsize=None)
 def record(amplitude: float):
-    from training.config import simulate_record
+    from gpnarx.training.config import simulate_record
 
     return simulate_record({"system": "bouc-wen", "excitation": "sweep", "amplitude": float(amplitude)})
 

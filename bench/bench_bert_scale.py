@@ -27,8 +27,8 @@ import warnings
 import numpy as np
 
 import _common as C
-from model.metrics import coverage, fit_percent
-from model.records import Record
+from gpnarx.model.metrics import coverage, fit_percent
+from gpnarx.model.records import Record
 
 CONFIG = C.ROOT / "configs" / "bert-standin.toml"
 
@@ -66,8 +66,8 @@ def main():
     max_train = 300 if q else None
     base_steps = 2 if q else 4  # half before, half after the product
 
-    from training.config import load_config
-    from training.pipeline import model_from_config
+    from gpnarx.training.config import load_config
+    from gpnarx.training.pipeline import model_from_config
 
     t0 = time.perf_counter()
     cfg = load_config(CONFIG)
@@ -88,8 +88,8 @@ def main():
     fit_s = time.perf_counter() - t0
 
     # baseline: exact sklearn GP on the product's ML-II rows and hyperparameters
-    from model.regressors import stack_regressors
-    from model.selection import select_rows
+    from gpnarx.model.regressors import stack_regressors
+    from gpnarx.model.selection import select_rows
 
     pairs = [(r.u, r.y) for r in train]
     X, Y, idx = stack_regressors(pairs, model.ny, model.nu)

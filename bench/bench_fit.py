@@ -27,8 +27,8 @@ import numpy as np
 from scipy.optimize import minimize
 
 import _common as C
-from model.gp import default_warm_start_subset, fit_ml2, initial_theta, nlml_and_grad
-from model.kernels import make_kernel
+from gpnarx.model.gp import default_warm_start_subset, fit_ml2, initial_theta, nlml_and_grad
+from gpnarx.model.kernels import make_kernel
 
 EVALS = {"sklearn": 0}
 

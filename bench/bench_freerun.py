@@ -22,7 +22,7 @@ import numpy as np
 from scipy import linalg
 
 import _common as C
-from model.freerun import simulate_mc
+from gpnarx.model.freerun import simulate_mc
 
 
 class GemmPosterior:

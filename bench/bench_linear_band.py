@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 import _common as C
-from model.estimator import GPNARX
-from model.metrics import fit_percent
+from gpnarx.model.estimator import GPNARX
+from gpnarx.model.metrics import fit_percent
 
 AMPLITUDES = (10.0, 50.0, 80.0)  # N
 

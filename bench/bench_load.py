@@ -51,13 +51,13 @@ TYPES = ("predict", "novelty", "batch")
 
 # ------------------------------------------------------------------------------------------ set-up
 def _simulate(u):
-    from training.simulators.boucwen import BoucWen
+    from gpnarx.training.simulators.boucwen import BoucWen
 
     return BoucWen().simulate(np.asarray(u, float))["y"]
 
 
 def _multisine(n, seed, rms=10.0):
-    from training import excitations as ex
+    from gpnarx.training import excitations as ex
 
     return ex.multisine(FS, rms, 5.0, 150.0, n, seed=seed)
 
@@ -68,9 +68,9 @@ def _noisy(y, seed, level=0.05):
 
 def train_bundle(registry: Path, quick: bool) -> str:
     """A small Bouc-Wen GP-NARX with a novelty calibration (3 healthy records, 1 % false alarms)."""
-    from model.bundle import save_bundle
-    from model.estimator import GPNARX
-    from model.novelty import calibrate_threshold, novelty_score
+    from gpnarx.model.bundle import save_bundle
+    from gpnarx.model.estimator import GPNARX
+    from gpnarx.model.novelty import calibrate_threshold, novelty_score
 
     n_rec = 768 if quick else 1024
     recs = []
@@ -268,7 +268,7 @@ def main(argv=None):
         registry = Path(args.registry)
         model = args.model
         if model is None:
-            from model.bundle import Registry
+            from gpnarx.model.bundle import Registry
 
             reg = Registry(registry).scan()
             model = next((n for n in reg.names() if reg.get(n).fs == FS), None)
@@ -289,7 +289,7 @@ def main(argv=None):
     env.pop("GPNARX_API_KEY", None)
     log_file = tempfile.NamedTemporaryFile(prefix="gpnarx-bench-load-", suffix=".log", delete=False)  # noqa: SIM115
     log_path = Path(log_file.name)
-    cmd = [sys.executable, "-m", "training.cli", "serve", "--registry", str(registry), "--port", str(port),
+    cmd = [sys.executable, "-m", "gpnarx", "serve", "--registry", str(registry), "--port", str(port),
            "--workers", str(args.workers), "--queue", str(queue_size), "--log-level", "warning"]
     proc = subprocess.Popen(cmd, cwd=str(ROOT), env=env, stdout=log_file, stderr=log_file)
     try:

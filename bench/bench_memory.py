@@ -36,8 +36,8 @@ def child(case: str, n: int, m: int, paths: int, steps: int) -> dict:
 
     import numpy as np
 
-    from model.freerun import simulate_mc
-    from model.gp import SparsePosterior, choose_inducing
+    from gpnarx.model.freerun import simulate_mc
+    from gpnarx.model.gp import SparsePosterior, choose_inducing
 
     from sklearn.gaussian_process import GaussianProcessRegressor  # noqa: F401  (import before tracing)
 

@@ -23,8 +23,8 @@ import warnings
 import numpy as np
 
 import _common as C
-from model.estimator import GPNARX
-from model.metrics import coverage, fit_percent
+from gpnarx.model.estimator import GPNARX
+from gpnarx.model.metrics import coverage, fit_percent
 
 
 def main():

@@ -4,7 +4,7 @@ Product: a bundle trained from the shipped ``configs/bouc-wen.toml`` (sparse mod
 points over all ~4000 training rows, ML-II on 1000 stride rows; trained once with
 ``gpnarx train ... --mc 16 --no-report`` into a cached registry, ``--retrain`` to redo it), and the
 50 N Bouc-Wen sweep (5-150 Hz at 53.55 Hz/s: 2031 samples at 750 Hz, written by
-``gpnarx simulate``). Timed: the whole ``python -m training.cli predict --registry R --model
+``gpnarx simulate``). Timed: the whole ``python -m gpnarx predict --registry R --model
 bouc-wen REC --mc 1024 --out OUT.npz --json`` subprocess (interpreter start, imports, bundle load
 with checksums, 1024-path Monte Carlo free run from rest, writing OUT.npz and the JSON), best and
 median of a few runs; path-steps = 2031 x 1024. Also timed once more with the process tuning off
@@ -82,14 +82,14 @@ noise = { fraction = 0.1, reference = "sweep-10N", seed = 102 }
 
 
 def cli(*argv, env=None, timeout=3600):
-    """Run ``python -m training.cli ARGV`` from the repository root; (seconds, CompletedProcess)."""
+    """Run ``python -m gpnarx ARGV`` from the repository root; (seconds, CompletedProcess)."""
     e = dict(os.environ)
     e["PYTHONPATH"] = str(C.ROOT) + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
     e.pop("GPNARX_REGISTRY", None)
     if env:
         e.update(env)
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "training.cli", *map(str, argv)], cwd=C.ROOT, env=e, check=False,
+    proc = subprocess.run([sys.executable, "-m", "gpnarx", *map(str, argv)], cwd=C.ROOT, env=e, check=False,
                           capture_output=True, text=True, timeout=timeout)
     dt = time.perf_counter() - t0
     if proc.returncode != 0:

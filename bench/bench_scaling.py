@@ -17,9 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 import _common as C
-from model.freerun import simulate_mc
-from model.gp import nlml_and_grad
-from model.kernels import make_kernel
+from gpnarx.model.freerun import simulate_mc
+from gpnarx.model.gp import nlml_and_grad
+from gpnarx.model.kernels import make_kernel
 
 
 def main():

@@ -43,10 +43,10 @@ FS = 750.0
 
 
 def train_bundle(registry: Path) -> str:
-    from model.bundle import save_bundle
-    from model.estimator import GPNARX
-    from training import excitations as ex
-    from training.simulators.boucwen import BoucWen
+    from gpnarx.model.bundle import save_bundle
+    from gpnarx.model.estimator import GPNARX
+    from gpnarx.training import excitations as ex
+    from gpnarx.training.simulators.boucwen import BoucWen
 
     bw = BoucWen()
     rng = np.random.default_rng(0)
@@ -82,10 +82,10 @@ def main(argv=None):
 
     import httpx
 
-    from model.bundle import Registry
-    from model.metrics import summary
-    from service.app import limit_blas_threads, render_json, tune_malloc
-    from service.settings import Settings
+    from gpnarx.model.bundle import Registry
+    from gpnarx.model.metrics import summary
+    from gpnarx.service.app import limit_blas_threads, render_json, tune_malloc
+    from gpnarx.service.settings import Settings
 
     # the in-process baseline runs under the same process tuning as the service (service.settings)
     limit_blas_threads(Settings().blas_threads)
@@ -104,7 +104,7 @@ def main(argv=None):
     bundle = reg.get(name)
     fs = bundle.fs
 
-    from training import excitations as ex
+    from gpnarx.training import excitations as ex
 
     u = ex.multisine(fs, 10.0, 5.0, min(150.0, 0.4 * fs), args.samples, seed=7)
     run0 = bundle.model.simulate(u, n_paths=8, seed=1)
@@ -115,7 +115,7 @@ def main(argv=None):
     port = C.free_port()
     url = f"http://127.0.0.1:{port}"
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    cmd = [sys.executable, "-m", "training.cli", "serve", "--registry", str(registry), "--port", str(port),
+    cmd = [sys.executable, "-m", "gpnarx", "serve", "--registry", str(registry), "--port", str(port),
            "--log-level", "warning"]
     if args.workers:
         cmd += ["--workers", str(args.workers)]

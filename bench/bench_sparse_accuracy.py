@@ -20,15 +20,15 @@ from __future__ import annotations
 import numpy as np
 
 import _common as C
-from model.estimator import GPNARX
-from model.metrics import coverage, fit_percent
+from gpnarx.model.estimator import GPNARX
+from gpnarx.model.metrics import coverage, fit_percent
 
 
 def main():
     args = C.parse_args(__doc__, lambda ap: ap.add_argument("--inducing", type=int, default=None,
                                                              help="inducing points of the sparse model (default 256)"))
     q = args.quick
-    from training.config import load_config
+    from gpnarx.training.config import load_config
 
     theta, _, hyp = C.hyperparameters(q)
     pairs, _, _ = C.protocol()

@@ -27,9 +27,9 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 import _common as C
-from model.gp import SparsePosterior, choose_inducing, sparse_variance_reference
-from model.kernels import make_kernel
-from model.regressors import stack_regressors
+from gpnarx.model.gp import SparsePosterior, choose_inducing, sparse_variance_reference
+from gpnarx.model.kernels import make_kernel
+from gpnarx.model.regressors import stack_regressors
 
 THETA_FLOOR = np.log([1e-3, 12.9, 0.017, 3.7e-5, 70.9, 1e-8])
 

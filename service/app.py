@@ -43,8 +43,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Match
 
-from model.bundle import BundleError, Registry, check_name, check_version
-from model.runtime import limit_blas, tune_malloc  # process tuning shared with the CLI
+from gpnarx.model.bundle import BundleError, Registry, check_name, check_version
+from gpnarx.model.runtime import limit_blas, tune_malloc  # process tuning shared with the CLI
 
 from . import ops
 from .metrics import ServiceMetrics

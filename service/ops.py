@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model.bundle import Bundle
-from model.metrics import summary
-from model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
-from model.restoring import loop_area, restoring_force
+from gpnarx.model.bundle import Bundle
+from gpnarx.model.metrics import summary
+from gpnarx.model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
+from gpnarx.model.restoring import loop_area, restoring_force
 
 from .problems import ProblemError
 from .settings import Settings

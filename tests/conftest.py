@@ -50,6 +50,6 @@ def sdof_data():
 
 @pytest.fixture(scope="session")
 def sdof_model(sdof_data):
-    from model.estimator import GPNARX
+    from gpnarx.model.estimator import GPNARX
 
     return GPNARX(ny=16, nu=16, max_train_points=1500, n_restarts=0).fit([(sdof_data["u"], sdof_data["yn"])])

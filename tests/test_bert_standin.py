@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from training.simulators.bert_standin import (
+from gpnarx.training.simulators.bert_standin import (
     BertStandin,
     calibration_table,
     format_calibration_table,
@@ -134,8 +134,8 @@ def test_scatter_calibration_against_the_papers_lag_surface_fit():
     """The calibrated scatter lets the nominal stand-in predict its own 0.10 V sweep realizations at
     about the paper's lag-surface fit (96.1 %); the former 10x scatter could not (docstring figures
     over 24 realizations: median 96.4 % vs 66.0 %)."""
-    from model.metrics import fit_percent
-    from training.config import simulate_record
+    from gpnarx.model.metrics import fit_percent
+    from gpnarx.training.config import simulate_record
 
     u = simulate_record({"system": "bert-standin", "excitation": "sweep", "amplitude": 0.10}).u
     nominal = BertStandin().simulate(u)["y"]

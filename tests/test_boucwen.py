@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from training.excitations import sine, swept_sine
-from training.simulators.boucwen import BoucWen, compare_to_official, fourier_resample
+from gpnarx.training.excitations import sine, swept_sine
+from gpnarx.training.simulators.boucwen import BoucWen, compare_to_official, fourier_resample
 
 FS = 750.0
 OFFICIAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "boucwen"

@@ -23,15 +23,15 @@ import pytest
 from fastapi.testclient import TestClient
 from test_service_support import FS, built_registry, copy_registry
 
-from model.bundle import (
+from gpnarx.model.bundle import (
     STALE_TMP_SECONDS,
     Registry,
     next_version,
     remove_stale_temps,
     save_bundle,
 )
-from service.app import create_app
-from service.settings import Settings
+from gpnarx.service.app import create_app
+from gpnarx.service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
@@ -41,7 +41,7 @@ pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SI
 WRITER = textwrap.dedent("""
     import sys, time
     import numpy as np
-    import model.bundle as mb
+    import gpnarx.model.bundle as mb
 
     root, name, version, stage = sys.argv[1:5]
     bundle = mb.load_bundle(f"{root}/boucwen/1")

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from model.calibration import heldout_noise_var
-from model.estimator import GPNARX
-from model.metrics import coverage
+from gpnarx.model.calibration import heldout_noise_var
+from gpnarx.model.estimator import GPNARX
+from gpnarx.model.metrics import coverage
 
 
 def test_heldout_ml_recovers_a_known_noise_variance():
@@ -86,7 +86,7 @@ def test_bad_heldout_fails_before_ml2(sdof_data):
 
 
 def test_calibrated_model_round_trips_through_a_bundle(clean_and_noisy, tmp_path):
-    from model.bundle import load_bundle, save_bundle
+    from gpnarx.model.bundle import load_bundle, save_bundle
 
     train, held, test = clean_and_noisy
     m = GPNARX(ny=4, nu=4, mode="sparse", n_inducing=64, max_train_points=400, n_restarts=0).fit(

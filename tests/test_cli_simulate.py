@@ -6,10 +6,10 @@ import types
 import numpy as np
 import pytest
 
-from training import cli
-from training import cmd_simulate
-from training.excitations import swept_sine
-from training.simulators.boucwen import BoucWen
+from gpnarx.cli import main as cli
+from gpnarx.cli import cmd_simulate
+from gpnarx.training.excitations import swept_sine
+from gpnarx.training.simulators.boucwen import BoucWen
 
 
 def _run(*argv):
@@ -131,9 +131,9 @@ class _FakeStandin:
 
 
 def test_bert_standin_wiring(tmp_path, monkeypatch):
-    fake = types.ModuleType("training.simulators.bert_standin")
+    fake = types.ModuleType("gpnarx.training.simulators.bert_standin")
     fake.BertStandin = _FakeStandin
-    monkeypatch.setitem(sys.modules, "training.simulators.bert_standin", fake)
+    monkeypatch.setitem(sys.modules, "gpnarx.training.simulators.bert_standin", fake)
     _FakeStandin.calls.clear()
     out = tmp_path / "b.npz"
     assert _run("bert-standin", "--amplitude", "0.05", "--torque", "7", "--seed", "3", "--out", out) == 0

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from model.records import Record
-from training.config import ConfigError, DatasetConfig, load_config, parse_range
-from training.records import write_record
+from gpnarx.model.records import Record
+from gpnarx.training.config import ConfigError, DatasetConfig, load_config, parse_range
+from gpnarx.training.records import write_record
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared/data/bert-t5nm"
 
@@ -224,7 +224,7 @@ def test_simulate_option_errors(tmp_path):
 
 
 def test_standin_scatter_reaches_the_simulator(tmp_path):
-    from training.simulators.bert_standin import BertStandin
+    from gpnarx.training.simulators.bert_standin import BertStandin
 
     text = """
     name = "bert"
@@ -294,7 +294,7 @@ def test_parse_range():
 
 
 def test_every_shipped_config_loads_and_is_named_after_its_file():
-    from training.defaults import CONFIG_DIR, DEFAULT_BUNDLES
+    from gpnarx.training.defaults import CONFIG_DIR, DEFAULT_BUNDLES
 
     names = sorted(p.stem for p in CONFIG_DIR.glob("*.toml"))
     assert set(DEFAULT_BUNDLES) <= set(names)
@@ -305,7 +305,7 @@ def test_every_shipped_config_loads_and_is_named_after_its_file():
 
 
 def test_monitor_config_trains_on_healthy_probes_only():
-    from training.defaults import CONFIG_DIR
+    from gpnarx.training.defaults import CONFIG_DIR
 
     cfg = load_config(CONFIG_DIR / "bert-standin-monitor.toml")
     specs = {role: [s for s in cfg.records if role in s.roles] for role in ("train", "healthy", "damaged")}

@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from model.estimator import GPNARX
-from model.metrics import band_width, coverage, fit_percent, nrmse, rmse
-from model.psd import peak_frequencies, psd
-from model.regressors import narx_regressors, stack_regressors
-from model.records import Record, RecordError
+from gpnarx.model.estimator import GPNARX
+from gpnarx.model.metrics import band_width, coverage, fit_percent, nrmse, rmse
+from gpnarx.model.psd import peak_frequencies, psd
+from gpnarx.model.regressors import narx_regressors, stack_regressors
+from gpnarx.model.records import Record, RecordError
 
 
 def test_regressors_follow_eq3_and_never_straddle_records():
@@ -143,14 +143,14 @@ def test_psd_peak_and_windows():
 
 
 def test_sparse_vfe_refines_hyperparameters_on_all_rows(sdof_data):
-    from model.vfe import vfe_nlml_and_grad
+    from gpnarx.model.vfe import vfe_nlml_and_grad
 
     u, yn = sdof_data["u"][:2000], sdof_data["yn"][:2000]
     sub = GPNARX(ny=8, nu=8, mode="sparse", n_inducing=96, max_train_points=300, n_restarts=0).fit([(u, yn)])
     vfe = GPNARX(ny=8, nu=8, mode="sparse", n_inducing=96, max_train_points=300, n_restarts=0,
                  hyper="vfe").fit([(u, yn)])
     # the refined hyperparameters have a better (lower) negative VFE bound on all rows
-    from model.regressors import narx_regressors
+    from gpnarx.model.regressors import narx_regressors
 
     X, Y = narx_regressors(u, yn, 8, 8)
     Xs = vfe.x_scaler_.transform(X)
@@ -165,7 +165,7 @@ def test_sparse_vfe_refines_hyperparameters_on_all_rows(sdof_data):
 
 
 def test_novelty_start_rule():
-    from model.novelty import novelty_start
+    from gpnarx.model.novelty import novelty_start
 
     y = np.arange(10.0)
     assert np.array_equal(novelty_start(y, 3), [0.0, 1.0, 2.0])
@@ -175,7 +175,7 @@ def test_novelty_start_rule():
 
 
 def test_calibration_envelope_and_verdict():
-    from model.novelty import outside_envelope, record_envelope, verdict
+    from gpnarx.model.novelty import outside_envelope, record_envelope, verdict
 
     t = np.linspace(0, 1, 200)
     healthy = [(a * np.sin(20 * t), 0.1 * a * np.cos(20 * t)) for a in (1.0, 1.5)]
@@ -227,7 +227,7 @@ def test_constant_cap_keeps_the_predictive_variance_exact(sdof_data):
 
 
 def test_capped_model_round_trips_through_a_bundle(sdof_data, tmp_path):
-    from model.bundle import load_bundle, save_bundle
+    from gpnarx.model.bundle import load_bundle, save_bundle
 
     theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
     for mode in ("sparse", "exact"):
@@ -248,7 +248,7 @@ def test_linearised_run_of_a_diverging_model_stays_finite_and_quiet():
     import warnings
     from types import SimpleNamespace
 
-    from model.freerun import VAR_CAP, simulate_linear
+    from gpnarx.model.freerun import VAR_CAP, simulate_linear
 
     class Exploding:
         noise_var = 1e-3
@@ -268,7 +268,7 @@ def test_linearised_run_of_a_diverging_model_stays_finite_and_quiet():
 def test_bundle_built_before_the_variance_fix_warns_on_load(sdof_data, tmp_path):
     import json
 
-    from model.bundle import BundleWarning, _sha256, load_bundle, save_bundle
+    from gpnarx.model.bundle import BundleWarning, _sha256, load_bundle, save_bundle
 
     theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
     m = GPNARX(ny=6, nu=6, mode="sparse", n_inducing=64, max_train_points=400, constant_cap=None).fit(
@@ -298,9 +298,9 @@ def test_sparse_variance_is_accurate_when_the_noise_is_at_its_floor(sdof_data, t
     # the BLAS thread count, and survive the bundle round trip bit for bit
     from threadpoolctl import threadpool_limits
 
-    from model.bundle import load_bundle, save_bundle
-    from model.gp import sparse_variance_reference
-    from model.regressors import stack_regressors
+    from gpnarx.model.bundle import load_bundle, save_bundle
+    from gpnarx.model.gp import sparse_variance_reference
+    from gpnarx.model.regressors import stack_regressors
 
     # the real-BERT optimum's shape: a long Matérn length scale and a large cubic offset, so Kmm is
     # jitter-conditioned and the variance (1e-5) sits far below k(x, x) (1.2)
@@ -336,7 +336,7 @@ def test_sparse_bundle_with_the_single_matrix_variance_loads_and_warns(sdof_data
     # predict as they did (k** - k^T A k), and warn to retrain
     import json
 
-    from model.bundle import BundleWarning, _sha256, load_bundle, save_bundle
+    from gpnarx.model.bundle import BundleWarning, _sha256, load_bundle, save_bundle
 
     theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
     m = GPNARX(ny=6, nu=6, mode="sparse", n_inducing=64, max_train_points=400).fit(

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from training import excitations as ex
+from gpnarx.training import excitations as ex
 
 
 def _upward_crossings(x, fs):

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from model.gp import NotPositiveDefiniteError, cholesky_jitter, fit_ml2, initial_theta, nlml_and_grad
-from model.kernels import RBF, CubicPolynomial, Matern32, Sum, White, kernel_from_dict, make_kernel
+from gpnarx.model.gp import NotPositiveDefiniteError, cholesky_jitter, fit_ml2, initial_theta, nlml_and_grad
+from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, Sum, White, kernel_from_dict, make_kernel
 
 
 def test_paper_kernel_equals_direct_evaluation():
@@ -75,7 +75,7 @@ def test_nlml_gradient_matches_finite_differences():
 @pytest.mark.parametrize("spec", ["matern32+cubic", "rbf+cubic+white", "matern32"])
 def test_workspace_nlml_equals_materialised_gradients(spec):
     """The fused lower-triangle workspace path equals the textbook one (every dK materialised)."""
-    from model.gp import NLMLWorkspace, _nlml_and_grad_generic
+    from gpnarx.model.gp import NLMLWorkspace, _nlml_and_grad_generic
 
     rng = np.random.default_rng(5)
     X = rng.normal(size=(150, 4))  # 150 rows: several row blocks of the workspace (chunk 64)

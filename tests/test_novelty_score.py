@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from model.novelty import RMS_METHOD, SEGMENT_METHOD, SEGMENTS, method_of, novelty_score
+from gpnarx.model.novelty import RMS_METHOD, SEGMENT_METHOD, SEGMENTS, method_of, novelty_score
 
 
 def _healthy(n=2048, seed=0):

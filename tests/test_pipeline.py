@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from model.bundle import BundleError, Registry, load_bundle, save_bundle
-from training.cli import main
+from gpnarx.model.bundle import BundleError, Registry, load_bundle, save_bundle
+from gpnarx.cli.main import main
 
 SMALL_CONFIG = """
 name = "bw-small"
@@ -85,7 +85,7 @@ def test_train_writes_bundle_and_report(trained):
 
 def test_record_with_two_roles_is_simulated_once(small_config, tmp_path, monkeypatch):
     """lag-sweep has roles lags and verify: one free run, reported under both roles."""
-    import training.pipeline as pl
+    import gpnarx.training.pipeline as pl
 
     calls = []
     real = pl.evaluate_record
@@ -223,8 +223,8 @@ def test_segment_median_novelty_method_reaches_bundle_cli_and_service(small_conf
     """A config choosing the spike-robust score: the threshold, the CLI and the service all use it."""
     from fastapi.testclient import TestClient
 
-    from model.novelty import SEGMENT_METHOD, novelty_score, novelty_start
-    from service.app import create_app
+    from gpnarx.model.novelty import SEGMENT_METHOD, novelty_score, novelty_start
+    from gpnarx.service.app import create_app
 
     cfg = tmp_path / "seg.toml"
     cfg.write_text(small_config.read_text().replace("false_alarm_rate = 0.05",
@@ -282,7 +282,7 @@ def test_cli_errors_are_one_line_exit_2(argv, needle, trained, small_config, tmp
 
 
 def test_lag_surface_joblib_resumes_and_matches_dask(small_config, tmp_path):
-    from training.lags import choose_lags, lag_surface
+    from gpnarx.training.lags import choose_lags, lag_surface
 
     s1 = lag_surface(small_config, [2, 4], [2, 4], jobs=2, cache_dir=tmp_path / "c1")
     assert s1["cached_cells"] == 0 and len(s1["cells"]) == 4
@@ -305,7 +305,7 @@ def test_lag_surface_joblib_resumes_and_matches_dask(small_config, tmp_path):
 
 
 def test_choose_lags_rule():
-    from training.lags import choose_lags
+    from gpnarx.training.lags import choose_lags
 
     cells = [{"ny": 20, "nu": 17, "fit": 92.4}, {"ny": 10, "nu": 8, "fit": 92.1}, {"ny": 4, "nu": 4, "fit": 80.0},
              {"ny": 12, "nu": 6, "fit": 92.0}]
@@ -325,7 +325,7 @@ def test_lags_cli_writes_surface_and_png(small_config, tmp_path, capsys):
 
 
 def test_grid_edge_names_the_axes_where_the_best_cell_is_the_largest_tried():
-    from training.lags import grid_edge
+    from gpnarx.training.lags import grid_edge
 
     assert grid_edge({"ny": 24, "nu": 10}, [2, 8, 24], [2, 10, 20]) == ["ny"]
     assert grid_edge({"ny": 24, "nu": 20}, [2, 8, 24], [2, 10, 20]) == ["ny", "nu"]
@@ -334,7 +334,7 @@ def test_grid_edge_names_the_axes_where_the_best_cell_is_the_largest_tried():
 
 
 def test_lags_cli_warns_when_the_best_cell_is_on_the_grid_edge(small_config, tmp_path, capsys, monkeypatch):
-    import training.lags as lags_mod
+    import gpnarx.training.lags as lags_mod
 
     def fake_cell(config_path, ny, nu, settings):  # fit rises with ny, peaks inside the nu range
         return {"ny": ny, "nu": nu, "fit": 80.0 + ny - abs(nu - 4), "fits": {}, "seconds": 0.0}
@@ -359,7 +359,7 @@ def test_lags_cli_warns_when_the_best_cell_is_on_the_grid_edge(small_config, tmp
 
 
 def test_noise_calibration_on_the_lags_record_reaches_the_bundle(tmp_path):
-    from training.pipeline import train
+    from gpnarx.training.pipeline import train
 
     p = tmp_path / "cal.toml"
     p.write_text(SMALL_CONFIG.format(ny=4, nu=4).replace("restarts = 0", "restarts = 0\nnoise_calibration = \"lags\""))

@@ -10,8 +10,8 @@ import scipy.io
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from model.records import Record
-from training.records import (
+from gpnarx.model.records import Record
+from gpnarx.training.records import (
     RecordFileError,
     read_record,
     velocity_to_acceleration,

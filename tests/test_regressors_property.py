@@ -18,7 +18,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from model.regressors import (
+from gpnarx.model.regressors import (
     MAX_LAGS,
     check_lags,
     first_index,

@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from model.restoring import loop_area, restoring_force
-from training import report as rp
+from gpnarx.model.restoring import loop_area, restoring_force
+from gpnarx.training import report as rp
 
 FS = 256.0
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from training.cli import main
+from gpnarx.cli.main import main
 
 BERT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bert-t5nm"
 
@@ -31,7 +31,7 @@ def test_reproduce_bouc_wen_quick(tmp_path, capsys):
     rj = json.loads((report / "report.json").read_text())
     assert rj["lag_surface"] and rj["paper"]["lags"]["fit"] == 92.4
     # the summary and the report say whether the best cell sits on the grid's largest ny / nu
-    from training.lags import grid_edge
+    from gpnarx.training.lags import grid_edge
 
     surf = json.loads((tmp_path / "lag_surface.json").read_text())
     assert summary["lag_grid_edge"] == grid_edge(surf["best"], surf["ny"], surf["nu"]) == rj["lag_surface"]["edge"]
@@ -88,9 +88,9 @@ def test_reproduce_bert_standin_quick_runs_the_monitor_and_novelty_study(tmp_pat
 
 
 def test_standin_oracle_uses_each_records_own_input():
-    from training.config import load_config
-    from training.defaults import shipped_config
-    from training.reproduce import standin_oracle
+    from gpnarx.training.config import load_config
+    from gpnarx.training.defaults import shipped_config
+    from gpnarx.training.reproduce import standin_oracle
 
     names = {"noise-0.30V": None, "sine-18Hz-0.15V": None}
     first = standin_oracle(load_config(shipped_config("bert-standin")), names)

@@ -29,8 +29,8 @@ from test_service_support import (
     simulate,
 )
 
-from service.app import create_app, openapi_json
-from service.settings import DEFAULT_BOUNDS, Settings
+from gpnarx.service.app import create_app, openapi_json
+from gpnarx.service.settings import DEFAULT_BOUNDS, Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEM = "application/problem+json"
@@ -96,7 +96,7 @@ def test_committed_openapi_matches_app():
 
 
 def test_cli_export_openapi(tmp_path):
-    from training.cli import main
+    from gpnarx.cli.main import main
 
     out = tmp_path / "doc.json"
     assert main(["export-openapi", "--out", str(out)]) == 0
@@ -104,9 +104,9 @@ def test_cli_export_openapi(tmp_path):
 
 
 def test_cli_serve_without_builder_is_one_line_error(monkeypatch, capsys):
-    from training.cli import main
+    from gpnarx.cli.main import main
 
-    monkeypatch.setitem(sys.modules, "training.defaults", None)  # import fails
+    monkeypatch.setitem(sys.modules, "gpnarx.training.defaults", None)  # import fails
     assert main(["serve"]) == 2
     err = capsys.readouterr().err
     assert "default registry builder is not available" in err and err.count("\n") == 1
@@ -218,7 +218,7 @@ def test_loops(client):
 
 
 def test_novelty_healthy_and_damaged(client):
-    from training.simulators.boucwen import BoucWen
+    from gpnarx.training.simulators.boucwen import BoucWen
 
     u = multisine(384, 21)
     base = {"u": u.tolist(), "fs": FS, "mc_paths": 64, "seed": 0}
@@ -398,7 +398,7 @@ def test_hostile_bodies_and_paths(client):
 
 
 def test_unexpected_error_is_a_500_problem(registry, monkeypatch):
-    from service import ops
+    from gpnarx.service import ops
 
     def boom(*a, **k):
         raise RuntimeError("secret internals /etc/passwd")
@@ -476,7 +476,7 @@ def test_queue_full_sheds_503_and_live_stays_fast(registry):
 
 # ------------------------------------------------------------------------------------------ faults, reload
 def test_corrupted_bundle_refused_others_serve_and_reload(tmp_path):
-    from model.bundle import save_bundle
+    from gpnarx.model.bundle import save_bundle
 
     root = copy_registry(tmp_path / "reg")
     npy = sorted((root / "boucwen" / "2").glob("*.npy"))[0]
@@ -621,7 +621,7 @@ def test_cli_serve_subprocess_and_sighup_reload(tmp_path):
     import signal
     import socket
 
-    from model.bundle import save_bundle
+    from gpnarx.model.bundle import save_bundle
 
     root = copy_registry(tmp_path / "reg")
     s = socket.socket()
@@ -630,7 +630,7 @@ def test_cli_serve_subprocess_and_sighup_reload(tmp_path):
     s.close()
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("GPNARX_API_KEY", None)
-    proc = subprocess.Popen([sys.executable, "-m", "training.cli", "serve", "--registry", str(root), "--port",
+    proc = subprocess.Popen([sys.executable, "-m", "gpnarx", "serve", "--registry", str(root), "--port",
                              str(port), "--log-level", "warning"], cwd=str(ROOT), env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     url = f"http://127.0.0.1:{port}"
@@ -659,8 +659,8 @@ def test_cli_serve_subprocess_and_sighup_reload(tmp_path):
 
 
 def test_model_detail_reports_a_held_out_noise_calibration(tmp_path):
-    from model.bundle import save_bundle
-    from model.estimator import GPNARX
+    from gpnarx.model.bundle import save_bundle
+    from gpnarx.model.estimator import GPNARX
 
     u, y = short_record(600, 1)
     u2, y2 = short_record(300, 2)

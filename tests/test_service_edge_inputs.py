@@ -14,8 +14,8 @@ import pytest
 from fastapi.testclient import TestClient
 from test_service_support import FS, built_registry
 
-from service.app import create_app
-from service.settings import Settings
+from gpnarx.service.app import create_app
+from gpnarx.service.settings import Settings
 
 PROBLEM = "application/problem+json"
 OPS = ("predict", "loops", "novelty")

@@ -20,8 +20,8 @@ from hypothesis import strategies as st
 from schemathesis import GenerationMode
 from test_service_support import FS, LiveServer, built_registry
 
-from service.app import create_app
-from service.settings import Settings
+from gpnarx.service.app import create_app
+from gpnarx.service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "openapi" / "openapi.json"

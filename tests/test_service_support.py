@@ -26,7 +26,7 @@ NOISE = 0.05
 
 
 def simulate(u):
-    from training.simulators.boucwen import BoucWen
+    from gpnarx.training.simulators.boucwen import BoucWen
 
     return BoucWen().simulate(np.asarray(u, float))["y"]
 
@@ -37,7 +37,7 @@ def noisy(y, seed):
 
 
 def multisine(n, seed, rms=10.0):
-    from training import excitations as ex
+    from gpnarx.training import excitations as ex
 
     return ex.multisine(FS, rms, 5.0, 150.0, n, seed=seed)
 
@@ -53,11 +53,11 @@ class Built:
 @functools.lru_cache(maxsize=1)
 def built_registry() -> Built:
     """Train once per session; returns the registry folder (do not modify it: copy it)."""
-    from model.bundle import save_bundle
-    from model.estimator import GPNARX
-    from model.novelty import calibrate_threshold, novelty_score, record_envelope
-    from service.app import limit_blas_threads
-    from training import excitations as ex
+    from gpnarx.model.bundle import save_bundle
+    from gpnarx.model.estimator import GPNARX
+    from gpnarx.model.novelty import calibrate_threshold, novelty_score, record_envelope
+    from gpnarx.service.app import limit_blas_threads
+    from gpnarx.training import excitations as ex
 
     limit_blas_threads(1)  # as the service does; multi-threaded BLAS on small products only oversubscribes
     root = Path(tempfile.mkdtemp(prefix="gpnarx-svc-registry-"))

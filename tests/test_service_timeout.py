@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 from test_service_support import FS, LiveServer, built_registry, multisine, short_record
 
-from service.app import create_app
-from service.settings import Settings
-from service.worker import (
+from gpnarx.service.app import create_app
+from gpnarx.service.settings import Settings
+from gpnarx.service.worker import (
     Abandoned,
     BoundedExecutor,
     Cancelled,
@@ -185,7 +185,7 @@ def test_client_disconnect_frees_the_worker(rate):
 
 def test_queued_request_past_time_limit_is_503(monkeypatch):
     """Deterministic: the job ignores cancellation for 2 s (a long checkpoint interval)."""
-    from service import ops
+    from gpnarx.service import ops
 
     def stubborn(plan, req, token=None):
         time.sleep(2.0)

@@ -6,10 +6,10 @@ import time
 import numpy as np
 import pytest
 
-from model import gp
-from model.gp import SparsePosterior, choose_inducing, initial_theta, nlml_and_grad
-from model.kernels import RBF, CubicPolynomial, Matern32, White, make_kernel
-from model.vfe import cross_grads, diag_grads, fit_vfe, vfe_nlml_and_grad
+from gpnarx.model import gp
+from gpnarx.model.gp import SparsePosterior, choose_inducing, initial_theta, nlml_and_grad
+from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, White, make_kernel
+from gpnarx.model.vfe import cross_grads, diag_grads, fit_vfe, vfe_nlml_and_grad
 
 
 @pytest.fixture(autouse=True)
@@ -150,8 +150,8 @@ def test_fit_vfe_recovers_noise_on_1d_toy():
 def test_fit_vfe_on_narx_regressors_avoids_noise_only_optimum(sdof_data):
     """32-D NARX regressors of a noisy SDOF: from the data-scaled start alone L-BFGS-B slides to
     s2 -> var(y); the exact-ML-II warm start on a strided subset keeps the real optimum."""
-    from model.regressors import stack_regressors
-    from model.scaling import Standardizer
+    from gpnarx.model.regressors import stack_regressors
+    from gpnarx.model.scaling import Standardizer
 
     X, Y, _ = stack_regressors([(sdof_data["u"], sdof_data["yn"])], 16, 16)
     X2, Y2, _ = stack_regressors([(sdof_data["u2"], sdof_data["y2"])], 16, 16)

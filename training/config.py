@@ -85,7 +85,8 @@ from pathlib import Path
 
 import numpy as np
 
-from model.records import Record, RecordError
+from gpnarx.model.records import Record, RecordError
+from gpnarx.training import simulation_specs as specs
 
 __all__ = [
     "ConfigError",
@@ -105,8 +106,8 @@ KERNELS = ("rbf", "matern32", "rbf+cubic", "matern32+cubic")
 MODES = ("exact", "sparse")
 SELECTIONS = ("stride", "random", "resonance")
 OUTPUTS = ("displacement", "velocity")
-SIM_SYSTEMS = ("bouc-wen", "bert-standin")
-SIM_EXCITATIONS = ("sweep", "sine", "multisine", "noise")
+SIM_SYSTEMS = specs.SYSTEMS
+SIM_EXCITATIONS = specs.EXCITATIONS
 _SIM_KEYS = {"system", "excitation", "amplitude", "f0", "f1", "rate", "freq", "duration", "seed", "torque", "scatter"}
 _RECORD_KEYS = {"name", "roles", "path", "simulate", "noise", "window", "meta", "fs"}
 _NOISE_KEYS = {"fraction", "reference", "seed"}
@@ -183,12 +184,15 @@ def parse_range(spec) -> list[int]:
 
 
 def bert_data_dir() -> Path:
-    """Folder of the real BERT records: ``$GPNARX_BERT_DATA`` or ``<repo>/../shared/data/bert-t5nm``."""
+    """Folder of the real BERT records: ``$GPNARX_BERT_DATA``, else the first existing of
+    ``<source checkout>/../shared/data/bert-t5nm`` and ``./shared/data/bert-t5nm`` or
+    ``../shared/data/bert-t5nm`` from the working directory (the first candidate when none exists)."""
     env = os.environ.get("GPNARX_BERT_DATA")
     if env:
         return Path(env).expanduser()
-    repo = Path(__file__).resolve().parent.parent
-    return repo.parent / "shared" / "data" / "bert-t5nm"
+    tail = Path("shared") / "data" / "bert-t5nm"
+    candidates = [Path(__file__).resolve().parent.parent.parent / tail, Path.cwd() / tail, Path.cwd().parent / tail]
+    return next((c for c in candidates if c.is_dir()), candidates[0])
 
 
 def expand_path(raw: str, base: Path) -> Path:
@@ -296,7 +300,7 @@ class DatasetConfig:
             except (ValueError, RecordError) as exc:
                 raise _err(self.path, f"{key}.simulate", str(exc)) from None
         else:
-            from training.records import RecordFileError, read_record
+            from gpnarx.training.records import RecordFileError, read_record
 
             try:
                 rec = read_record(spec.path, fs=spec.fs, name=spec.name, fs_default=self.fs)
@@ -371,10 +375,8 @@ def simulate_record(sim: dict, output: str = "default", name: str | None = None)
     """Simulate a record from a ``simulate`` table (the arguments of ``gpnarx simulate``).
 
     output: "displacement", "velocity" or "default" (the system's own: Bouc-Wen displacement,
-    stand-in velocity). Uses the CLI's defaults (``training.cmd_simulate.DEFAULTS``) and conventions.
+    stand-in velocity). Uses the CLI's defaults (``gpnarx.training.simulation_specs.DEFAULTS``) and conventions.
     """
-    from training import cmd_simulate as cs
-
     unknown = set(sim) - _SIM_KEYS
     if unknown:
         raise ConfigError(f"unknown option(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(_SIM_KEYS))}")
@@ -389,8 +391,8 @@ def simulate_record(sim: dict, output: str = "default", name: str | None = None)
     for key in ("torque", "scatter"):
         if key in sim and system != "bert-standin":
             raise ConfigError(f"{key} applies only to bert-standin")
-    defaults = cs.DEFAULTS[system]
-    uses = cs._USES[exc]
+    defaults = specs.DEFAULTS[system]
+    uses = specs.USES[exc]
     for k in ("f0", "f1", "rate", "freq", "duration"):
         if k in sim and k not in uses:
             raise ConfigError(f"{k} does not apply to excitation {exc}")
@@ -409,34 +411,34 @@ def simulate_record(sim: dict, output: str = "default", name: str | None = None)
         if not 0.0 <= spec["scatter"] <= 100.0:
             raise ConfigError(f"scatter must be between 0 and 100 (1 = calibrated default), got {spec['scatter']:g}")
     fs = float(defaults["fs"])
-    u, used = cs._excitation(spec, fs)
+    u, used = specs.excitation(spec, fs)
     if output == "default":
         output = "displacement" if system == "bouc-wen" else "velocity"
     if output not in OUTPUTS:
         raise ConfigError(f"output must be one of {', '.join(OUTPUTS)}, got {output!r}")
     if system == "bouc-wen":
-        from training.simulators.boucwen import BoucWen
+        from gpnarx.training.simulators.boucwen import BoucWen
 
         bw = BoucWen(fs=fs)
         key = "y" if output == "displacement" else "v"
         if exc == "multisine":
             y = bw.simulate(u, periodic=True)[key]
         elif exc == "sine":
-            pre, tail = cs._sine_padding(fs, defaults["preroll"])
-            y = bw.simulate(cs._padded_sine(spec, fs, u.size, pre, tail))[key][pre : pre + u.size]
+            pre, tail = specs.sine_padding(fs, defaults["preroll"])
+            y = bw.simulate(specs.padded_sine(spec, fs, u.size, pre, tail))[key][pre : pre + u.size]
         else:
             y = bw.simulate(u)[key]
         units = {"u": "N", "y": "m" if output == "displacement" else "m/s"}
     else:
-        from training.simulators.bert_standin import BertStandin
+        from gpnarx.training.simulators.bert_standin import BertStandin
 
         model = BertStandin(torque=spec["torque"], seed=seed, scatter=spec["scatter"])
         key = "x" if output == "displacement" else "y"
         if exc == "multisine":
             full, start = np.tile(u, 2), u.size
         elif exc == "sine":
-            pre, tail = cs._sine_padding(fs, defaults["preroll"])
-            full, start = cs._padded_sine(spec, fs, u.size, pre, tail), pre
+            pre, tail = specs.sine_padding(fs, defaults["preroll"])
+            full, start = specs.padded_sine(spec, fs, u.size, pre, tail), pre
         else:
             full, start = u, 0
         y = model.simulate(full, fs=fs)[key][start : start + u.size]
@@ -505,7 +507,7 @@ def _choice(v, key, path, choices) -> str:
 
 
 def _build(doc: dict, path: Path) -> DatasetConfig:
-    from training.records import RecordFileError, normalize_unit
+    from gpnarx.training.records import RecordFileError, normalize_unit
 
     name = doc.get("name")
     if name is None:
@@ -569,7 +571,7 @@ def _build(doc: dict, path: Path) -> DatasetConfig:
     if isinstance(far, bool) or not isinstance(far, (int, float)) or not 0 < far < 1:
         raise _err(path, "novelty.false_alarm_rate", f"must be between 0 and 1, got {far!r}")
     novelty["false_alarm_rate"] = float(far)
-    from model.novelty import METHODS
+    from gpnarx.model.novelty import METHODS
 
     if novelty["method"] not in METHODS:
         raise _err(path, "novelty.method", f"must be one of {', '.join(METHODS)}, got {novelty['method']!r}")
@@ -594,7 +596,7 @@ def _build(doc: dict, path: Path) -> DatasetConfig:
         held = [s for s in specs if "lags" in s.roles]
         if not held:
             raise _err(path, "model.noise_calibration", "'lags' needs at least one record with role 'lags' "
-                       "(held out from training)")
+                       "(held out from gpnarx.training)")
         for s in held:
             if "train" in s.roles:
                 raise _err(path, f"records.{s.name}.roles", "a 'lags' record calibrates the noise "

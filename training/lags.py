@@ -26,14 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from model.metrics import fit_percent
+from gpnarx.model.metrics import fit_percent
 
 DEFAULT_TOLERANCE = 0.5
 
 
 @lru_cache(maxsize=4)
 def _load(config_path: str, mtime: float):
-    from training.config import load_config
+    from gpnarx.training.config import load_config
 
     cfg = load_config(config_path)
     return cfg, cfg.records_for("train"), cfg.records_for("lags")
@@ -46,7 +46,7 @@ def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
     The free-run mean comes from the first-order propagation (deterministic); it equals feeding
     back the mean, as eq. (14) scores the model mean output.
     """
-    from training.pipeline import model_from_config
+    from gpnarx.training.pipeline import model_from_config
 
     cfg, train, lag_recs = _load(str(config_path), os.path.getmtime(config_path))
     if settings.get("max_seconds"):  # quick mode: the first max_seconds of every record
@@ -77,7 +77,7 @@ def shorten(rec, seconds: float):
     n = int(round(seconds * rec.fs))
     if n >= rec.n:
         return rec
-    from model.records import Record
+    from gpnarx.model.records import Record
 
     meta = dict(rec.meta)
     if meta.get("clean_y") is not None:
@@ -198,7 +198,7 @@ def write_surface(surface: dict, out) -> list[Path]:
     os.replace(tmp, out)
     paths.append(out)
     try:
-        from training.report import lag_surface_figure
+        from gpnarx.training.report import lag_surface_figure
 
         png = out.with_suffix(".png")
         lag_surface_figure(surface["cells"], (surface["chosen"]["ny"], surface["chosen"]["nu"]),

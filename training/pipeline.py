@@ -14,13 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from model.bundle import save_bundle
-from model.estimator import GPNARX
-from model.novelty import (RMS_METHOD, calibrate_threshold, novelty_score, novelty_start, outside_envelope,
+from gpnarx.model.bundle import save_bundle
+from gpnarx.model.estimator import GPNARX
+from gpnarx.model.novelty import (RMS_METHOD, calibrate_threshold, novelty_score, novelty_start, outside_envelope,
                            record_envelope, verdict)
-from model.records import Record
-from training.config import ConfigError, DatasetConfig, load_config
-from training.jsonsafe import to_json_safe
+from gpnarx.model.records import Record
+from gpnarx.training.config import ConfigError, DatasetConfig, load_config
+from gpnarx.training.jsonsafe import to_json_safe
 
 EVAL_ROLES = ("lags", "verify", "validate", "healthy", "damaged")
 
@@ -70,7 +70,7 @@ def evaluate_record(model: GPNARX, rec: Record, role: str, n_paths: int, seed: i
 
 
 def basic_metrics(ev: dict) -> dict:
-    from model.metrics import summary
+    from gpnarx.model.metrics import summary
 
     res = {}
     if ev["y"] is not None:
@@ -122,7 +122,7 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
     def records(role):
-        from training.lags import shorten
+        from gpnarx.training.lags import shorten
 
         recs = cfg.records_for(role)
         return [shorten(r, max_seconds) for r in recs] if max_seconds else recs
@@ -165,7 +165,7 @@ def train(config, registry, name: str | None = None, version: str | None = None,
         log(f"  {role:8s} {rec.name}: " + ", ".join(f"{k}={v:.4g}" for k, v in ev["metrics"].items()))
     bar.close()
     if baselines is None:
-        from training.baselines import fit_baselines, score_baselines
+        from gpnarx.training.baselines import fit_baselines, score_baselines
 
         fitted = fit_baselines(train_recs, model.ny, model.nu, log=log)
         baselines = score_baselines(fitted, [rec for _, rec in todo])
@@ -195,7 +195,7 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     with tempfile.TemporaryDirectory() as tmp:
         report_dir = None
         if report:
-            from training.report import write_report
+            from gpnarx.training.report import write_report
 
             report_dir = Path(tmp) / "report"
             full = write_report(report_dir, f"GP-NARX {cfg.name}", {

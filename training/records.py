@@ -66,7 +66,7 @@ from pathlib import Path
 
 import numpy as np
 
-from model.records import Record, RecordError
+from gpnarx.model.records import Record, RecordError
 
 __all__ = [
     "RecordFileError",

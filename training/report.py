@@ -31,10 +31,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from model import metrics as _metrics  # noqa: E402
-from model import psd as _psd  # noqa: E402
-from model.restoring import loop_area, restoring_force  # noqa: E402
-from training.lags import edge_message, grid_edge  # noqa: E402
+from gpnarx.model import metrics as _metrics  # noqa: E402
+from gpnarx.model import psd as _psd  # noqa: E402
+from gpnarx.model.restoring import loop_area, restoring_force  # noqa: E402
+from gpnarx.training.lags import edge_message, grid_edge  # noqa: E402
 
 GP_NAME = "GP-NARX"
 ZOOM_SECONDS = 0.25

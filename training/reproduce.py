@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from model.novelty import RMS_METHOD
-from training.defaults import shipped_config
+from gpnarx.model.novelty import RMS_METHOD
+from gpnarx.training.defaults import shipped_config
 
 PAPER = {
     "bouc-wen": {"lags": {"ny": 20, "nu": 17, "fit": 92.4}, "records": {}},
@@ -48,9 +48,9 @@ SYSTEMS = tuple(PAPER)
 def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, scheduler: str | None = None,
               mc_paths: int | None = None, novelty_n: int = 20, log=None, progress: bool = False) -> dict:
     """Run one protocol; returns the summary (also written to OUT/report.json with figures)."""
-    from training.config import load_config
-    from training.lags import edge_message, lag_surface, write_surface
-    from training.pipeline import train
+    from gpnarx.training.config import load_config
+    from gpnarx.training.lags import edge_message, lag_surface, write_surface
+    from gpnarx.training.pipeline import train
 
     if system not in SYSTEMS:
         raise ValueError(f"system must be one of {SYSTEMS}, got {system!r}")
@@ -107,7 +107,7 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
 
 
 def _clean(o):
-    from training.jsonsafe import to_json_safe
+    from gpnarx.training.jsonsafe import to_json_safe
 
     return to_json_safe(o)
 
@@ -117,8 +117,8 @@ def standin_oracle(cfg, records: dict) -> dict:
     a seeded realization, the fit % (eq. 14) of the *nominal* stand-in (same input, ``seed=None``)
     against the record's clean output. No model trained on other realizations can be expected to do
     better than this on average, so it is reported beside the GP-NARX's fit."""
-    from model.metrics import fit_percent
-    from training.config import simulate_record
+    from gpnarx.model.metrics import fit_percent
+    from gpnarx.training.config import simulate_record
 
     out = {}
     for spec in cfg.records:
@@ -133,7 +133,7 @@ def standin_oracle(cfg, records: dict) -> dict:
                 raise RuntimeError(f"{spec.name}: the nominal run's input differs from the record's")
             y_nom = nominal.y
         else:  # from rest on the record's own input (the seed also drew a noise excitation)
-            from training.simulators.bert_standin import BertStandin
+            from gpnarx.training.simulators.bert_standin import BertStandin
 
             sim = BertStandin(torque=float(spec.simulate.get("torque", 5.0)), seed=None).simulate(rec.u, fs=rec.fs)
             y_nom = sim["x" if output == "displacement" else "y"]
@@ -166,8 +166,8 @@ def novelty_study(model, out: Path, probe: dict, n_per_class: int = 20, n_paths:
     ``n_paths=0`` scores with the linearised propagation (deterministic, one pass per record; the
     same as ``"method": "linear"`` on the service's novelty route), else Monte Carlo.
     """
-    from model.novelty import calibrate_threshold, novelty_score, novelty_start
-    from training.config import simulate_record
+    from gpnarx.model.novelty import calibrate_threshold, novelty_score, novelty_start
+    from gpnarx.training.config import simulate_record
 
     log = log or (lambda m: None)
     probe = dict(probe)

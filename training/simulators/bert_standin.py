@@ -440,7 +440,7 @@ def noise_frf(model: BertStandin | None = None, rms: float = 0.00265, duration: 
     """
     from scipy import signal
 
-    from training.excitations import band_limited_noise
+    from gpnarx.training.excitations import band_limited_noise
 
     model = model or BertStandin()
     u = band_limited_noise(fs, duration, f_band[0], f_band[1], rms, seed=seed)
@@ -505,7 +505,7 @@ def real_sine_amplitudes(data_dir=None, n_harmonics: int = 3) -> list[dict]:
     harmonics 1..n, all by least squares on the steady part of the burst (from 10 s after the start
     to 1 s before the drive stops).
     """
-    from training.records import read_record
+    from gpnarx.training.records import read_record
 
     root = _bert_data_dir(data_dir) / "Sine"
     if not root.is_dir():

@@ -18,7 +18,7 @@ def add_parser(sub):
 
 
 def run(args):
-    from training.pipeline import train
+    from gpnarx.training.pipeline import train
 
     quiet = args.json
     res = train(args.config, args.registry, name=args.name, version=args.version, progress=not quiet,

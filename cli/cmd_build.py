@@ -10,8 +10,8 @@ def add_parser(sub):
 
 
 def run(args):
-    from model.bundle import Registry
-    from training.defaults import ensure_default_registry
+    from gpnarx.model.bundle import Registry
+    from gpnarx.training.defaults import ensure_default_registry
 
     root = ensure_default_registry(args.registry, progress=not args.json, mc_paths=args.mc)
     reg = Registry(root).scan()

@@ -17,7 +17,7 @@ def add_parser(sub):
 
 
 def run(args):
-    from training.reproduce import reproduce
+    from gpnarx.training.reproduce import reproduce
 
     out = args.out or f"runs/reproduce-{args.system}{'-quick' if args.quick else ''}"
     log = None if args.json else (lambda m: print(m, file=sys.stderr, flush=True))

@@ -51,44 +51,18 @@ import time
 
 import numpy as np
 
-from training import excitations as ex
-from training.cli import CLIError
+from gpnarx.cli.errors import CLIError
+from gpnarx.training.simulation_specs import (
+    DEFAULTS,
+    EXCITATIONS,
+    SYSTEMS,
+    USES,
+    excitation,
+    padded_sine,
+    sine_padding,
+)
 
-SYSTEMS = ("bouc-wen", "bert-standin")
-EXCITATIONS = ("sweep", "sine", "multisine", "noise")
-
-#: Per-system defaults (Hz, Hz/s, s, samples).
-DEFAULTS = {
-    "bouc-wen": {
-        "fs": 750.0,
-        "units": {"u": "N", "y": "m"},
-        "sweep": {"f0": 5.0, "f1": 150.0, "rate": 53.0, "duration": None},  # None: the sweep's length
-        "sine": {"freq": 35.59, "duration": 2.0},
-        "multisine": {"f0": 5.0, "f1": 150.0, "duration": 8192 / 750.0},
-        "noise": {"f0": 5.0, "f1": 150.0, "duration": 8192 / 750.0},
-        "preroll": 8.0,
-    },
-    "bert-standin": {
-        "fs": 1024.0,
-        "units": {"u": "V", "y": "m/s"},
-        "sweep": {"f0": 0.0, "f1": 40.0, "rate": 5.0, "duration": 16.0},
-        "sine": {"freq": 18.0, "duration": 16.0},
-        "multisine": {"f0": 0.0, "f1": 40.0, "duration": 16.0},
-        "noise": {"f0": 0.0, "f1": 110.0, "duration": 16.0},
-        "preroll": 10.0,
-    },
-}
-SINE_TAIL = 0.25  # s simulated after a steady sine record and cut off (input interpolation end effects)
 PROGRESS_ABOVE = 10.0  # s of simulated signal above which a progress bar is shown (on a TTY)
-
-# options each excitation uses (others are rejected rather than silently ignored; --seed is always
-# accepted: it seeds the multisine phases, the noise excitation, the output noise and the stand-in)
-_USES = {
-    "sweep": {"f0", "f1", "rate", "duration"},
-    "sine": {"freq", "duration"},
-    "multisine": {"f0", "f1", "duration"},
-    "noise": {"f0", "f1", "duration"},
-}
 
 
 def add_parser(subparsers) -> None:
@@ -167,7 +141,7 @@ def _parse(args) -> dict:
         raise CLIError("--out FILE is required (.npz or .csv)")
     amplitude = _number(args, "amplitude", positive=True)
     spec = {"system": system, "excitation": exc, "amplitude": amplitude, "out": args.out}
-    uses = _USES[exc] | {"seed"} | ({"torque", "scatter"} if system == "bert-standin" else set())
+    uses = USES[exc] | {"seed"} | ({"torque", "scatter"} if system == "bert-standin" else set())
     for name in ("f0", "f1", "rate", "freq", "duration", "seed", "torque", "scatter"):
         if getattr(args, name) is not None and name not in uses:
             if name in ("torque", "scatter"):
@@ -194,31 +168,6 @@ def _parse(args) -> dict:
 
 
 # ----------------------------------------------------------------------------- excitation
-def _excitation(spec: dict, fs: float) -> tuple[np.ndarray, dict]:
-    """Input samples of the returned record and a dict of the settings actually used."""
-    exc, a = spec["excitation"], spec["amplitude"]
-    if exc == "sweep":
-        f0, f1, rate = spec["f0"], spec["f1"], spec["rate"]
-        sweep = ex.swept_sine(fs, a, f0, f1, rate=rate)
-        duration = spec["duration"]
-        n = sweep.size if duration is None else ex.n_samples(fs, duration)
-        u = np.zeros(n)
-        m = min(n, sweep.size)
-        u[:m] = sweep[:m]
-        f_end = min(f1, f0 + rate * (m - 1) / fs)
-        return u, {"f0": f0, "f1": f1, "rate": rate, "f_end": f_end}
-    if exc == "sine":
-        ex.sine(fs, a, spec["freq"], 1.0 / fs)  # validates freq against fs
-        return ex.sine(fs, a, spec["freq"], spec["duration"]), {"freq": spec["freq"]}
-    if exc == "multisine":
-        n = ex.n_samples(fs, spec["duration"])
-        u = ex.multisine(fs, a, spec["f0"], spec["f1"], n, seed=spec["seed"])
-        lines = ex.multisine_lines(fs, spec["f0"], spec["f1"], n)
-        return u, {"f0": spec["f0"], "f1": spec["f1"], "n_per_period": n, "n_lines": int(lines.size)}
-    u = ex.band_limited_noise(fs, spec["duration"], spec["f0"], spec["f1"], a, seed=spec["seed"])
-    return u, {"f0": spec["f0"], "f1": spec["f1"]}
-
-
 # ----------------------------------------------------------------------------- simulation
 class _Progress:
     """tqdm bar on stderr for long runs (disabled when short or stderr is not a TTY)."""
@@ -243,7 +192,7 @@ class _Progress:
 
 
 def _simulate_boucwen(u: np.ndarray, exc: str, spec: dict, fs: float) -> np.ndarray:
-    from training.simulators.boucwen import BoucWen
+    from gpnarx.training.simulators.boucwen import BoucWen
 
     bw = BoucWen(fs=fs)
     if exc == "multisine":
@@ -254,8 +203,8 @@ def _simulate_boucwen(u: np.ndarray, exc: str, spec: dict, fs: float) -> np.ndar
         finally:
             prog.close()
     if exc == "sine":
-        pre, tail = _sine_padding(fs, DEFAULTS["bouc-wen"]["preroll"])
-        full = _padded_sine(spec, fs, u.size, pre, tail)
+        pre, tail = sine_padding(fs, DEFAULTS["bouc-wen"]["preroll"])
+        full = padded_sine(spec, fs, u.size, pre, tail)
         prog = _Progress(full.size, full.size / fs, "bouc-wen")
         try:
             return bw.simulate(full, callback=prog.update)["y"][pre : pre + u.size]
@@ -268,30 +217,19 @@ def _simulate_boucwen(u: np.ndarray, exc: str, spec: dict, fs: float) -> np.ndar
         prog.close()
 
 
-def _sine_padding(fs: float, preroll: float) -> tuple[int, int]:
-    """Pre-roll and tail lengths [samples] of a steady sine."""
-    return int(round(preroll * fs)), int(round(SINE_TAIL * fs))
-
-
-def _padded_sine(spec: dict, fs: float, n: int, pre: int, tail: int) -> np.ndarray:
-    """The same sine from sample -pre to n + tail (sample 0 at phase 0)."""
-    k = np.arange(-pre, n + tail, dtype=np.float64)
-    return spec["amplitude"] * np.sin(2.0 * np.pi * spec["freq"] * k / fs)
-
-
 def _simulate_standin(u: np.ndarray, exc: str, spec: dict, fs: float) -> np.ndarray:
     try:
-        from training.simulators.bert_standin import BertStandin
+        from gpnarx.training.simulators.bert_standin import BertStandin
     except ModuleNotFoundError as err:
-        if err.name and err.name.startswith("training.simulators.bert_standin"):
+        if err.name and err.name.startswith("gpnarx.training.simulators.bert_standin"):
             raise CLIError("the bert-standin simulator is not available in this build") from None
         raise
     sim = BertStandin(torque=spec["torque"], seed=spec["seed"], scatter=spec.get("scatter") or 1.0)
     if exc == "multisine":
         full, start = np.tile(u, 2), u.size
     elif exc == "sine":
-        pre, tail = _sine_padding(fs, DEFAULTS["bert-standin"]["preroll"])
-        full, start = _padded_sine(spec, fs, u.size, pre, tail), pre
+        pre, tail = sine_padding(fs, DEFAULTS["bert-standin"]["preroll"])
+        full, start = padded_sine(spec, fs, u.size, pre, tail), pre
     else:
         full, start = u, 0
     prog = _Progress(1, full.size / fs, "bert-standin")
@@ -347,12 +285,12 @@ def _write_record(path: str, u: np.ndarray, y: np.ndarray, fs: float, units: dic
 def _write(path: str, u: np.ndarray, y: np.ndarray, fs: float, units: dict, name: str, meta: dict) -> str:
     """Prefer the shared writer ``training.records.write_record``; fall back to :func:`_write_record`."""
     try:
-        from training.records import write_record
+        from gpnarx.training.records import write_record
     except ImportError:
         write_record = None
     if write_record is None:
         return _write_record(path, u, y, fs, units)
-    from model.records import Record
+    from gpnarx.model.records import Record
 
     target = _atomic_target(path)
     write_record(target, Record(u, y, fs, units=dict(units), name=name, meta=meta))
@@ -367,7 +305,7 @@ def run(args) -> dict:
     units = DEFAULTS[system]["units"]
     t0 = time.perf_counter()
     try:
-        u, used = _excitation(spec, fs)
+        u, used = excitation(spec, fs)
     except ValueError as err:  # name the CLI flag, e.g. "f1 must ..." -> "--f1 must ..."
         msg = str(err)
         for name in ("f0", "f1", "rate", "freq", "duration", "amplitude"):

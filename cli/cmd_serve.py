@@ -21,7 +21,7 @@ import os
 import sys
 from pathlib import Path
 
-from training.cli import CLIError
+from gpnarx.cli.errors import CLIError
 
 DEFAULT_OPENAPI = os.path.join("openapi", "openapi.json")
 
@@ -49,7 +49,7 @@ def _registry(arg) -> Path:
             raise CLIError(f"--registry {arg}: no such folder")
         return root
     try:
-        from training.defaults import ensure_default_registry
+        from gpnarx.training.defaults import ensure_default_registry
     except ImportError:
         raise CLIError("no --registry given and the default registry builder is not available") from None
     return Path(ensure_default_registry())
@@ -60,8 +60,8 @@ def run_serve(args):
         raise CLIError(f"--port must be between 1 and 65535, got {args.port}")
     import uvicorn
 
-    from service.app import create_app
-    from service.settings import Settings
+    from gpnarx.service.app import create_app
+    from gpnarx.service.settings import Settings
 
     root = _registry(args.registry)
     try:
@@ -81,7 +81,7 @@ def run_serve(args):
 
 
 def run_export(args):
-    from service.app import openapi_json
+    from gpnarx.service.app import openapi_json
 
     text = openapi_json()
     if args.out == "-":

@@ -15,23 +15,19 @@ import sys
 
 import numpy as np
 
-from training.jsonsafe import to_json_safe
+from gpnarx.cli.errors import CLIError
+from gpnarx.training.jsonsafe import to_json_safe
 
 # Subcommand modules, in the order shown by --help.
 COMMAND_MODULES = [
-    "training.cmd_simulate",
-    "training.cmd_lags",
-    "training.cmd_train",
-    "training.cmd_predict",
-    "training.cmd_novelty",
-    "training.cmd_serve",
-    "training.cmd_build",
-    "training.cmd_reproduce",
+    "gpnarx.cli.cmd_simulate",
+    "gpnarx.cli.cmd_lags",
+    "gpnarx.cli.cmd_train",
+    "gpnarx.cli.cmd_predict",
+    "gpnarx.cli.cmd_serve",
+    "gpnarx.cli.cmd_build",
+    "gpnarx.cli.cmd_reproduce",
 ]
-
-
-class CLIError(Exception):
-    """An error the user can fix; printed as one line, exit code 2."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -49,13 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--json", action="store_true", help="print one machine-readable JSON object on stdout")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for mod_name in COMMAND_MODULES:
-        try:
-            mod = importlib.import_module(mod_name)
-        except ModuleNotFoundError as exc:  # a command module not present in this build
-            if exc.name == mod_name:
-                continue
-            raise
-        mod.add_parser(sub)
+        importlib.import_module(mod_name).add_parser(sub)
     return parser
 
 

@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 
-from training.cli import CLIError
+from gpnarx.cli.errors import CLIError
 
 
 def _common(p):
@@ -57,19 +57,19 @@ def resolve_registry(registry):
         return registry
     if os.environ.get("GPNARX_REGISTRY"):
         return os.environ["GPNARX_REGISTRY"]
-    from training.defaults import ensure_default_registry
+    from gpnarx.training.defaults import ensure_default_registry
 
     return ensure_default_registry(progress=True)
 
 
 def load(args):
-    from model.bundle import BundleError, Registry, load_bundle, parse_model_ref
-    from model.runtime import tune_for_free_run
+    from gpnarx.model.bundle import BundleError, Registry, load_bundle, parse_model_ref
+    from gpnarx.model.runtime import tune_for_free_run
 
     if args.blas_threads is not None and args.blas_threads < 0:
         raise CLIError(f"--blas-threads must be >= 0, got {args.blas_threads}")
     tune_for_free_run(args.blas_threads)  # one BLAS thread and no per-step mmaps (see model/runtime.py)
-    from training.records import read_record
+    from gpnarx.training.records import read_record
 
     try:
         name, version = parse_model_ref(args.model)
@@ -119,12 +119,12 @@ def _progress(enabled, n):
 
 
 def run_predict(args):
-    from model.metrics import summary
+    from gpnarx.model.metrics import summary
 
     bundle, rec, mc = load(args)
     y0 = None
     if args.start == "measured":  # the novelty rule's start, so novelty_score below matches gpnarx novelty
-        from model.novelty import novelty_start
+        from gpnarx.model.novelty import novelty_start
 
         y0 = None if rec.y is None else novelty_start(rec.y, bundle.model.ny)
         if y0 is None:
@@ -142,7 +142,7 @@ def run_predict(args):
         m = summary(rec.y, run.mean, run.lower, run.upper)
         out.update({"fit": m["fit"], "rmse": m["rmse"], "coverage": m["coverage"], "band_width": m["band_width"]})
         if args.start == "measured":
-            from model.novelty import method_of, novelty_score
+            from gpnarx.model.novelty import method_of, novelty_score
 
             out["novelty_score"] = novelty_score(rec.y, run.mean, run.std,
                                                  method_of(bundle.manifest.get("novelty")))["score"]
@@ -177,7 +177,7 @@ def _write_prediction(path, rec, run):
 
 
 def run_novelty(args):
-    from model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
+    from gpnarx.model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
 
     bundle, rec, mc = load(args)
     if rec.y is None:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from training.cli import CLIError
+from gpnarx.cli.errors import CLIError
 
 
 def add_parser(sub):
@@ -21,8 +21,8 @@ def add_parser(sub):
 
 
 def run(args):
-    from training.config import load_config, parse_range
-    from training.lags import edge_message, lag_surface, write_surface
+    from gpnarx.training.config import load_config, parse_range
+    from gpnarx.training.lags import edge_message, lag_surface, write_surface
 
     cfg = load_config(args.config)
     ny_spec = args.ny or cfg.lags.get("ny")

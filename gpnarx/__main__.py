@@ -1,0 +1,6 @@
+"""``python -m gpnarx``: the same as the ``gpnarx`` console script."""
+import sys
+
+from gpnarx.cli.main import main
+
+sys.exit(main())
