@@ -1,4 +1,5 @@
-"""In-memory input/output record (no file I/O here: readers live in ``training.records``)."""
+"""In-memory input/output record (no file I/O here: file contents are parsed by ``model.record_formats``,
+files and folders are read by ``training.records``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
