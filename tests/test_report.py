@@ -1,5 +1,7 @@
+import base64
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -127,9 +129,13 @@ def test_write_report_full(tmp_path):
         assert model in html_text
     assert "95.1" in html_text  # paper column
     assert "lag_surface.png" in html_text
-    for fn in (p.name for p in paths["records"].values()):
-        assert f"src='{fn}'" in html_text
-    assert "NaN" not in html_text and "nan" not in html_text.lower().replace("nanjing", "")
+    # figures are embedded (a copied report opens on its own); the PNG files stay next to it
+    srcs = re.findall(r"<img src='([^']*)' data-file='([^']*)'", html_text)
+    assert sorted(fn for _, fn in srcs) == sorted(["lag_surface.png", *(p.name for p in paths["records"].values())])
+    for src, fn in srcs:
+        assert src == "data:image/png;base64," + base64.b64encode((paths["html"].parent / fn).read_bytes()).decode()
+    text = re.sub(r"data:image/png;base64,[A-Za-z0-9+/=]*", "", html_text)
+    assert "NaN" not in text and "nan" not in text.lower().replace("nanjing", "")
 
 
 def test_velocity_physics_and_prediction_only(tmp_path):

@@ -1,5 +1,8 @@
 """Validation report: paper-style figures, metrics JSON and a self-contained HTML page.
 
+``report.html`` embeds its figures as ``data:`` PNG URIs (the PNG files are written next to it too),
+so a copied or served report opens on its own.
+
 Figures follow Teloli et al. (MSSP 2021), Figs. 2-10 and 15-20: (a) the full time response of
 the measured data (dots) with the model mean and its (99 %) band, (b) a zoom, (c) the PSD of the
 measured vs the predicted output and (d) the restoring force x displacement hysteresis loop.
@@ -19,6 +22,7 @@ A *record* is a dict with keys
 """
 from __future__ import annotations
 
+import base64
 import html
 import json
 import math
@@ -529,8 +533,21 @@ def _table(header: list[str], rows: list[list[str]], left_cols: int = 1) -> str:
     return f"<table><thead><tr>{h}</tr></thead><tbody>{''.join(body)}</tbody></table>"
 
 
-def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag_png) -> str:
+def _png_data_uri(path: Path) -> str:
+    """A PNG file as a ``data:`` URI, so the HTML page opens on its own (copied, mailed, served)."""
+    return "data:image/png;base64," + base64.b64encode(Path(path).read_bytes()).decode("ascii")
+
+
+def _img(fn: str, alt: str, embedded: dict) -> str:
+    """``<img>`` of figure ``fn``: embedded as a data URI when given, the file name kept in data-file."""
     esc = html.escape
+    src = embedded.get(fn, fn)
+    return f"<img src='{esc(src)}' data-file='{esc(fn)}' alt='{esc(alt)}'>"
+
+
+def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag_png, embedded=None) -> str:
+    esc = html.escape
+    embedded = embedded or {}
     parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{esc(title)}</title>"
              f"<style>{_CSS}</style></head><body>", f"<h1>{esc(title)}</h1>"]
 
@@ -620,12 +637,12 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
     # figures
     parts.append("<h2>Figures</h2>")
     if lag_png:
-        parts.append(f"<figure><img src='{esc(lag_png)}' alt='lag surface'><figcaption>Lag selection surface "
+        parts.append(f"<figure>{_img(lag_png, 'lag surface', embedded)}<figcaption>Lag selection surface "
                      f"n<sub>y</sub> &times; n<sub>u</sub> &times; fit % (paper Figs. 1 / 14).</figcaption></figure>")
     for e in rec_entries:
         fn = fig_names.get(e["name"])
         if fn:
-            parts.append(f"<figure><img src='{esc(fn)}' alt='{esc(e['name'])}'><figcaption>"
+            parts.append(f"<figure>{_img(fn, e['name'], embedded)}<figcaption>"
                          f"<b>{esc(e['name'])}</b> ({esc(str(e.get('role', '')))}): (a) time response, measured "
                          f"(dots), model mean and {esc(e.get('band_label', '99% band'))}; (b) zoom; (c) PSD; "
                          f"(d) hysteresis loop.</figcaption></figure>")
@@ -712,8 +729,10 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
     jpath.write_text(json.dumps(report, indent=2, allow_nan=False))
     paths["json"] = jpath
 
+    # figures embedded as data URIs: the page is self-contained (the PNG files stay for other uses)
+    embedded = {fn: _png_data_uri(out_dir / fn) for fn in [*fig_names.values(), *([lag_png] if lag_png else [])]}
     hpath = out_dir / "report.html"
-    hpath.write_text(_html(title, report["summary"], rec_entries, lag, baselines_tab, paper, fig_names, lag_png),
-                     encoding="utf-8")
+    hpath.write_text(_html(title, report["summary"], rec_entries, lag, baselines_tab, paper, fig_names, lag_png,
+                           embedded), encoding="utf-8")
     paths["html"] = hpath
     return paths
