@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 
+from gpnarx.model.envelope import assess
 from gpnarx.cli.errors import CLIError
 
 
@@ -137,6 +138,7 @@ def run_predict(args):
         bar.close()
     out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "start": args.start, "mc_paths": run.n_paths,
            "method": run.method, "confidence": run.confidence, "seconds": run.seconds,
+           **assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y),
            "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std}
     if rec.y is not None:
         m = summary(rec.y, run.mean, run.lower, run.upper)
@@ -190,6 +192,9 @@ def run_novelty(args):
                                 y0=novelty_start(rec.y, bundle.model.ny))
     s = novelty_score(rec.y, run.mean, run.std, method_of(nov))
     outside = outside_envelope(rec.u, rec.y, nov.get("envelope"))
+    flags = assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y)
+    flagged = flags["out_of_range"] + [f for f in outside if f not in flags["out_of_range"]]
     return {"model": bundle.name, "version": bundle.version, "score": s["score"], "nlpd": s["nlpd"],
             "threshold": nov["threshold"], "verdict": verdict(s["score"], nov["threshold"], outside),
-            "false_alarm_rate": nov["false_alarm_rate"], "out_of_range": outside, "score_method": s["method"]}
+            "false_alarm_rate": nov["false_alarm_rate"], "out_of_range": flagged,
+            "diverged_paths": flags["diverged_paths"], "start": "measured", "score_method": s["method"]}

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .envelope import check_envelope
 from .estimator import GPNARX
 from .gp import ExactPosterior, SparsePosterior
 from .kernels import DEFAULT_CONSTANT_CAP, kernel_from_dict
@@ -204,6 +205,7 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
             "hyperparameters": {**model.kernel_.params, "noise_var": model.noise_var_},
             "noise_var": model.noise_var_,
             "noise_calibration": getattr(model, "noise_calibration_", None),
+            "training_envelope": getattr(model, "envelope_", None),
             "nlml": None if not np.isfinite(model.nlml_) else model.nlml_,
             "n_train": model.n_train_,
             "estimator": {"include_noise": bool(model.include_noise), "n_inducing": int(model.n_inducing),
@@ -309,6 +311,7 @@ def load_bundle(path) -> Bundle:
         model.kernel_ = kernel
         model.theta_ = arrays["theta"]
         model.noise_var_ = float(manifest["noise_var"])
+        model.envelope_ = check_envelope(manifest.get("training_envelope"))  # None: no range checks
         model.noise_calibration_ = manifest.get("noise_calibration")  # absent before 2026-11-23 (session 6)
         model.noise_var_ml2_ = float(model.noise_calibration_["noise_var_ml2"]) if model.noise_calibration_ \
             else model.noise_var_

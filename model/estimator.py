@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from . import freerun
+from .envelope import check_envelope, divergence_limit, training_envelope
 from .gp import ExactPosterior, SparsePosterior, choose_inducing, default_warm_start_subset, fit_ml2
 from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, make_kernel
 from .records import Record, RecordError
@@ -147,6 +148,7 @@ class GPNARX:
                     raise ValueError(f"{label}[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} "
                                      f"need at least {need}")
         X, Y, rec_idx = stack_regressors(pairs, self.ny, self.nu)
+        self.envelope_ = training_envelope(pairs)
         self.x_scaler_ = Standardizer().fit(X)
         self.y_scaler_ = Standardizer().fit(Y[:, None])
         Xs = self.x_scaler_.transform(X)
@@ -246,17 +248,19 @@ class GPNARX:
             2 % on the Bouc-Wen model). Not for models whose noise variance sits near ML-II's
             floor (real BERT): their latent variance (1e-7, standardised) is below float32's
             resolution of k(x, x) (about 1), and the band would be rounding noise.
-        Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units).
+        Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units); Monte Carlo runs
+        count in ``diverged_paths`` the paths that left the training envelope (``model.envelope``).
         """
         self._check_fitted()
         u = _as_input(u)
+        limit = divergence_limit(check_envelope(getattr(self, "envelope_", None)))
         if method == "mc":
             if isinstance(n_paths, bool) or not isinstance(n_paths, (int, np.integer)) or not 1 <= n_paths <= MAX_PATHS:
                 raise ValueError(f"n_paths must be an integer between 1 and {MAX_PATHS}, got {n_paths!r}")
             return freerun.simulate_mc(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                        n_paths=int(n_paths), seed=seed, y0=y0, confidence=confidence,
                                        include_noise=self.include_noise, float32=float32,
-                                       keep_paths=keep_paths, progress=progress)
+                                       keep_paths=keep_paths, progress=progress, diverge_limit=limit)
         if method == "linear":
             return freerun.simulate_linear(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                            y0=y0, confidence=confidence, include_noise=self.include_noise,

@@ -38,6 +38,7 @@ class FreeRun:
     seconds: float = 0.0
     path_steps: int = 0
     paths: np.ndarray | None = field(default=None, repr=False)
+    diverged_paths: int = 0  # Monte Carlo paths whose |y| passed ``diverge_limit`` (see model.envelope)
 
     @property
     def band_width(self) -> np.ndarray:
@@ -91,12 +92,14 @@ def simulate_mc(
     float32: bool = False,
     keep_paths: bool = False,
     progress=None,
+    diverge_limit: float | None = None,
 ) -> FreeRun:
     """Monte Carlo free-run over ``n_paths`` paths advanced together (see module docstring).
 
     u: input record (input units, e.g. N or V). y0: optional first ny measured outputs (output
     units) taken as known; otherwise the system starts from rest. ``progress``: optional callable
-    ``progress(done_steps, total_steps)``.
+    ``progress(done_steps, total_steps)``. ``diverge_limit``: peak |y| [output units] beyond which a
+    path counts in ``FreeRun.diverged_paths`` (``model.envelope.divergence_limit``); None: not counted.
     """
     t_start = time.perf_counter()
     confidence = _check_confidence(confidence)
@@ -130,6 +133,7 @@ def simulate_mc(
     # quantile call per block instead of one per step)
     block = max(1, min(256, (1 << 22) // P))
     buf = np.empty((block, P))
+    path_peak = np.zeros(P)  # running peak |y| of each path (output units)
     b0 = i0
     for i in range(i0, n):
         np.subtract(ylag_raw, xm[:ny], out=Xs[:, :ny])
@@ -150,13 +154,15 @@ def simulate_mc(
         ylag_raw[:, 0] = ysamp
         if i - b0 + 1 == block or i == n - 1:
             chunk = buf[: i - b0 + 1]
+            np.maximum(path_peak, np.max(np.abs(chunk), axis=0), out=path_peak)
             std[b0 : i + 1] = np.std(chunk, axis=1)
             lower[b0 : i + 1], upper[b0 : i + 1] = np.quantile(chunk, [q_lo, q_hi], axis=1)
             b0 = i + 1
         if progress is not None and (i % 256 == 0 or i == n - 1):
             progress(i + 1, n)
+    diverged = 0 if diverge_limit is None else int(np.count_nonzero(~(path_peak <= diverge_limit)))
     return FreeRun(mean, std, lower, upper, confidence, P, "mc", time.perf_counter() - t_start,
-                   (n - i0) * P, paths)
+                   (n - i0) * P, paths, diverged)
 
 
 def simulate_linear(

@@ -11,6 +11,8 @@ Routes (JSON, versioned under /v1; see design.md for the contract)::
     POST /v1/models/{name}/versions/{version}/{predict|loops|novelty}
     POST /v1/batch                                    many records, each answered or failed alone
     POST /v1/admin/reload                             rescan the registry (also on SIGHUP with serve)
+    GET  /v1/models/{name}[/versions/{version}]/report training report; POST /v1/records/parse (service.ui)
+    GET  /ui, /docs, /redoc, /static/...              page and API docs from vendored assets (service.ui)
     GET  /health/live, /health/ready, /metrics        open even when an API key is set
 
 CPU-heavy work runs on a ``BoundedExecutor`` (503 + Retry-After when full); bodies are capped
@@ -46,7 +48,7 @@ from starlette.routing import Match
 from gpnarx.model.bundle import BundleError, Registry, check_name, check_version
 from gpnarx.model.runtime import limit_blas, tune_malloc  # process tuning shared with the CLI
 
-from . import ops
+from . import ops, ui
 from .metrics import ServiceMetrics
 from .problems import PROBLEM_MEDIA_TYPE, ProblemError, validation_problem
 from .schemas import (
@@ -386,7 +388,10 @@ def _api_description() -> str:
         "[GPNARX_REQUEST_TIMEOUT, 0 = none] -> 504 if the job was running (it is cancelled), 503 with "
         "Retry-After if it was still queued; a client that disconnects cancels its job\n\n"
         "Authentication: off by default. When GPNARX_API_KEY is set, every /v1 route needs the header "
-        "`X-API-Key` (401 otherwise); /health/* and /metrics stay open."
+        "`X-API-Key` (401 otherwise); /health/* and /metrics stay open.\n\n"
+        "Pages served with the API, from the service's own files (they work offline): /ui (models, "
+        "training reports, a record's prediction, PSD, loops and novelty verdict, through this API), "
+        "/docs (Swagger UI) and /redoc (ReDoc)."
     )
 
 
@@ -429,8 +434,9 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
         finally:
             state.executor.shutdown()
 
+    # /docs and /redoc are served by service.ui from vendored assets (no CDN: they work offline)
     app = FastAPI(title=API_TITLE, version="1", description=_api_description(), lifespan=lifespan,
-                  default_response_class=JSONBytesResponse)
+                  default_response_class=JSONBytesResponse, docs_url=None, redoc_url=None)
     app.state.service = state
 
     # ---------------------------------------------------------------- exception handlers
@@ -537,6 +543,7 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
         out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter(), token,
                                                        request=request, token=token)
         state.metrics.path_steps.inc(steps)
+        state.metrics.answered(operation, out)
         return JSONBytesResponse(out, headers={
             "Server-Timing": f"queue;dur={waited * 1e3:.2f}, compute;dur={computed * 1e3:.2f}"})
 
@@ -636,6 +643,7 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
                     out, s = ops.compute(plan, req, token)
                     steps += s
                     done.append((i, out))
+                    state.metrics.answered(plan.operation, out)
                 except Cancelled:
                     raise
                 except ProblemError as exc:
@@ -663,6 +671,9 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
     async def reload():
         return JSONBytesResponse(await state.reload())
 
+    # ---------------------------------------------------------------- page, docs, reports, record files
+    ui.install(app, state, JSONBytesResponse)
+
     app.add_middleware(GuardMiddleware, state=state, fastapi_app=app)
     state.metrics.update_bundles()
 
@@ -685,7 +696,8 @@ def _component_schemas(model) -> dict:
 def build_openapi(app: FastAPI) -> dict:
     doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes,
                       tags=[{"name": "predict", "description": "Predictions, loops, novelty, batch"},
-                            {"name": "models", "description": "Model metadata"},
+                            {"name": "models", "description": "Model metadata and training reports"},
+                            {"name": "records", "description": "Record files parsed into u, y, fs"},
                             {"name": "health", "description": "Liveness, readiness, metrics (always open)"},
                             {"name": "admin", "description": "Registry reload"}])
     comps = doc.setdefault("components", {}).setdefault("schemas", {})

@@ -8,6 +8,11 @@
 - ``gpnarx_requests_timed_out_total{stage}`` requests past GPNARX_REQUEST_TIMEOUT (stage ``queued``:
   503, the job never started; ``running``: 504, the job was cancelled at its next checkpoint);
 - ``gpnarx_requests_abandoned_total`` requests whose client disconnected before the answer (job cancelled);
+- ``gpnarx_answers_total{model,operation}`` answered predict/loops/novelty calls (single or batch slot),
+  ``gpnarx_out_of_range_total{model,field}`` answers flagged out of the model's range (field ``u``, ``y``,
+  ``prediction``, ``probe``), ``gpnarx_diverged_answers_total{model}`` answers with ``diverged_paths`` > 0,
+  ``gpnarx_novelty_verdicts_total{model,verdict}``: the per-model counts alerting is built on. Model
+  labels come from the registry's names, so the label set is bounded by the registry;
 - ``gpnarx_bundles_loaded`` / ``gpnarx_bundles_refused`` gauges, ``gpnarx_work_pending`` (running + waiting jobs).
 """
 from __future__ import annotations
@@ -42,6 +47,14 @@ class ServiceMetrics:
                                  "their job was in (queued -> 503, running -> 504)", ["stage"], registry=r)
         self.abandoned = Counter("gpnarx_requests_abandoned", "Requests whose client disconnected before the "
                                  "answer (their job was cancelled)", registry=r)
+        self.answers = Counter("gpnarx_answers", "Answered predict, loops and novelty calls by model and operation",
+                               ["model", "operation"], registry=r)
+        self.out_of_range = Counter("gpnarx_out_of_range", "Answers flagged outside the model's range, by model and "
+                                    "field (u, y, prediction, probe)", ["model", "field"], registry=r)
+        self.diverged = Counter("gpnarx_diverged_answers", "Answers whose free run diverged (diverged_paths > 0), "
+                                "by model", ["model"], registry=r)
+        self.verdicts = Counter("gpnarx_novelty_verdicts", "Novelty verdicts by model and verdict",
+                                ["model", "verdict"], registry=r)
         self.loaded = Gauge("gpnarx_bundles_loaded", "Model bundles loaded", registry=r)
         self.refused = Gauge("gpnarx_bundles_refused", "Model bundles refused (corrupt or invalid)", registry=r)
         self.pending = Gauge("gpnarx_work_pending", "Jobs running or waiting on the worker pool", registry=r)
@@ -52,6 +65,17 @@ class ServiceMetrics:
         if status >= 400:
             self.errors.labels(method, route, str(status)).inc()
         self.latency.labels(method, route).observe(seconds)
+
+    def answered(self, operation: str, out: dict) -> None:
+        """Count one answered operation by model: flags and (for novelty) the verdict."""
+        model = str(out.get("model", ""))
+        self.answers.labels(model, operation).inc()
+        for f in out.get("out_of_range") or ():
+            self.out_of_range.labels(model, str(f)).inc()
+        if int(out.get("diverged_paths") or 0) > 0:
+            self.diverged.labels(model).inc()
+        if operation == "novelty" and out.get("verdict") in ("healthy", "novel"):
+            self.verdicts.labels(model, out["verdict"]).inc()
 
     def update_bundles(self) -> None:
         reg = self.state.registry

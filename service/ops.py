@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gpnarx.model.bundle import Bundle
+from gpnarx.model.envelope import assess
 from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
 from gpnarx.model.restoring import loop_area, restoring_force
@@ -59,6 +60,9 @@ def plan(operation: str, req, bundle: Bundle, settings: Settings, budget: int | 
                                     f"{len(req.y0)}", "y0")
         if n <= ny:
             raise ProblemError(422, f"u must be longer than ny={ny} samples when y0 is given, got {n}", "u")
+    if start_of(operation, req) == "measured" and req.y is None and not req.y0:
+        raise ProblemError(422, f"start 'measured' needs the record's measured output: send y (its first ny={ny} "
+                                f"samples start the free run) or y0", "start")
     if operation == "loops":
         physics_of(bundle)
     if operation == "novelty":
@@ -79,6 +83,12 @@ def plan(operation: str, req, bundle: Bundle, settings: Settings, budget: int | 
     else:
         paths, work = 0, n
     return Plan(operation, bundle, req.method, paths, work)
+
+
+def start_of(operation: str, req) -> str:
+    """The request's start rule: its ``start`` field, else 'measured' for novelty and 'rest' otherwise."""
+    start = getattr(req, "start", None)
+    return start if start is not None else ("measured" if operation == "novelty" else "rest")
 
 
 def physics_of(bundle: Bundle) -> dict:
@@ -126,7 +136,10 @@ def _simulate(plan: Plan, req, token: CancelToken | None = None):
         token.check()
     try:
         with np.errstate(all="ignore"):
-            y0 = novelty_start(req.y, model.ny, req.y0) if plan.operation == "novelty" else (req.y0 or None)
+            if start_of(plan.operation, req) == "measured":
+                y0 = novelty_start(req.y if req.y is not None else [], model.ny, req.y0)
+            else:
+                y0 = req.y0 or None
             run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=y0,
                                  confidence=float(req.confidence), method=plan.method,
                                  progress=None if token is None else token.progress)
@@ -155,8 +168,9 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
     b = plan.bundle
     u, run = _simulate(plan, req, token)
     head = {"model": b.name, "version": b.version}
+    flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
     common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
-              "seed": int(req.seed)}
+              "seed": int(req.seed), "start": start_of(plan.operation, req), **flags}
     steps = int(run.path_steps) if run.method == "mc" else 0
     if plan.operation == "predict":
         out = {**head, "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std, **common,
@@ -189,9 +203,10 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
         thr = float(nov["threshold"])
         far = nov.get("false_alarm_rate")
         outside = outside_envelope(req.u, req.y, nov.get("envelope"))
+        flagged = flags["out_of_range"] + [f for f in outside if f not in flags["out_of_range"]]
         out = {**head, "score": s["score"], "threshold": thr, "verdict": verdict(s["score"], thr, outside),
-               "out_of_range": outside,
                "false_alarm_rate": float(far) if isinstance(far, (int, float)) else None,
-               "nlpd": s["nlpd"], "n_samples": s["n_samples"], "score_method": s["method"], **common}
+               "nlpd": s["nlpd"], "n_samples": s["n_samples"], "score_method": s["method"], **common,
+               "out_of_range": flagged}
         return out, steps
     raise ProblemError(422, f"operation must be one of {OPERATIONS}", "operation")

@@ -41,6 +41,10 @@ _MC_DESC = (f"Monte Carlo paths for `method`='mc' (default {B['mc_paths_default'
             f"(GPNARX_MAX_MC_WORK; a batch shares one budget) -> 413. Ignored for 'linear'.")
 _SEED_DESC = "Seed of the Monte Carlo draws; the same request with the same seed gives the same answer."
 _CONF_DESC = "Two-sided band probability, in [0.5, 1). Default 0.99 (the 0.5% and 99.5% quantiles)."
+_START_DESC = ("Where the free run starts: 'rest' (the system at rest before the record; the default for predict "
+               "and loops) or 'measured' (from the record's first `ny` measured outputs, taken from `y0` or else "
+               "from `y`; the default for novelty). Use 'measured' for a window cut from the middle of a steady "
+               "run, 'rest' for a record that starts with the structure at rest.")
 _METHOD_DESC = ("Uncertainty propagation: 'mc' (Monte Carlo over `mc_paths` paths, the paper's method) or "
                 "'linear' (first-order propagation of mean and variance, one pass).")
 
@@ -63,6 +67,7 @@ class RecordRequest(_Strict):
     seed: StrictInt = Field(0, ge=0, le=2**63 - 1, description=_SEED_DESC)
     confidence: FiniteFloat = Field(0.99, ge=0.5, lt=1.0, description=_CONF_DESC)
     method: Literal["mc", "linear"] = Field("mc", description=_METHOD_DESC)
+    start: Literal["rest", "measured"] | None = Field(None, description=_START_DESC)
 
 
 class NoveltyRequest(RecordRequest):
@@ -121,7 +126,27 @@ class Units(BaseModel):
     y: str | None = Field(None, description="Output unit (e.g. m, m/s).")
 
 
-class PredictResponse(BaseModel):
+_DIVERGED_DESC = ("Monte Carlo paths whose sampled output left the training output envelope: peak |y| above 3x "
+                  "the largest peak |y| of the training records. The linearised method reports 0 or 1 by the same "
+                  "rule on its mean. Non-zero: the mean, band and summary numbers are extrapolations of the "
+                  "kernel, not predictions the model stands behind.")
+_OOR_DESC = ("What lies outside the model's knowledge: 'u' when the record's peak |u| exceeds 1.5x the largest "
+             "training peak |u|, 'y' when the measured output's peak |y| exceeds 1.5x the training peak |y|, "
+             "'prediction' when the predicted mean's does (for novelty also: 'u'/'y' outside the healthy "
+             "calibration records' peak range widened 2x each way, and 'probe' when the drive does not match the "
+             "monitor's probe). Empty when everything lies inside. Non-empty: treat the answer as an "
+             "extrapolation.")
+
+
+class _Knowledge(BaseModel):
+    start: Literal["rest", "measured"] = Field("rest", description="The start rule the free run used (see the "
+                                                "request's `start`).")
+    diverged_paths: int = Field(0, description=_DIVERGED_DESC)
+    out_of_range: list[Literal["u", "y", "prediction", "probe"]] = Field(default_factory=list,
+                                                                         description=_OOR_DESC)
+
+
+class PredictResponse(_Knowledge):
     model: str
     version: str
     mean: list[float] = Field(..., description="Free-run predicted mean, output units.")
@@ -154,7 +179,7 @@ class Physics(BaseModel):
     output: Literal["displacement", "velocity"]
 
 
-class LoopsResponse(BaseModel):
+class LoopsResponse(_Knowledge):
     model: str
     version: str
     confidence: float
@@ -170,7 +195,7 @@ class LoopsResponse(BaseModel):
     measured: Loop | None = Field(None, description="Only when `y` was sent: loop of the measured response.")
 
 
-class NoveltyResponse(BaseModel):
+class NoveltyResponse(_Knowledge):
     model: str
     version: str
     score: float = Field(..., description="RMS standardised residual of y under the predictive distribution "
@@ -181,11 +206,7 @@ class NoveltyResponse(BaseModel):
         "so score and threshold are always comparable.")
     threshold: float = Field(..., description="Score above which the record is 'novel'.")
     verdict: Literal["healthy", "novel"] = Field(..., description="'novel' when score > threshold or the record "
-                                                 "left the calibration envelope (out_of_range not empty).")
-    out_of_range: list[Literal["u", "y"]] = Field(
-        default_factory=list, description="Fields whose peak |value| lies outside the healthy calibration records' "
-        "peak range widened 2x each way: the model was not calibrated there, so the record is judged 'novel'. "
-        "Empty when inside, or when the bundle's calibration has no envelope (older bundles).")
+                                                 "left the calibration envelope ('u' or 'y' in out_of_range).")
     false_alarm_rate: float | None = Field(..., description="False-alarm rate the threshold was calibrated for "
                                               "(null if the calibration does not say).")
     nlpd: float = Field(..., description="Mean negative log predictive density.")

@@ -240,7 +240,8 @@ def test_novelty_outside_the_calibration_envelope_is_novel(client):
     inside = client.post("/v1/models/boucwen/novelty", json={**base, "y": y.tolist()}).json()
     assert inside["out_of_range"] == [] and inside["verdict"] == "healthy", inside
     huge = client.post("/v1/models/boucwen/novelty", json={**base, "y": (1e6 * y).tolist()}).json()
-    assert huge["out_of_range"] == ["y"] and huge["verdict"] == "novel", huge
+    assert huge["out_of_range"] == ["y", "prediction"] and huge["verdict"] == "novel", huge
+    assert huge["diverged_paths"] == 32, huge  # started from the huge measured outputs: every path outside
     # a probe at 1/10 of the calibrated amplitude, answered by the system: the model was not calibrated there
     small = client.post("/v1/models/boucwen/novelty", json={**base, "u": (0.1 * u).tolist(),
                                                              "y": noisy(simulate(0.1 * u), 23).tolist()}).json()
