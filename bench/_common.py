@@ -4,7 +4,7 @@ Every script under ``bench/`` measures the product and its scikit-learn baseline
 (interleaved repetitions, so load from other processes hits both) and prints one line
 ``RESULT key=value ...`` with the product's figure, the baseline's and ``ratio=``.
 
-Bouc-Wen protocol (design.md, section 3 of the paper): training records are the 10 N and 80 N
+Bouc-Wen protocol (section 3 of the paper; docs/results-bouc-wen.md): training records are the 10 N and 80 N
 sweeps with Gaussian output noise of variance 0.1 * mean(y10^2) added to both; ny=20, nu=17
 (D=37); the 50 N sweep is the free-run record. Regressors are standardised per column and the
 GP training points are a stride selection of the stacked rows (4064 rows in all).

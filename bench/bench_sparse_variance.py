@@ -1,9 +1,9 @@
 """Sparse eq. (9) variance: accuracy and cost of the factored form |G k|^2 against k^T A k.
 
-The product (``SparsePosterior``, since 2026-11-24) stores G with A = Kmm^-1 - Sigma^-1 = G^T G and
-computes the latent variance as k(x,x) - |G k|^2. The baseline is the single-matrix form the
-product used before, k(x,x) - k^T A k, on the same posterior (``legacy_A``: what an older bundle
-still does). Reference: an independent evaluation k(x,x) - |Lm^-1 k|^2 + |R^-T k|^2 with
+The product (``SparsePosterior``) stores G with A = Kmm^-1 - Sigma^-1 = G^T G and computes the
+latent variance as k(x,x) - |G k|^2 (docs/numerics.md, safeguard 2). The baseline is the
+single-matrix form k(x,x) - k^T A k on the same posterior (``legacy_A``: what a bundle storing A
+itself does). Reference: an independent evaluation k(x,x) - |Lm^-1 k|^2 + |R^-T k|^2 with
 Sigma = R^T R from the QR factorisation of [Lm^T; Knm / sigma] (no Gram product, no explicit
 inverse), in float64.
 

@@ -312,7 +312,7 @@ def load_bundle(path) -> Bundle:
         model.theta_ = arrays["theta"]
         model.noise_var_ = float(manifest["noise_var"])
         model.envelope_ = check_envelope(manifest.get("training_envelope"))  # None: no range checks
-        model.noise_calibration_ = manifest.get("noise_calibration")  # absent before 2026-11-23 (session 6)
+        model.noise_calibration_ = manifest.get("noise_calibration")  # null or absent: no held-out calibration
         model.noise_var_ml2_ = float(model.noise_calibration_["noise_var_ml2"]) if model.noise_calibration_ \
             else model.noise_var_
         model.nlml_ = float("nan") if manifest.get("nlml") is None else float(manifest["nlml"])
@@ -329,13 +329,13 @@ def load_bundle(path) -> Bundle:
         D = ny + nu
         if model.x_scaler_.mean_.shape != (D,) or model.posterior_.X.shape[1] != D:
             raise BundleError(f"array shapes do not match lags ny={ny}, nu={nu}")
-        if manifest["mode"] == "sparse" and "posterior_A" in arrays:  # written before 2026-11-24
+        if manifest["mode"] == "sparse" and "posterior_A" in arrays:  # unfactored A (docs/numerics.md, safeguard 2)
             warnings.warn(f"{path}: stores the sparse predictive variance as one matrix A = Kmm^-1 - Sigma^-1, "
                           "whose entries reach 1/jitter; when sigma_y^2 is small, eq. 9's variance then carries "
                           "rounding error larger than itself (and depends on the BLAS thread count). Retrain it "
                           "(gpnarx train CONFIG --registry DIR writes a new version) for the factored form",
                           BundleWarning, stacklevel=2)
-        if "constant_cap" not in est:  # written before the variance fix of 2026-11-23
+        if "constant_cap" not in est:  # no variance cap (docs/numerics.md, safeguard 1)
             shift = kernel.for_posterior(DEFAULT_CONSTANT_CAP).cap_shift()
             if shift > 1e6 * model.noise_var_:  # Bouc-Wen (73 vs 1.1e-2) stays quiet; the stand-in's warns
                 warnings.warn(f"{path}: built before the predictive-variance fix; its cubic kernel constant "

@@ -1,6 +1,6 @@
 """The FastAPI application: ``create_app(registry_dir, settings)``.
 
-Routes (JSON, versioned under /v1; see design.md for the contract)::
+Routes (JSON, versioned under /v1; reference in docs/api.md)::
 
     GET  /v1/models                                   list models
     GET  /v1/models/{name}                            latest version's metadata (+ all versions)

@@ -1,7 +1,7 @@
 """Service settings and request bounds.
 
 Every bound is documented here (``DEFAULT_BOUNDS``), in the OpenAPI document (field descriptions
-and the API description) and in the README. Each one can be changed with an environment variable
+and the API description) and in docs/api.md. Each one can be changed with an environment variable
 (``Settings.from_env``); the defaults are what the committed OpenAPI document describes.
 
 =====================  ==========================  ===========  =============================
@@ -33,9 +33,9 @@ already computing is answered 504 (the problem's ``limit`` is the limit in s) an
 its next checkpoint (every 256 samples of the free run, and between the records of a batch), which
 frees its worker. A client that disconnects while its job waits or runs cancels it the same way,
 so an abandoned request never holds a worker slot to the end. Choose it together with
-``max_mc_work``: the README's bench_service run served about 37 000 path-steps/s per worker (a
-600-point model on a shared 2-core machine), so a request at the default work bound (2**24
-path-steps) would need about 450 s and is cut at 120 s; raise the limit or lower the bound.
+``max_mc_work``: ``bench/bench_service.py`` measures the path-steps per second one worker serves
+(docs/benchmarks.md); on a small machine a request at the default work bound (2**24 path-steps)
+can need several minutes and is cut at 120 s, so raise the limit or lower the bound.
 
 ``blas_threads``: the service runs requests in parallel on its worker threads, and the per-step
 matrix products of a free run are small (paths x training points), so multi-threaded BLAS inside
@@ -57,7 +57,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 MiB = 1024 * 1024
 
-#: Default bounds (documented in the OpenAPI document and the README).
+#: Default bounds (documented in the OpenAPI document and docs/api.md).
 DEFAULT_BOUNDS = {
     "max_samples": 65536,
     "max_batch": 64,
