@@ -1,4 +1,4 @@
-"""ML-II fit time against N (issue 9): ours vs scikit-learn's GaussianProcessRegressor.fit.
+"""ML-II fit time against N: ours vs scikit-learn's GaussianProcessRegressor.fit.
 
 Product: ``model.gp.fit_ml2`` (eq. 13: analytic gradient from one Cholesky and one potri in a
 reused workspace, L-BFGS-B over the log-hyperparameters of eq. 12 and the noise), one start

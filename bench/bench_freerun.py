@@ -1,8 +1,8 @@
-"""Monte Carlo free-run throughput, exact mode (issue 4): path-steps per second, 1024 paths, N=2000, D=37.
+"""Monte Carlo free-run throughput, exact mode: path-steps per second, 1024 paths, N=2000, D=37.
 
 Product: ``model.freerun.simulate_mc`` on our ``ExactPosterior``: all paths advance together, one
 kernel block K(X_paths, X) and one triangular BLAS-3 product (dtrmm, P N^2 flops) for the variances
-per step. Also timed: the previous dense-dgemm variance product (2 P N^2 flops), as a reference.
+per step. Also timed: a dense-dgemm variance product (2 P N^2 flops), as a reference.
 Baseline: the per-step loop a user would write around scikit-learn's
 ``GaussianProcessRegressor.predict(X_paths, return_std=True)`` with the same kernel (eq. 12),
 hyperparameters and training points, sampling y ~ N(mu, std^2 + noise) and feeding it back.
@@ -60,7 +60,7 @@ def step_profile(post, gpr, Xb, repeat=3):
     out["ours: mean Ks @ alpha (gemv)"] = C.best(lambda: Ks @ post.alpha, repeat)[0]
     LT = np.ascontiguousarray(post.Linv.T)
     t, V = C.best(lambda: Ks @ post.Linv.T, repeat)
-    out["previous: variance Ks @ Linv.T (dense dgemm, 2PN^2)"] = t
+    out["reference: variance Ks @ Linv.T (dense dgemm, 2PN^2)"] = t
     out["ours: rowwise |V|^2 (einsum)"] = C.best(lambda: np.einsum("ij,ij->i", V, V), repeat)[0]
     out["ours: kernel diag"] = C.best(lambda: k.diag(Xb), repeat)[0]
     out["ours: whole predict()"] = C.best(lambda: post.predict(Xb), repeat)[0]
@@ -160,9 +160,9 @@ def main():
         print(f"  {r:>3} {ours_t[r]:8.3f} {base_t[r]:9.3f} {f32_t[r]:10.3f} {gemm_t[r]:12.3f} "
               f"{ratios[r]:6.2f} {ratios32[r]:9.2f} {ratios_gemm[r]:11.2f}")
     print(f"  path-steps/s: ours {ours_ps:,.0f}  sklearn {base_ps:,.0f}  ours float32 {f32_ps:,.0f}  "
-          f"previous dense dgemm (reference) {path_steps / C.median(gemm_t):,.0f}")
+          f"dense dgemm (reference) {path_steps / C.median(gemm_t):,.0f}")
     print(f"  max |mean diff| (standardised, same X blocks) {max_mean_diff:.2e}; max var rel diff {max(var_rel):.2e}; "
-          f"free-run mean diff (same seed) {freerun_mean_diff:.2e} m; previous dgemm var rel diff {max(gemm_diff):.1e}")
+          f"free-run mean diff (same seed) {freerun_mean_diff:.2e} m; dense dgemm var rel diff {max(gemm_diff):.1e}")
     print(f"  float32: max latent-variance rel err {max(var_rel32):.2e}, max predictive-std (incl. noise) rel err "
           f"{max(sd_rel32):.2e} (latent var = k(x,x) - |Linv k|^2 cancels: k(x,x) ~ "
           f"{float(np.median(post.kernel.diag(Xb))):.3g}, var ~ {float(np.median(post.predict(Xb)[1])):.2g})")

@@ -1,4 +1,4 @@
-"""Linearised propagation against Monte Carlo on the verification sweeps (issue 9).
+"""Linearised propagation against Monte Carlo on the verification sweeps.
 
 Product: one sparse GP-NARX (M=256 inducing points over all training rows, the shipped Bouc-Wen
 mode; hyperparameters by ML-II, one start, on a stride subset) on the Bouc-Wen protocol

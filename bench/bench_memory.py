@@ -1,4 +1,4 @@
-"""Peak memory of a 1024-path Monte Carlo free-run (issue 9): exact N=2000, sparse M=256, sklearn loop.
+"""Peak memory of a 1024-path Monte Carlo free-run: exact N=2000, sparse M=256, sklearn loop.
 
 Each case runs in its own Python process (so allocations do not mix). Inside it the model is
 built first, then ``tracemalloc`` (numpy reports its array buffers to it) is reset and a short

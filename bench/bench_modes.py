@@ -1,4 +1,4 @@
-"""Free-run throughput by mode (issue 9): 1024 Monte Carlo paths on the Bouc-Wen 50 N sweep.
+"""Free-run throughput by mode: 1024 Monte Carlo paths on the Bouc-Wen 50 N sweep.
 
 Product (``GPNARX(...).fit(records, theta=theta).simulate(u, ...)``, the shipped code path), same
 hyperparameters (ML-II, one start, on a stride subset) for every mode:

@@ -1,4 +1,4 @@
-"""End to end (issue 9): ``gpnarx predict --mc 1024`` on a 2031-sample Bouc-Wen sweep, timed as a process.
+"""End to end: ``gpnarx predict --mc 1024`` on a 2031-sample Bouc-Wen sweep, timed as a process.
 
 Product: a bundle trained from the shipped ``configs/bouc-wen.toml`` (sparse mode, M=256 inducing
 points over all ~4000 training rows, ML-II on 1000 stride rows; trained once with

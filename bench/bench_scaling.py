@@ -1,4 +1,4 @@
-"""Cost growth (issue 9): log-log slopes against training points N, Monte Carlo paths and record length.
+"""Cost growth: log-log slopes against training points N, Monte Carlo paths and record length.
 
 Measured (best of a few repeats each, Bouc-Wen protocol, D=37, eq. 12 kernel, fixed hyperparameters):
   * fit vs N: one NLML + analytic-gradient evaluation (``model.gp.nlml_and_grad``), the unit cost of

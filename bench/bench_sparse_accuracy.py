@@ -1,4 +1,4 @@
-"""Sparse against exact accuracy on the Bouc-Wen validation records (issue 9).
+"""Sparse against exact accuracy on the Bouc-Wen validation records.
 
 Both models are ``GPNARX`` fits of the same training sweeps (``_common.protocol``: 10/80 N with the
 paper's noise, ny=20, nu=17) with the same hyperparameters (ML-II, one start, stride subset):

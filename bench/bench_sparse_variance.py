@@ -48,8 +48,8 @@ def main() -> None:
     _, _, r50 = C.protocol()
     Xq_raw, _, _ = stack_regressors([(r50.u, r50.y)], C.NY, C.NU)
     Xq = np.ascontiguousarray(xsc.transform(Xq_raw)[200:200 + n_query])
-    # build and predict under 1 and then 2 BLAS threads: the old form's error comes mostly from
-    # building A (its products and inverses sum in a thread-dependent order)
+    # build and predict under 1 and then 2 BLAS threads: the single-matrix form's error comes
+    # mostly from building A (its products and inverses sum in a thread-dependent order)
     forms = {}
     for n in (1, 2):
         with threadpool_limits(limits=n, user_api="blas"):
