@@ -13,21 +13,26 @@ def add_parser(sub):
     p.add_argument("--jobs", type=int, default=-1, help="parallel jobs for the lag surface")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address for the lag surface")
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024 Bouc-Wen, 4096 BERT)")
+    p.add_argument("--docs", default=None, metavar="FILE",
+                   help="also write the results page there (bert-real: docs/results-bert-real.md)")
     p.set_defaults(func=run)
 
 
 def run(args):
+    # start-up: imported when the command runs (see gpnarx.cli)
     from gpnarx.training.reproduce import reproduce
 
     out = args.out or f"runs/reproduce-{args.system}{'-quick' if args.quick else ''}"
     log = None if args.json else (lambda m: print(m, file=sys.stderr, flush=True))
     s = reproduce(args.system, out, quick=args.quick, jobs=args.jobs, scheduler=args.scheduler, mc_paths=args.mc,
-                  log=log, progress=not args.json)
+                  log=log, progress=not args.json, docs_page=args.docs)
     keep = ("system", "quick", "chosen_lags", "paper_lags", "mc_paths", "bundle", "wall_seconds")
     res = {k: s[k] for k in keep}
     res["records"] = {k: {m: v.get(m) for m in ("role", "fit", "fit_clean", "coverage", "coverage_clean")}
                       for k, v in s["records"].items()}
     if "novelty" in s:
         res["novelty_rates"] = s["novelty"]["rates"]
+    if "real_table" in s:
+        res["real_table_checks"] = s["real_table"]["checks"]
     res["out"] = out
     return res

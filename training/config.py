@@ -85,8 +85,12 @@ from pathlib import Path
 
 import numpy as np
 
+from gpnarx.model.novelty import METHODS as NOVELTY_METHODS
 from gpnarx.model.records import Record, RecordError
 from gpnarx.training import simulation_specs as specs
+from gpnarx.training.records import RecordFileError, normalize_unit, read_record
+from gpnarx.training.simulators.bert_standin import BertStandin
+from gpnarx.training.simulators.boucwen import BoucWen
 
 __all__ = [
     "ConfigError",
@@ -300,8 +304,6 @@ class DatasetConfig:
             except (ValueError, RecordError) as exc:
                 raise _err(self.path, f"{key}.simulate", str(exc)) from None
         else:
-            from gpnarx.training.records import RecordFileError, read_record
-
             try:
                 rec = read_record(spec.path, fs=spec.fs, name=spec.name, fs_default=self.fs)
             except RecordFileError as exc:
@@ -417,8 +419,6 @@ def simulate_record(sim: dict, output: str = "default", name: str | None = None)
     if output not in OUTPUTS:
         raise ConfigError(f"output must be one of {', '.join(OUTPUTS)}, got {output!r}")
     if system == "bouc-wen":
-        from gpnarx.training.simulators.boucwen import BoucWen
-
         bw = BoucWen(fs=fs)
         key = "y" if output == "displacement" else "v"
         if exc == "multisine":
@@ -430,8 +430,6 @@ def simulate_record(sim: dict, output: str = "default", name: str | None = None)
             y = bw.simulate(u)[key]
         units = {"u": "N", "y": "m" if output == "displacement" else "m/s"}
     else:
-        from gpnarx.training.simulators.bert_standin import BertStandin
-
         model = BertStandin(torque=spec["torque"], seed=seed, scatter=spec["scatter"])
         key = "x" if output == "displacement" else "y"
         if exc == "multisine":
@@ -507,8 +505,6 @@ def _choice(v, key, path, choices) -> str:
 
 
 def _build(doc: dict, path: Path) -> DatasetConfig:
-    from gpnarx.training.records import RecordFileError, normalize_unit
-
     name = doc.get("name")
     if name is None:
         raise _err(path, "name", "missing required key")
@@ -565,16 +561,18 @@ def _build(doc: dict, path: Path) -> DatasetConfig:
     if isinstance(conf, bool) or not isinstance(conf, (int, float)) or not 0 < conf < 1:
         raise _err(path, "predict.confidence", f"must be between 0 and 1, got {conf!r}")
     predict["confidence"] = float(conf)
+    predict.setdefault("method", "mc")
+    if predict["method"] not in ("mc", "linear"):
+        raise _err(path, "predict.method", f"must be 'mc' or 'linear', got {predict['method']!r}")
 
     novelty = {**NOVELTY_DEFAULTS, **_table(doc, "novelty", path)}
     far = novelty["false_alarm_rate"]
     if isinstance(far, bool) or not isinstance(far, (int, float)) or not 0 < far < 1:
         raise _err(path, "novelty.false_alarm_rate", f"must be between 0 and 1, got {far!r}")
     novelty["false_alarm_rate"] = float(far)
-    from gpnarx.model.novelty import METHODS
-
-    if novelty["method"] not in METHODS:
-        raise _err(path, "novelty.method", f"must be one of {', '.join(METHODS)}, got {novelty['method']!r}")
+    if novelty["method"] not in NOVELTY_METHODS:
+        raise _err(path, "novelty.method",
+                   f"must be one of {', '.join(NOVELTY_METHODS)}, got {novelty['method']!r}")
 
     raw_records = doc.get("records")
     if raw_records is None:
