@@ -1,0 +1,299 @@
+"""The service's pages and the routes they need, with no asset from outside the service.
+
+Routes added to the app by :func:`install`::
+
+    GET  /ui                                          the engineers' page (static/ui/), not in OpenAPI
+    GET  /static/...                                  its files, vendored libraries and example records
+    GET  /docs, /docs/oauth2-redirect, /redoc         Swagger UI and ReDoc from static/vendor/
+    GET  /v1/models/{name}/report                     the latest version's training report (HTML)
+    GET  /v1/models/{name}/versions/{version}/report  one version's training report (HTML)
+    POST /v1/records/parse                            an uploaded record file -> {u, y, fs, ...} JSON
+
+Reports are served self-contained: ``training.report`` embeds its figures as ``data:`` URIs, and an
+older report's relative image links (``record_x.png`` next to ``report.html``) are inlined here at
+serve time, so the page (or a saved copy) opens without the bundle folder. Reports are sent with a
+Content-Security-Policy that allows no script and no outside load.
+
+Record files are parsed by :mod:`gpnarx.model.record_formats` (the same parsers as the CLI's
+``training.records``): CSV, NPZ, NPY, MATLAB v5 .mat, or the two files of an LMS Test.Lab export.
+
+The vendored libraries (versions, sources and checksums in ``static/vendor/VENDORED.md``): uPlot
+(plots on the page), swagger-ui-dist and redoc (API documentation).
+"""
+from __future__ import annotations
+
+import asyncio
+import base64
+import functools
+import re
+from pathlib import Path, PurePath
+from typing import Annotated
+from urllib.parse import unquote
+
+from fastapi import APIRouter, FastAPI, Request
+from fastapi import Path as PathParam
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
+from pydantic import BaseModel, Field
+from starlette.datastructures import UploadFile
+from starlette.responses import HTMLResponse, JSONResponse
+from starlette.staticfiles import StaticFiles
+
+from gpnarx.model.record_formats import FORMATS, LMS_INPUT, LMS_OUTPUT, RecordFileError, parse_lms, parse_record
+
+from .problems import ProblemError
+from .schemas import NAME_PATTERN, VERSION_PATTERN
+
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+REPORT_FILE = Path("report") / "report.html"  # inside a bundle folder (model.bundle attach_dir)
+#: The training report may load nothing from outside itself (its figures are data: URIs) and runs no script.
+REPORT_CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'; base-uri 'none'; form-action 'none'"
+#: The page loads only the service's own files and calls only the service.
+PAGE_CSP = ("default-src 'self'; img-src 'self' data: blob:; style-src 'self' 'unsafe-inline'; "
+            "script-src 'self'; connect-src 'self'; frame-src blob:; object-src 'none'; base-uri 'none'")
+#: ReDoc runs from its vendored bundle; its sidebar's "Redocly" logo (an outside image) is refused by the
+#: browser instead of being fetched, and the component hides itself when the image fails.
+REDOC_CSP = ("default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; script-src 'self'; "
+             "worker-src 'self' blob:; font-src 'self' data:; connect-src 'self'; object-src 'none'; base-uri 'none'")
+_INLINE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".gif": "image/gif",
+                 ".svg": "image/svg+xml", ".webp": "image/webp"}
+_IMG_SRC = re.compile(r"""(<img\b[^>]*?\bsrc\s*=\s*)(["'])([^"']*)\2""", re.IGNORECASE)
+MAX_UPLOAD_FILES = 2
+_FS_PROBLEMS = ("fs given as", "fs must be a number", "fs must be a finite", "the file holds no sampling frequency")
+
+NameP = Annotated[str, PathParam(pattern=NAME_PATTERN, description="Model name.")]
+VersionP = Annotated[str, PathParam(pattern=VERSION_PATTERN, description="Model version (1, 2, ...).")]
+
+
+# ------------------------------------------------------------------------------------------ reports
+def inline_images(html: str, folder: Path) -> str:
+    """``html`` with each relative ``<img src>`` that names an image file inside ``folder`` as a data URI.
+
+    Absolute URLs, data URIs and links that leave ``folder`` (``../``) are left as they are.
+    """
+    root = folder.resolve()
+
+    def repl(m: re.Match) -> str:
+        src = m.group(3).strip()
+        if not src or src.startswith(("data:", "/", "#")) or re.match(r"^[A-Za-z][A-Za-z0-9+.-]*:", src):
+            return m.group(0)
+        path = (root / unquote(src.split("?", 1)[0].split("#", 1)[0])).resolve()
+        mime = _INLINE_TYPES.get(path.suffix.lower())
+        if mime is None or not path.is_relative_to(root) or not path.is_file():
+            return m.group(0)
+        data = base64.b64encode(path.read_bytes()).decode("ascii")
+        return f"{m.group(1)}{m.group(2)}data:{mime};base64,{data}{m.group(2)}"
+
+    return _IMG_SRC.sub(repl, html)
+
+
+def read_report(bundle_path: Path) -> str | None:
+    """The bundle's training report as self-contained HTML, or None when it has none."""
+    path = Path(bundle_path) / REPORT_FILE
+    if not path.is_file():
+        return None
+    return inline_images(path.read_text(encoding="utf-8", errors="replace"), path.parent)
+
+
+# ------------------------------------------------------------------------------------------ records
+class ParsedUnits(BaseModel):
+    u: str = Field("", description="Unit of u as stated in the file ('' when not stated).")
+    y: str = Field("", description="Unit of y as stated in the file ('' when not stated).")
+
+
+class ParsedRecord(BaseModel):
+    """A record file's contents, ready to send to predict, loops or novelty."""
+
+    name: str = Field(..., description="Record name (the file's stem, the NPZ's `name`, or the LMS folder).")
+    format: str = Field(..., description="csv, npz, npy, mat or lms-testlab.")
+    files: list[str] = Field(..., description="Names of the uploaded files that were read.")
+    fs: float = Field(..., description="Sampling frequency [Hz].")
+    n_samples: int
+    units: ParsedUnits
+    u: list[float] = Field(..., description="Input samples.")
+    y: list[float] | None = Field(None, description="Output samples, or null when the file holds only u.")
+    meta: dict = Field(default_factory=dict, description="What the file says about itself (LMS channels, run name).")
+
+
+_PARSE_DESC = (
+    "Parse an uploaded record file into JSON, as `training.records` reads files for the CLI: send "
+    "`multipart/form-data` with one file in `files` (`.csv` with a header naming `time`, `u`, `y`; `.npz` "
+    "with arrays `u`, `y`, scalar `fs`; `.npy`; MATLAB v5 `.mat` with `u`, `y`, `fs`) or the two files of an "
+    "LMS Test.Lab export (`Time.mat` and `TimeShaker.mat`, both in `files`), and `fs` [Hz] when the file "
+    "carries no sampling information (a CSV without a time column). The answer's `u`, `y` and `fs` can be "
+    "sent as they are to predict, loops or novelty. Records longer than the service's sample limit "
+    "(GPNARX_MAX_SAMPLES) are refused with 413; bodies above GPNARX_MAX_BODY_BYTES with 413.")
+_PARSE_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
+    "type": "object", "required": ["files"],
+    "properties": {
+        "files": {"type": "array", "items": {"type": "string", "format": "binary"}, "minItems": 1,
+                  "maxItems": MAX_UPLOAD_FILES,
+                  "description": "One record file, or the two files of an LMS export (Time.mat, TimeShaker.mat)."},
+        "fs": {"type": "number", "exclusiveMinimum": 0,
+               "description": "Sampling frequency [Hz]; needed only when the file has none, checked otherwise."}}}}}}}
+
+
+def _fname(upload: UploadFile) -> str:
+    return PurePath((upload.filename or "").replace("\\", "/")).name
+
+
+def _folder(upload: UploadFile) -> str:
+    parent = PurePath((upload.filename or "").replace("\\", "/")).parent.name
+    return parent or "LMS export"
+
+
+def parse_uploads(uploads: list[tuple[str, str, bytes]], fs: float | None):
+    """(file name, folder name, contents) of 1 or 2 uploaded files -> ``(Record, format)``."""
+    names = [n for n, _, _ in uploads]
+    lms = {LMS_INPUT[0], LMS_OUTPUT[0]}
+    if len(uploads) == 2 or (len(uploads) == 1 and names[0] in lms):
+        if sorted(names) != sorted(lms):
+            raise ProblemError(422, f"two files are read only as an LMS Test.Lab export, {LMS_OUTPUT[0]} and "
+                                    f"{LMS_INPUT[0]}; got {', '.join(names)}", "files")
+        by = {n: (folder, data) for n, folder, data in uploads}
+        folder = by[LMS_OUTPUT[0]][0]
+        rec = parse_lms(by[LMS_INPUT[0]][1], by[LMS_OUTPUT[0]][1], fs=fs, name=folder, source=folder,
+                        shaker_source=LMS_INPUT[0], time_source=LMS_OUTPUT[0])
+        return rec, "lms-testlab"
+    name, _, data = uploads[0]
+    return parse_record(data, name, fs=fs), PurePath(name).suffix.lower().lstrip(".")
+
+
+# ------------------------------------------------------------------------------------------ install
+@functools.lru_cache(maxsize=1)
+def _page_template() -> str:
+    return (STATIC_DIR / "ui" / "index.html").read_text(encoding="utf-8")
+
+
+def _root(request: Request) -> str:
+    return request.scope.get("root_path", "").rstrip("/")
+
+
+def install(app: FastAPI, state, json_response=JSONResponse) -> None:
+    """Add the page, the documentation pages, the report and the record-parsing routes to ``app``.
+
+    ``state`` is the app's ``service.app.ServiceState`` (registry lookups, settings);
+    ``json_response`` the app's JSON response class. Create the app with ``docs_url=None,
+    redoc_url=None``: /docs and /redoc are served here from vendored assets.
+    """
+    settings = state.settings
+    router = APIRouter()
+    problems = {
+        401: {"description": "API key missing or wrong (only when GPNARX_API_KEY is set)"},
+        404: {"description": "No such model, version or training report"},
+        422: {"description": "Invalid model name or version"},
+    }
+
+    # ---------------------------------------------------------------- page and documentation
+    @router.get("/ui", include_in_schema=False)
+    async def ui_page(request: Request):
+        html = _page_template().replace("{{root}}", _root(request))
+        return HTMLResponse(html, headers={"Content-Security-Policy": PAGE_CSP, "Cache-Control": "no-cache"})
+
+    @router.get("/docs", include_in_schema=False)
+    async def swagger_ui(request: Request):
+        root = _root(request)
+        return get_swagger_ui_html(
+            openapi_url=root + app.openapi_url, title=f"{app.title} - Swagger UI",
+            swagger_js_url=f"{root}/static/vendor/swagger-ui/swagger-ui-bundle.js",
+            swagger_css_url=f"{root}/static/vendor/swagger-ui/swagger-ui.css",
+            swagger_favicon_url=f"{root}/static/vendor/swagger-ui/favicon-32x32.png",
+            oauth2_redirect_url=f"{root}/docs/oauth2-redirect",
+            # no call to the online validator (offline plant networks)
+            swagger_ui_parameters={"validatorUrl": None, "persistAuthorization": False})
+
+    @router.get("/docs/oauth2-redirect", include_in_schema=False)
+    async def swagger_ui_redirect():
+        return get_swagger_ui_oauth2_redirect_html()
+
+    @router.get("/redoc", include_in_schema=False)
+    async def redoc(request: Request):
+        root = _root(request)
+        page = get_redoc_html(openapi_url=root + app.openapi_url, title=f"{app.title} - ReDoc",
+                              redoc_js_url=f"{root}/static/vendor/redoc/redoc.standalone.js",
+                              redoc_favicon_url=f"{root}/static/vendor/swagger-ui/favicon-32x32.png",
+                              with_google_fonts=False)
+        page.headers["Content-Security-Policy"] = REDOC_CSP
+        return page
+
+    # ---------------------------------------------------------------- reports
+    async def report_of(name: str, version: str | None) -> HTMLResponse:
+        bundle = state.lookup(name, version)
+        html = await asyncio.to_thread(read_report, bundle.path)
+        if html is None:
+            raise ProblemError(404, f"model {bundle.name} version {bundle.version} has no training report "
+                                    f"(no {REPORT_FILE.as_posix()} in its bundle; bundles written by `gpnarx train` "
+                                    f"carry one)", "version")
+        return HTMLResponse(html, headers={"Content-Security-Policy": REPORT_CSP, "X-Content-Type-Options": "nosniff"})
+
+    report_responses = {200: {"content": {"text/html": {"schema": {"type": "string"}}},
+                              "description": "The training report, one self-contained HTML page (figures embedded)"},
+                        **problems}
+
+    @router.get("/v1/models/{name}/report", tags=["models"], operation_id="get_report",
+                response_class=HTMLResponse, responses=report_responses,
+                summary="Training report of a model's latest version (self-contained HTML)")
+    async def get_report(name: NameP):
+        return await report_of(name, None)
+
+    @router.get("/v1/models/{name}/versions/{version}/report", tags=["models"], operation_id="get_report_version",
+                response_class=HTMLResponse, responses=report_responses,
+                summary="Training report of one version (self-contained HTML)")
+    async def get_report_version(name: NameP, version: VersionP):
+        return await report_of(name, version)
+
+    # ---------------------------------------------------------------- record files
+    @router.post("/v1/records/parse", tags=["records"], operation_id="parse_record", response_model=ParsedRecord,
+                 summary="Parse an uploaded record file (CSV, NPZ, NPY, MAT, LMS export) into u, y, fs",
+                 description=_PARSE_DESC, openapi_extra=_PARSE_BODY,
+                 responses={400: {"description": "Not a multipart/form-data body"},
+                            401: problems[401],
+                            413: {"description": "Body or record above the service's limits"},
+                            415: {"description": "Body is not multipart/form-data"},
+                            422: {"description": "Missing file, unreadable record, or bad fs"}})
+    async def parse_record_file(request: Request):
+        ctype = request.headers.get("content-type", "")
+        if not ctype.lower().startswith("multipart/form-data"):
+            raise ProblemError(415, f"the body must be multipart/form-data with the record in `files`, got "
+                                    f"{ctype[:100]!r}", "body")
+        try:
+            form = await request.form(max_files=MAX_UPLOAD_FILES, max_fields=4)
+        except Exception as exc:  # noqa: BLE001 - malformed multipart or too many parts
+            raise ProblemError(400, f"the multipart body could not be read: {exc}"[:300], "body") from None
+        try:
+            uploads = [f for f in form.getlist("files") if isinstance(f, UploadFile)]
+            if not uploads:
+                raise ProblemError(422, "send the record file in the multipart field `files`", "files")
+            fs = None
+            raw_fs = form.get("fs")
+            if isinstance(raw_fs, str) and raw_fs.strip():
+                try:
+                    fs = float(raw_fs)
+                except ValueError:
+                    raise ProblemError(422, f"fs must be a number in Hz, got {raw_fs[:30]!r}", "fs") from None
+            files = [(_fname(f), _folder(f), await f.read()) for f in uploads]
+        finally:
+            await form.close()
+        for name, _, _ in files:
+            if PurePath(name).suffix.lower() not in FORMATS:
+                raise ProblemError(422, f"{name or '(no name)'}: unsupported record format; use "
+                                        f"{', '.join(FORMATS)} or the two files of an LMS export", "files")
+        try:
+            rec, fmt = await asyncio.to_thread(parse_uploads, files, fs)
+        except RecordFileError as exc:
+            field = "fs" if exc.problem.startswith(_FS_PROBLEMS) else "files"
+            raise ProblemError(422, str(exc), field) from None
+        if rec.n > settings.max_samples:
+            raise ProblemError(413, f"the record holds {rec.n} samples; the limit is {settings.max_samples} "
+                                    f"(GPNARX_MAX_SAMPLES): send a shorter part of it", "files",
+                               limit=settings.max_samples)
+        return json_response({"name": rec.name, "format": fmt, "files": [n for n, _, _ in files],
+                                  "fs": rec.fs, "n_samples": rec.n,
+                                  "units": {"u": rec.units.get("u", ""), "y": rec.units.get("y", "")},
+                                  "u": rec.u, "y": rec.y,
+                                  "meta": {k: v for k, v in rec.meta.items() if isinstance(v, (str, int, float))}})
+
+    app.include_router(router)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+
+__all__ = ["install", "inline_images", "read_report", "parse_uploads", "ParsedRecord", "STATIC_DIR"]
