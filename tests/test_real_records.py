@@ -1,0 +1,56 @@
+"""The shipped real-BERT model on every real record of the data folder: no divergence anywhere.
+
+Trains ``configs/bert-real.toml`` as shipped (about a minute on 2 cores) and free-runs each whole
+real record (13 sines of 64 s and the noise run) from rest with the linearised method, plus a
+short Monte Carlo run at resonance. A record fails when the mean's peak exceeds 3x the measured
+peak or the answer flags a divergence. Records a user adds to the data folder are checked too.
+Skipped, with the reason, when the lab records are not beside the repository.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpnarx.training.config import bert_data_dir
+from gpnarx.training.real_table import find_records
+
+DATA = bert_data_dir()
+RECORDS = find_records(DATA) if DATA.is_dir() else []
+pytestmark = pytest.mark.skipif(not RECORDS, reason=f"real BERT records not found under {DATA} "
+                                                    "(set GPNARX_BERT_DATA)")
+
+
+@pytest.fixture(scope="module")
+def model():
+    from gpnarx.training.config import load_config
+    from gpnarx.training.defaults import shipped_config
+    from gpnarx.training.pipeline import model_from_config
+
+    cfg = load_config(shipped_config("bert-real"))
+    return model_from_config(cfg, None, None).fit(cfg.records_for("train"), heldout=cfg.records_for("lags"))
+
+
+@pytest.mark.parametrize("folder", RECORDS, ids=[p.name for p in RECORDS])
+def test_whole_record_from_rest_does_not_diverge(model, folder):
+    from gpnarx.model.envelope import assess
+    from gpnarx.training.records import read_record
+
+    rec = read_record(folder)
+    run = model.simulate(rec.u, method="linear")
+    peak_ratio = float(np.max(np.abs(run.mean)) / np.max(np.abs(rec.y)))
+    flags = assess(model.envelope_, run, rec.u, rec.y)
+    assert np.all(np.isfinite(run.mean)) and peak_ratio <= 3.0, (folder.name, peak_ratio)
+    assert flags["diverged_paths"] == 0 and "prediction" not in flags["out_of_range"], (folder.name, flags)
+
+
+def test_monte_carlo_at_resonance_keeps_every_path(model):
+    from gpnarx.training.records import read_record
+
+    sines = [p for p in RECORDS if p.name == "Sine_19Hz"]
+    if not sines:
+        pytest.skip("Sine_19Hz is not in the data folder")
+    rec = read_record(sines[0])
+    n = int(4 * rec.fs)  # the start-up: the largest transient of the set
+    run = model.simulate(rec.u[:n], n_paths=64, seed=0)
+    assert run.diverged_paths == 0
+    assert float(np.max(np.abs(run.mean))) <= 3.0 * float(np.max(np.abs(rec.y[:n])))
