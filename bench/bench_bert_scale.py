@@ -67,7 +67,7 @@ def main():
     base_steps = 2 if q else 4  # half before, half after the product
 
     from gpnarx.training.config import load_config
-    from gpnarx.training.pipeline import model_from_config
+    from gpnarx.training.prepare import model_from_config
 
     t0 = time.perf_counter()
     cfg = load_config(CONFIG)

@@ -10,6 +10,7 @@ def add_parser(sub):
 
 
 def run(args):
+    # start-up: imported when the command runs (see gpnarx.cli)
     from gpnarx.model.bundle import Registry
     from gpnarx.training.defaults import ensure_default_registry
 

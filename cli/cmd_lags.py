@@ -21,6 +21,7 @@ def add_parser(sub):
 
 
 def run(args):
+    # start-up: imported when the command runs (see gpnarx.cli)
     from gpnarx.training.config import load_config, parse_range
     from gpnarx.training.lags import edge_message, lag_surface, write_surface
 

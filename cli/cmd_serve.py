@@ -48,16 +48,16 @@ def _registry(arg) -> Path:
         if not root.is_dir():
             raise CLIError(f"--registry {arg}: no such folder")
         return root
-    try:
-        from gpnarx.training.defaults import ensure_default_registry
-    except ImportError:
-        raise CLIError("no --registry given and the default registry builder is not available") from None
+    # start-up: the default-registry builder (the training pipeline) only without --registry (see gpnarx.cli)
+    from gpnarx.training.defaults import ensure_default_registry
+
     return Path(ensure_default_registry())
 
 
 def run_serve(args):
     if not 0 < args.port < 65536:
         raise CLIError(f"--port must be between 1 and 65535, got {args.port}")
+    # start-up: the server and the app (FastAPI) only when serving (see gpnarx.cli)
     import uvicorn
 
     from gpnarx.service.app import create_app
@@ -81,6 +81,7 @@ def run_serve(args):
 
 
 def run_export(args):
+    # start-up: imported when the command runs (see gpnarx.cli)
     from gpnarx.service.app import openapi_json
 
     text = openapi_json()

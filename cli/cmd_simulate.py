@@ -52,6 +52,8 @@ import time
 import numpy as np
 
 from gpnarx.cli.errors import CLIError
+from gpnarx.model.records import Record
+from gpnarx.training.records import write_record
 from gpnarx.training.simulation_specs import (
     DEFAULTS,
     EXCITATIONS,
@@ -192,6 +194,7 @@ class _Progress:
 
 
 def _simulate_boucwen(u: np.ndarray, exc: str, spec: dict, fs: float) -> np.ndarray:
+    # start-up: each simulator is imported when it runs (see gpnarx.cli)
     from gpnarx.training.simulators.boucwen import BoucWen
 
     bw = BoucWen(fs=fs)
@@ -218,12 +221,9 @@ def _simulate_boucwen(u: np.ndarray, exc: str, spec: dict, fs: float) -> np.ndar
 
 
 def _simulate_standin(u: np.ndarray, exc: str, spec: dict, fs: float) -> np.ndarray:
-    try:
-        from gpnarx.training.simulators.bert_standin import BertStandin
-    except ModuleNotFoundError as err:
-        if err.name and err.name.startswith("gpnarx.training.simulators.bert_standin"):
-            raise CLIError("the bert-standin simulator is not available in this build") from None
-        raise
+    # start-up: each simulator is imported when it runs (see gpnarx.cli)
+    from gpnarx.training.simulators.bert_standin import BertStandin
+
     sim = BertStandin(torque=spec["torque"], seed=spec["seed"], scatter=spec.get("scatter") or 1.0)
     if exc == "multisine":
         full, start = np.tile(u, 2), u.size
@@ -283,15 +283,7 @@ def _write_record(path: str, u: np.ndarray, y: np.ndarray, fs: float, units: dic
 
 
 def _write(path: str, u: np.ndarray, y: np.ndarray, fs: float, units: dict, name: str, meta: dict) -> str:
-    """Prefer the shared writer ``training.records.write_record``; fall back to :func:`_write_record`."""
-    try:
-        from gpnarx.training.records import write_record
-    except ImportError:
-        write_record = None
-    if write_record is None:
-        return _write_record(path, u, y, fs, units)
-    from gpnarx.model.records import Record
-
+    """Write with the shared writer ``training.records.write_record`` (atomic, through :func:`_atomic_target`)."""
     target = _atomic_target(path)
     write_record(target, Record(u, y, fs, units=dict(units), name=name, meta=meta))
     return target

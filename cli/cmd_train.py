@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from gpnarx.cli.errors import CLIError
-from gpnarx.training.defaults import shipped_config, shipped_config_names
+from gpnarx.configs import shipped_config, shipped_config_names
 
 
 def add_parser(sub):
@@ -38,8 +38,8 @@ def resolve_config(arg: str):
 
 
 def run(args):
-    # imported when the command runs, not when the parser is built (the pipeline pulls in scipy and
-    # scikit-learn: half a second of start-up for every gpnarx command)
+    # start-up: imported when the command runs, not when the parser is built (the pipeline pulls in
+    # scipy and scikit-learn: half a second for every gpnarx command; see gpnarx.cli)
     from gpnarx.training.pipeline import train
 
     config = resolve_config(args.config)

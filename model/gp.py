@@ -13,7 +13,7 @@ import numpy as np
 from scipy import linalg
 from scipy.optimize import minimize
 
-from .kernels import SQRT3, Kernel
+from .kernels import RBF, SQRT3, CubicPolynomial, Kernel, Matern32, Sum, White
 
 LOG_2PI = np.log(2.0 * np.pi)
 NOISE_LOG_BOUNDS = (np.log(1e-8), np.log(10.0))
@@ -69,8 +69,6 @@ class NLMLWorkspace:
     """
 
     def __init__(self, kernel: Kernel, X: np.ndarray, chunk: int = 64):
-        from .kernels import RBF, CubicPolynomial, Matern32, Sum, White
-
         self.X = X
         n = X.shape[0]
         self.n = n
@@ -241,8 +239,6 @@ def nlml_and_grad(theta: np.ndarray, kernel: Kernel, X: np.ndarray, y: np.ndarra
     n = y.size
     if not ws.fused:
         return _nlml_and_grad_generic(theta, kernel, X, y, noise)
-    from .kernels import Sum
-
     parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
     params = [np.exp(p.theta) for p in parts]
     ws.fill_K(params, noise)
@@ -295,8 +291,6 @@ def initial_theta(kernel: Kernel, X: np.ndarray, y: np.ndarray) -> np.ndarray:
     Stationary parts get variance ~ var(y) and lengthscale ~ median pairwise distance; dot-product
     parts get a small variance and scale 1/D; the noise starts at 1% of var(y).
     """
-    from .kernels import CubicPolynomial, Matern32, RBF, Sum, White
-
     rng = np.random.default_rng(0)
     sub = X[rng.choice(X.shape[0], size=min(500, X.shape[0]), replace=False)]
     d2 = np.sum((sub[:, None, :] - sub[None, :, :]) ** 2, axis=-1)
@@ -412,8 +406,6 @@ def _nlml_ws(theta, kernel, X, y, ws):
 
 def redundant_scale_indices(kernel: Kernel) -> list[int]:
     """Positions in theta of the cubic parts' log scale s (redundant with sigma_p^2 and b, eq. 11)."""
-    from .kernels import CubicPolynomial, Sum
-
     out, i = [], 0
     for p in kernel.parts if isinstance(kernel, Sum) else [kernel]:
         if isinstance(p, CubicPolynomial):

@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from gpnarx.model.metrics import fit_percent, rmse
 from gpnarx.model.regressors import stack_regressors
 
 
@@ -109,8 +110,6 @@ def fit_baselines(train_records, ny: int, nu: int, log=None) -> dict:
 
 def score_baselines(baselines: dict, records, initial_ny: dict | None = None) -> dict:
     """{record_name: {baseline_name: {fit, rmse, fit_clean?}}} on free-run simulations."""
-    from gpnarx.model.metrics import fit_percent, rmse
-
     res = {}
     for rec in records:
         row = {}

@@ -11,11 +11,16 @@ from __future__ import annotations
 
 import os
 import sys
-from importlib import resources
 from pathlib import Path
 
-# Shipped configs are package data of ``gpnarx.configs`` (the repository's ``configs/`` folder).
-CONFIG_DIR = Path(str(resources.files("gpnarx.configs")))
+from gpnarx.configs import CONFIG_DIR, shipped_config, shipped_config_names
+from gpnarx.model.bundle import Registry
+from gpnarx.training.config import bert_data_dir
+from gpnarx.training.pipeline import train
+
+__all__ = ["CONFIG_DIR", "DEFAULT_BUNDLES", "DEFAULT_MC", "default_registry_dir", "ensure_default_registry",
+           "shipped_config", "shipped_config_names"]
+
 DEFAULT_BUNDLES = ("bouc-wen", "bert-standin", "bert-standin-monitor", "bert-real")
 DEFAULT_MC = 128
 
@@ -27,30 +32,13 @@ def default_registry_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "gpnarx" / "registry"
 
 
-def shipped_config_names() -> list[str]:
-    """Names of the configs shipped with the package (``gpnarx train NAME`` accepts them)."""
-    return sorted(p.stem for p in CONFIG_DIR.glob("*.toml"))
-
-
-def shipped_config(name: str) -> Path:
-    p = CONFIG_DIR / f"{name}.toml"
-    if not p.is_file():
-        raise FileNotFoundError(f"no shipped config named {name!r}; shipped: {', '.join(shipped_config_names())}")
-    return p
-
-
 def _bert_data_present() -> bool:
-    from gpnarx.training.config import bert_data_dir
-
     d = bert_data_dir()
     return (d / "Sine").is_dir()
 
 
 def ensure_default_registry(path=None, progress: bool = True, names=DEFAULT_BUNDLES, mc_paths: int = DEFAULT_MC) -> Path:
     """Build the missing default bundles into ``path`` (default registry) and return it."""
-    from gpnarx.model.bundle import Registry
-    from gpnarx.training.pipeline import train
-
     root = Path(path) if path else default_registry_dir()
     root.mkdir(parents=True, exist_ok=True)
     have = Registry(root).scan().bundles

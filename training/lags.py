@@ -6,14 +6,10 @@ cores, or on an existing Dask cluster (``scheduler`` address: dask.distributed b
 Finished cells are cached on disk (one JSON file per cell, keyed by the config content and the
 settings), so an interrupted surface resumes where it stopped.
 
-Choice rule ("the best fit with a minimal number of lags"): among cells whose fit is within
-``tolerance`` (default 0.5) points of the best fit, take the smallest ny + nu; ties go to the
-higher fit.
-
-Grid edge: when the best cell lies on the largest ny or nu tried (and that axis has more than one
-value), the fit may still rise beyond the grid. ``lag_surface`` lists such axes in ``edge`` (for
-example ``["nu"]``) so the caller can warn and the user can extend the range; the choice itself is
-not changed.
+The choice rule and the grid-edge check are :mod:`gpnarx.training.lagchoice` (re-exported here):
+``lag_surface`` returns the chosen cell and, in ``edge``, the lag axes on which the best cell is at
+the largest value tried (for example ``["nu"]``) so the caller can warn and the user can extend the
+range; the choice itself is not changed.
 """
 from __future__ import annotations
 
@@ -25,16 +21,19 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from joblib import Parallel, delayed, parallel_config
 
 from gpnarx.model.metrics import fit_percent
+from gpnarx.training.config import load_config
+from gpnarx.training.lagchoice import DEFAULT_TOLERANCE, choose_lags, edge_message, grid_edge
+from gpnarx.training.prepare import model_from_config, shorten
 
-DEFAULT_TOLERANCE = 0.5
+__all__ = ["DEFAULT_TOLERANCE", "choose_lags", "edge_message", "grid_edge", "lag_cell", "lag_surface",
+           "write_surface"]
 
 
 @lru_cache(maxsize=4)
 def _load(config_path: str, mtime: float):
-    from gpnarx.training.config import load_config
-
     cfg = load_config(config_path)
     return cfg, cfg.records_for("train"), cfg.records_for("lags")
 
@@ -46,8 +45,6 @@ def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
     The free-run mean comes from the first-order propagation (deterministic); it equals feeding
     back the mean, as eq. (14) scores the model mean output.
     """
-    from gpnarx.training.pipeline import model_from_config
-
     cfg, train, lag_recs = _load(str(config_path), os.path.getmtime(config_path))
     if settings.get("max_seconds"):  # quick mode: the first max_seconds of every record
         train = [shorten(r, settings["max_seconds"]) for r in train]
@@ -72,53 +69,10 @@ def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
             "error": err}
 
 
-def shorten(rec, seconds: float):
-    """The first ``seconds`` of a record (the whole record when shorter); clean_y follows."""
-    n = int(round(seconds * rec.fs))
-    if n >= rec.n:
-        return rec
-    from gpnarx.model.records import Record
-
-    meta = dict(rec.meta)
-    if meta.get("clean_y") is not None:
-        meta["clean_y"] = meta["clean_y"][:n]
-    return Record(rec.u[:n], None if rec.y is None else rec.y[:n], rec.fs, dict(rec.units), rec.name, meta)
-
-
 def _cache_key(config_path: Path, settings: dict) -> str:
     h = hashlib.sha256(Path(config_path).read_bytes())
     h.update(json.dumps(settings, sort_keys=True).encode())
     return h.hexdigest()[:16]
-
-
-def choose_lags(cells: list[dict], tolerance: float = DEFAULT_TOLERANCE) -> dict:
-    """The chosen cell by the documented rule (see module docstring)."""
-    ok = [c for c in cells if c["fit"] is not None and np.isfinite(c["fit"])]
-    if not ok:
-        raise ValueError("no lag cell produced a finite fit")
-    best = max(c["fit"] for c in ok)
-    near = [c for c in ok if c["fit"] >= best - tolerance]
-    return min(near, key=lambda c: (c["ny"] + c["nu"], -c["fit"]))
-
-
-def grid_edge(cell: dict, ny_values, nu_values) -> list[str]:
-    """Lag axes ("ny", "nu") on which ``cell`` sits at the largest value tried (axes of one value are
-    never an edge: the user fixed them)."""
-    edge = []
-    for axis, values in (("ny", ny_values), ("nu", nu_values)):
-        values = [int(v) for v in values]
-        if len(set(values)) > 1 and int(cell[axis]) == max(values):
-            edge.append(axis)
-    return edge
-
-
-def edge_message(surface: dict) -> str:
-    """One line telling which lag axes the best cell reached the grid's largest value on."""
-    best = surface["best"]
-    axes = " and ".join(f"{a}={best[a]}" for a in surface["edge"])
-    return (f"the best cell (ny={best['ny']}, nu={best['nu']}, fit {best['fit']:.2f} %) is at the largest "
-            f"{axes} tried; the fit may still rise beyond the grid: extend "
-            + " and ".join(f"--{a}" for a in surface["edge"]) + " to check")
 
 
 def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler: str | None = None,
@@ -126,8 +80,6 @@ def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler:
                 tolerance: float = DEFAULT_TOLERANCE) -> dict:
     """Compute the surface; returns {"cells": [...], "chosen": {...}, "best": {...}, "edge": [...], ...}
     (``edge``: the axes on which the best cell is at the grid's largest value, see module docstring)."""
-    from joblib import Parallel, delayed
-
     config_path = Path(config_path).resolve()
     settings = dict(settings or {})
     cache_dir = Path(cache_dir) if cache_dir else config_path.parent / ".lagcache"
@@ -163,8 +115,11 @@ def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler:
     t0 = time.perf_counter()
     if todo:
         if scheduler:
-            from dask.distributed import Client
-            from joblib import parallel_config
+            # dask.distributed is optional (extra "distributed"): only a remote scheduler needs it
+            try:
+                from dask.distributed import Client
+            except ImportError as exc:
+                raise ImportError("a Dask scheduler needs dask.distributed: pip install 'gpnarx[distributed]'") from exc
 
             with Client(scheduler, timeout="20s") as client:  # noqa: F841 (registers the dask backend)
                 with parallel_config(backend="dask"):
@@ -198,6 +153,8 @@ def write_surface(surface: dict, out) -> list[Path]:
     os.replace(tmp, out)
     paths.append(out)
     try:
+        # the report module imports matplotlib and selects its Agg backend: imported only here, when a
+        # figure is drawn, not in every lag-surface worker process that imports this module
         from gpnarx.training.report import lag_surface_figure
 
         png = out.with_suffix(".png")

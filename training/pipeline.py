@@ -8,39 +8,32 @@ writes a versioned bundle with its report folder, atomically, into ``REGISTRY/NA
 """
 from __future__ import annotations
 
+import json
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+from tqdm import tqdm
 
 from gpnarx.model.bundle import save_bundle
 from gpnarx.model.estimator import GPNARX
+from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import (RMS_METHOD, calibrate_threshold, novelty_score, novelty_start, outside_envelope,
-                           record_envelope, verdict)
+                                  record_envelope, verdict)
 from gpnarx.model.records import Record
-from gpnarx.training.config import ConfigError, DatasetConfig, load_config
+from gpnarx.training.baselines import fit_baselines, score_baselines
+from gpnarx.training.config import DatasetConfig, load_config
 from gpnarx.training.jsonsafe import to_json_safe
+from gpnarx.training.prepare import model_from_config, shorten
+
+__all__ = ["EVAL_ROLES", "as_config", "basic_metrics", "evaluate_record", "model_from_config", "score_records",
+           "train"]
 
 EVAL_ROLES = ("lags", "verify", "validate", "healthy", "damaged")
 
 
 def as_config(config) -> DatasetConfig:
     return config if isinstance(config, DatasetConfig) else load_config(config)
-
-
-def model_from_config(cfg: DatasetConfig, ny: int | None = None, nu: int | None = None, **overrides) -> GPNARX:
-    """An unfitted GPNARX with the config's [model] settings (lags overridable)."""
-    m = dict(cfg.model)
-    m.update({k: v for k, v in overrides.items() if v is not None})
-    ny = ny if ny is not None else m.get("ny")
-    nu = nu if nu is not None else m.get("nu")
-    if ny is None or nu is None:
-        raise ConfigError(f"{cfg.path}: [model] ny and nu are required (choose them with 'gpnarx lags')")
-    return GPNARX(ny=int(ny), nu=int(nu), kernel=m.get("kernel", "matern32+cubic"), mode=m.get("mode", "exact"),
-                  n_inducing=int(m.get("inducing", 256)), max_train_points=m.get("max_train_points", 2000),
-                  selection=m.get("selection", "stride"), n_restarts=int(m.get("restarts", 2)),
-                  seed=int(m.get("seed", 0)), hyper=m.get("hyper", "subset"))
 
 
 def evaluate_record(model: GPNARX, rec: Record, role: str, n_paths: int, seed: int = 0, confidence: float = 0.99,
@@ -70,8 +63,6 @@ def evaluate_record(model: GPNARX, rec: Record, role: str, n_paths: int, seed: i
 
 
 def basic_metrics(ev: dict) -> dict:
-    from gpnarx.model.metrics import summary
-
     res = {}
     if ev["y"] is not None:
         res.update(summary(ev["y"], ev["mean"], ev["lower"], ev["upper"]))
@@ -92,8 +83,6 @@ class _Progress:
     def __init__(self, enabled: bool, total: int, desc: str):
         self.bar = None
         if enabled:
-            from tqdm import tqdm
-
             self.bar = tqdm(total=total, desc=desc, unit="step", leave=False, mininterval=0.5)
         self.base = 0
 
@@ -122,8 +111,6 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
     def records(role):
-        from gpnarx.training.lags import shorten
-
         recs = cfg.records_for(role)
         return [shorten(r, max_seconds) for r in recs] if max_seconds else recs
 
@@ -165,8 +152,6 @@ def train(config, registry, name: str | None = None, version: str | None = None,
         log(f"  {role:8s} {rec.name}: " + ", ".join(f"{k}={v:.4g}" for k, v in ev["metrics"].items()))
     bar.close()
     if baselines is None:
-        from gpnarx.training.baselines import fit_baselines, score_baselines
-
         fitted = fit_baselines(train_recs, model.ny, model.nu, log=log)
         baselines = score_baselines(fitted, [rec for _, rec in todo])
     novelty = None
@@ -195,6 +180,8 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     with tempfile.TemporaryDirectory() as tmp:
         report_dir = None
         if report:
+            # the report module imports matplotlib and selects its Agg backend: imported only when a
+            # report is written, so importing the pipeline leaves a caller's plotting set-up alone
             from gpnarx.training.report import write_report
 
             report_dir = Path(tmp) / "report"
@@ -205,8 +192,6 @@ def train(config, registry, name: str | None = None, version: str | None = None,
                 "fit_seconds": model.fit_seconds_, "mc_paths": n_paths, "novelty": novelty,
             }, evals + list(extra_evals or []), physics=physics, lag_surface=lag_surface, baselines=baselines, paper=paper)
             # the report's richer per-record metrics (PSD peaks, loop areas) go into the manifest too
-            import json
-
             rj = json.loads((report_dir / "report.json").read_text())
             for rm in rj.get("records", []):
                 nm = rm.get("name")

@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 from gpnarx.model import metrics as _metrics  # noqa: E402
 from gpnarx.model import psd as _psd  # noqa: E402
 from gpnarx.model.restoring import loop_area, restoring_force  # noqa: E402
-from gpnarx.training.lags import edge_message, grid_edge  # noqa: E402
+from gpnarx.training.lagchoice import edge_message, grid_edge  # noqa: E402
 
 GP_NAME = "GP-NARX"
 ZOOM_SECONDS = 0.25
@@ -461,7 +461,7 @@ def _best_cell(rows: list[dict]) -> dict | None:
 
 
 def _lag_edge(rows: list[dict]) -> list[str]:
-    """Lag axes on which the best row sits at the largest value tried (training.lags.grid_edge)."""
+    """Lag axes on which the best row sits at the largest value tried (training.lagchoice.grid_edge)."""
     best = _best_cell(rows)
     return grid_edge(best, [r["ny"] for r in rows], [r["nu"] for r in rows]) if best else []
 

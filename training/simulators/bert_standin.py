@@ -94,6 +94,10 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from scipy import signal
+
+from gpnarx.training.excitations import band_limited_noise
+from gpnarx.training.records import read_record
 
 __all__ = [
     "BertStandin",
@@ -397,8 +401,6 @@ def _integrate_mode1(u: np.ndarray, fs: float, sub: int, p: StandinParams, callb
 
 def _mode2(u: np.ndarray, fs: float, p: StandinParams):
     """Linear second mode, exact first-order-hold discretisation: displacement and velocity."""
-    from scipy import signal
-
     w2 = 2.0 * math.pi * p.f2
     a = np.array([[0.0, 1.0], [-w2 * w2, -2.0 * p.zeta2 * w2]])
     b = np.array([[0.0], [p.g2]])
@@ -438,10 +440,6 @@ def noise_frf(model: BertStandin | None = None, rms: float = 0.00265, duration: 
     Default level: 0.00265 V RMS over 0-110 Hz, the level of the rig's ``Rand0p25`` run.
     Returns ``(f [Hz], H complex)``.
     """
-    from scipy import signal
-
-    from gpnarx.training.excitations import band_limited_noise
-
     model = model or BertStandin()
     u = band_limited_noise(fs, duration, f_band[0], f_band[1], rms, seed=seed)
     y = model.simulate(u, fs)["y"]
@@ -505,8 +503,6 @@ def real_sine_amplitudes(data_dir=None, n_harmonics: int = 3) -> list[dict]:
     harmonics 1..n, all by least squares on the steady part of the burst (from 10 s after the start
     to 1 s before the drive stops).
     """
-    from gpnarx.training.records import read_record
-
     root = _bert_data_dir(data_dir) / "Sine"
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: BERT sine records not found (set GPNARX_BERT_DATA)")
