@@ -220,7 +220,10 @@ async function run() {
   const wantNovelty = !!d.novelty && !!body.y;
   $("run").disabled = true;
   $("results").hidden = false;
+  // what a reader (or a test) waits for is cleared until this run's answers are drawn
   for (const id of ["time-plot", "psd-plot", "loops-plot"]) delete $(id).dataset.ready;
+  delete $("verdict").dataset.verdict;
+  delete $("predict-metrics").dataset.samples;
   $("run-state").textContent = `running on ${body.u.length} samples...`;
   const t0 = performance.now();
   const [pred, loops, nov] = await Promise.allSettled([
