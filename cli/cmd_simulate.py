@@ -18,7 +18,7 @@ Systems (defaults follow the paper's protocol, sections 3 and 4):
   (``training.simulators.bert_standin``; never the rig's numbers), fs = 1024 Hz, u = shaker
   voltage [V], y = free-end velocity [m/s]. ``--torque`` [N m] (default 5) and ``--seed`` select
   the tightening torque and the realization; ``--scatter`` (default 1) multiplies the realization
-  scatter of the stand-in's parameters (10 = the former, larger assumption; see the simulator).
+  scatter of the stand-in's parameters (e.g. 10 to study larger day-to-day drift; see the simulator).
 
 Excitations (``--amplitude`` is the *peak* for sweep and sine, the *RMS* for multisine and noise):
 
