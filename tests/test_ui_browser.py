@@ -108,17 +108,22 @@ def shots(tmp_path):
     return d
 
 
-def api_answers(url, files, *, key=None, mc_paths=64, seed=0, confidence=0.99, method="mc", operations=()):
-    """What the page's defaults ask for, sent by a plain HTTP client: the parsed record, then each operation."""
+def api_answers(url, files, *, key=None, mc_paths=64, seed=0, confidence=0.99, method="mc", operations=(),
+                window=None, start=None):
+    """What the page asks for (its defaults unless given), sent by a plain HTTP client: the parsed record
+    (``window`` = (first sample, count)), then each operation."""
     headers = {"X-API-Key": key} if key else {}
     with httpx.Client(base_url=url, timeout=120, headers=headers) as c:
         rec = c.post("/v1/records/parse", files=[("files", f) for f in files])
         rec.raise_for_status()
         rec = rec.json()
-        body = {"u": rec["u"], "fs": rec["fs"], "mc_paths": mc_paths, "seed": seed, "confidence": confidence,
-                "method": method}
+        i0, n = window or (0, rec["n_samples"])
+        body = {"u": rec["u"][i0:i0 + n], "fs": rec["fs"], "mc_paths": mc_paths, "seed": seed,
+                "confidence": confidence, "method": method}
         if rec["y"] is not None:
-            body["y"] = rec["y"]
+            body["y"] = rec["y"][i0:i0 + n]
+        if start:
+            body["start"] = start
         out = {"record": rec}
         for op in operations:
             r = c.post(f"/v1/models/boucwen/versions/2/{op}", json=body)
@@ -180,10 +185,15 @@ def test_api_key_example_and_training_report(page, live_keyed, shots):
     page.select_option("#examples", example)
     page.click("#load-example")
     page.wait_for_selector("#record-info[data-samples='2048']")
+    # a window from the middle of the record, its free run started from the measured outputs
+    page.fill("#t0", "0.5")
+    page.fill("#count", "1024")
+    page.select_option("#start", "measured")
     shown = run_in_page(page)
     api = api_answers(live_keyed, [(example, (STATIC_DIR / "examples" / example).read_bytes())], key=API_KEY,
-                      operations=("predict", "novelty"))
-    assert shown["plotted"] == api["predict"]["n_samples"] == 2048
+                      operations=("predict", "novelty"), window=(375, 1024), start="measured")
+    assert shown["plotted"] == api["predict"]["n_samples"] == 1024
+    assert api["predict"]["start"] == "measured"
     assert shown["verdict"] == api["novelty"]["verdict"]
     assert shown["score"] == pytest.approx(api["novelty"]["score"], rel=1e-12)
 

@@ -206,6 +206,9 @@ function requestBody() {
                  mc_paths: Math.round(Number($("mc-paths").value) || 64), seed: Math.round(Number($("seed").value) || 0),
                  confidence: Number($("confidence").value) || 0.99 };
   if (rec.y) body.y = rec.y.slice(i0, i0 + n);
+  const start = $("start").value;
+  if (start === "measured" && !rec.y) throw new Error("start 'measured' needs a record with a measured y");
+  if (start) body.start = start;
   return { body, i0, n };
 }
 
@@ -244,7 +247,8 @@ async function run() {
 function renderPrediction(p, body, i0) {
   kvTable($("predict-metrics"), { "samples (API n_samples)": p.n_samples, "fit [%]": p.fit, RMSE: p.rmse,
     [`coverage of the ${Math.round(p.confidence * 1000) / 10} % band [%]`]: p.coverage, method: p.method,
-    "Monte Carlo paths": p.mc_paths, seed: p.seed, "diverged paths": p.diverged_paths, "out of range": p.out_of_range });
+    "Monte Carlo paths": p.mc_paths, seed: p.seed, start: p.start, "diverged paths": p.diverged_paths,
+    "out of range": p.out_of_range });
   $("predict-metrics").dataset.samples = String(p.n_samples);
   const fs = body.fs;
   const n = p.mean.length;
@@ -279,7 +283,7 @@ function renderNovelty(nv, wanted, body) {
   $("gauge").title = `score ${fmt(nv.score)} against threshold ${fmt(nv.threshold)}`;
   kvTable(table, { score: nv.score, threshold: nv.threshold, "score / threshold": nv.score / nv.threshold,
     "false-alarm rate": nv.false_alarm_rate, "score method": nv.score_method, "out of range": nv.out_of_range,
-    "samples scored": nv.n_samples, NLPD: nv.nlpd });
+    "samples scored": nv.n_samples, NLPD: nv.nlpd, start: nv.start });
 }
 
 function renderLoops(lp, wanted) {
