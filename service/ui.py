@@ -26,6 +26,7 @@ import asyncio
 import base64
 import functools
 import re
+from html import escape as html_escape
 from pathlib import Path, PurePath
 from typing import Annotated
 from urllib.parse import unquote
@@ -165,7 +166,8 @@ def _page_template() -> str:
 
 
 def _root(request: Request) -> str:
-    return request.scope.get("root_path", "").rstrip("/")
+    """The app's mount prefix (uvicorn --root-path, a proxy's prefix), escaped for HTML attributes."""
+    return html_escape(request.scope.get("root_path", "").rstrip("/"), quote=True)
 
 
 def install(app: FastAPI, state, json_response=JSONResponse) -> None:

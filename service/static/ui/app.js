@@ -82,6 +82,7 @@ async function selectModel(name) {
 
 async function loadVersion() {
   closeReport();
+  $("report-link").href = `${root}${versionBase()}/report`;
   try {
     const d = await getJSON(versionBase());
     state.detail = d;
