@@ -15,6 +15,8 @@ def add_parser(sub):
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024 Bouc-Wen, 4096 BERT)")
     p.add_argument("--docs", default=None, metavar="FILE",
                    help="also write the results page there (bert-real: docs/results-bert-real.md)")
+    p.add_argument("--from-run", action="store_true",
+                   help="only re-render the results page (--docs) from the run folder --out, computing nothing")
     p.set_defaults(func=run)
 
 
@@ -23,6 +25,14 @@ def run(args):
     from gpnarx.training.reproduce import reproduce
 
     out = args.out or f"runs/reproduce-{args.system}{'-quick' if args.quick else ''}"
+    if args.from_run:
+        from gpnarx.cli.errors import CLIError
+        from gpnarx.training.reproduce import render_from_run
+
+        if args.system != "bert-real" or not args.docs:
+            raise CLIError("--from-run re-renders the bert-real results page: give --docs FILE")
+        render_from_run(out, args.docs)
+        return {"system": args.system, "out": out, "docs": args.docs}
     log = None if args.json else (lambda m: print(m, file=sys.stderr, flush=True))
     s = reproduce(args.system, out, quick=args.quick, jobs=args.jobs, scheduler=args.scheduler, mc_paths=args.mc,
                   log=log, progress=not args.json, docs_page=args.docs)
