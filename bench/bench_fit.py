@@ -23,7 +23,6 @@ import time
 import warnings
 
 import numpy as np
-
 from scipy.optimize import minimize
 
 import _common as C

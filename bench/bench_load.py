@@ -258,8 +258,9 @@ def main(argv=None):
         raise SystemExit("need 1 <= clients <= 256, requests >= 4 and overload > workers + queue")
 
     import httpx
-    from _common import fmt, result
     from threadpoolctl import threadpool_limits
+
+    from _common import fmt, result
 
     threadpool_limits(limits=args.threads, user_api="blas")
     tmp = None

@@ -35,11 +35,10 @@ def child(case: str, n: int, m: int, paths: int, steps: int) -> dict:
     import warnings
 
     import numpy as np
+    from sklearn.gaussian_process import GaussianProcessRegressor  # noqa: F401  (import before tracing)
 
     from gpnarx.model.freerun import simulate_mc
     from gpnarx.model.gp import SparsePosterior, choose_inducing
-
-    from sklearn.gaussian_process import GaussianProcessRegressor  # noqa: F401  (import before tracing)
 
     theta = C.THETA_REF
     r50 = C.protocol()[2]

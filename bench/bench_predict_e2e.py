@@ -179,11 +179,12 @@ def run(args, tmp: Path):
           f"{C.env_note()} in the bench process")
     print(f"  product, whole process (start, load, predict, write): {', '.join(f'{w:.2f}' for w in walls)} s "
           f"(median {wall:.2f} s; simulate() itself {sim_s:.2f} s); {ps:,.0f} path-steps/s "
-          f"(best {ps_best:,.0f}); fit {res.get('fit', float('nan')):.1f} %, coverage {res.get('coverage', float('nan')):.1f} %")
+          f"(best {ps_best:,.0f}); fit {res.get('fit', float('nan')):.1f} %, "
+          f"coverage {res.get('coverage', float('nan')):.1f} %")
     print(f"  same command with the process tuning off (library BLAS threads, default malloc): {untuned:.2f} s "
           f"(x{untuned / wall:.2f} the tuned median)")
-    print(f"  baseline sklearn predict loop, exact N={N_base}, D={C.D}, {P} paths: {base_step_s:.3f} s/step measured on "
-          f"{(ps1 + ps2) // P} steps (half before, half after); {base_ps:,.0f} path-steps/s; "
+    print(f"  baseline sklearn predict loop, exact N={N_base}, D={C.D}, {P} paths: {base_step_s:.3f} s/step "
+          f"measured on {(ps1 + ps2) // P} steps (half before, half after); {base_ps:,.0f} path-steps/s; "
           f"the record would take {base_step_s * n:.0f} s (extrapolated)")
     print(f"  ratio {ps / base_ps:.1f} (target >= 50)")
     C.result(path_steps_per_s=ps, baseline=base_ps, ratio=ps / base_ps, wall_s=wall, wall_best_s=min(walls),

@@ -44,7 +44,7 @@ def main():
     for n in Ns:
         X, y, _, _ = C.training_set(n)
         k = make_kernel("matern32+cubic")
-        fit_t.append(C.best(lambda: nlml_and_grad(theta, k, X, y), rep)[0])
+        fit_t.append(C.best(lambda k=k, X=X, y=y: nlml_and_grad(theta, k, X, y), rep)[0])
         post = C.exact_posterior(theta, X, y)
         gpr = C.sk_gpr(theta, X, y)
         Xb = block(X, P)
@@ -52,8 +52,8 @@ def main():
         gpr.predict(Xb, return_std=True)
         t_o, t_b = [], []
         for _ in range(rep):  # interleaved
-            t_o.append(C.best(lambda: post.predict(Xb), 1)[0])
-            t_b.append(C.best(lambda: gpr.predict(Xb, return_std=True), 1)[0])
+            t_o.append(C.best(lambda post=post, Xb=Xb: post.predict(Xb), 1)[0])
+            t_b.append(C.best(lambda gpr=gpr, Xb=Xb: gpr.predict(Xb, return_std=True), 1)[0])
         step_t.append(min(t_o))
         base_t.append(min(t_b))
 
@@ -64,7 +64,7 @@ def main():
     path_all = {p: [] for p in Ps}
     for _ in range(rep):  # round-robin over sizes so a load change hits all of them
         for p in Ps:
-            path_all[p].append(C.best(lambda: post.predict(blocks[p]), 1)[0])
+            path_all[p].append(C.best(lambda p=p: post.predict(blocks[p]), 1)[0])
     path_t = [min(path_all[p]) for p in Ps]
 
     X, y, xsc, ysc = C.training_set(N_len)
@@ -94,10 +94,11 @@ def main():
     for n, a, b, c in zip(Ns, fit_t, step_t, base_t):
         print(f"  {n:>5} {a:11.4f} {b:11.4f} {c:14.4f} {c / b:6.2f}")
     print(f"  paths at N={N_paths}: " + ", ".join(f"P={p}: {t * 1e3:.1f} ms" for p, t in zip(Ps, path_t)))
-    print(f"  record length at N={N_len}, P={P_len}: " + ", ".join(f"{L} steps: {t:.3f} s" for L, t in zip(lengths, len_t)))
+    print(f"  record length at N={N_len}, P={P_len}: "
+          + ", ".join(f"{L} steps: {t:.3f} s" for L, t in zip(lengths, len_t)))
     print(f"  log-log slopes: fit(NLML+grad) vs N {s_fit:.2f} (upper half {s_fit_hi:.2f}); step vs N ours {s_step:.2f} "
-          f"(upper half {s_step_hi:.2f}), sklearn {s_base:.2f} (upper half {s_base_hi:.2f}); step vs paths {s_paths:.2f}; "
-          f"run vs length {s_len:.2f}")
+          f"(upper half {s_step_hi:.2f}), sklearn {s_base:.2f} (upper half {s_base_hi:.2f}); "
+          f"step vs paths {s_paths:.2f}; run vs length {s_len:.2f}")
     C.result(slope_N_fit=s_fit, slope_N_step=s_step, slope_paths=s_paths, slope_length=s_len, baseline=s_base,
              ratio=base_t[-1] / step_t[-1], slope_N_fit_hi=s_fit_hi, slope_N_step_hi=s_step_hi,
              baseline_hi=s_base_hi, N_max=Ns[-1], load=C.load(), blas_threads=C.blas_threads())

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 def add_parser(sub):
     p = sub.add_parser("build-defaults", help="build the default registry (Bouc-Wen, BERT stand-in, real BERT)")
-    p.add_argument("--registry", default=None, help="registry folder (default: $GPNARX_REGISTRY or ~/.cache/gpnarx/registry)")
+    p.add_argument("--registry", default=None,
+                   help="registry folder (default: $GPNARX_REGISTRY or ~/.cache/gpnarx/registry)")
     p.add_argument("--mc", type=int, default=128, help="Monte Carlo paths of the verification report")
     p.set_defaults(func=run)
 

@@ -1,6 +1,7 @@
 """``gpnarx lags CONFIG.toml --ny LO:HI --nu LO:HI [--jobs N] [--scheduler ADDRESS] --out FILE``."""
 from __future__ import annotations
 
+import importlib.util
 import sys
 
 from gpnarx.cli.errors import CLIError
@@ -12,7 +13,8 @@ def add_parser(sub):
     p.add_argument("--ny", default=None, help="output-lag range LO:HI[:STEP] (default: the config's [lags] ny)")
     p.add_argument("--nu", default=None, help="input-lag range LO:HI[:STEP] (default: the config's [lags] nu)")
     p.add_argument("--jobs", type=int, default=-1, help="local parallel jobs (joblib; -1 = all cores)")
-    p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler, e.g. tcp://host:8786")
+    p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler, e.g. tcp://host:8786 "
+                                                       "(needs the 'distributed' extra)")
     p.add_argument("--max-train-points", type=int, default=None, help="training-point cap per cell (default: config)")
     p.add_argument("--tolerance", type=float, default=0.5, help="choice rule: fit within this many points of the best")
     p.add_argument("--cache-dir", default=None, help="cache of finished cells (default: CONFIG_DIR/.lagcache)")
@@ -25,6 +27,8 @@ def run(args):
     from gpnarx.training.config import load_config, parse_range
     from gpnarx.training.lags import edge_message, lag_surface, write_surface
 
+    if args.scheduler and importlib.util.find_spec("distributed") is None:
+        raise CLIError("--scheduler needs dask.distributed: pip install 'gpnarx[distributed]'")
     cfg = load_config(args.config)
     ny_spec = args.ny or cfg.lags.get("ny")
     nu_spec = args.nu or cfg.lags.get("nu")

@@ -48,9 +48,12 @@ def _registry(arg) -> Path:
         if not root.is_dir():
             raise CLIError(f"--registry {arg}: no such folder")
         return root
-    # start-up: the default-registry builder (the training pipeline) only without --registry (see gpnarx.cli)
-    from gpnarx.training.defaults import ensure_default_registry
-
+    # start-up: the default-registry builder (the training pipeline) only without --registry (see gpnarx.cli);
+    # a build without it still serves a given registry and says so in one line otherwise
+    try:
+        from gpnarx.training.defaults import ensure_default_registry
+    except ImportError:
+        raise CLIError("no --registry given and the default registry builder is not available") from None
     return Path(ensure_default_registry())
 
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
-import io
 import json
 import os
 import re
@@ -211,7 +210,8 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
             "estimator": {"include_noise": bool(model.include_noise), "n_inducing": int(model.n_inducing),
                           "max_train_points": model.max_train_points, "selection": model.selection,
                           "seed": int(model.seed), "hyper": model.hyper,
-                          "constant_cap": model.constant_cap, "kernel_spec": model.kernel if isinstance(model.kernel, str) else None},
+                          "constant_cap": model.constant_cap,
+                          "kernel_spec": model.kernel if isinstance(model.kernel, str) else None},
             "fs": float(fs),
             "units": dict(units),
             "physics": dict(physics or {}),
@@ -263,7 +263,8 @@ def _read_manifest(path: Path) -> dict:
     if missing:
         raise BundleError(f"{mf}: missing keys {missing}")
     if manifest["schema_version"] != SCHEMA_VERSION:
-        raise BundleError(f"{mf}: schema_version {manifest['schema_version']!r} is not supported (expected {SCHEMA_VERSION})")
+        raise BundleError(f"{mf}: schema_version {manifest['schema_version']!r} is not supported "
+                          f"(expected {SCHEMA_VERSION})")
     return manifest
 
 
@@ -339,8 +340,8 @@ def load_bundle(path) -> Bundle:
             shift = kernel.for_posterior(DEFAULT_CONSTANT_CAP).cap_shift()
             if shift > 1e6 * model.noise_var_:  # Bouc-Wen (73 vs 1.1e-2) stays quiet; the stand-in's warns
                 warnings.warn(f"{path}: built before the predictive-variance fix; its cubic kernel constant "
-                              f"(sigma_p^2 b^3 = {shift + DEFAULT_CONSTANT_CAP:.3g}) makes eq. 9's variance cancel below float64 "
-                              "precision, so its 99% bands may carry the noise variance only. Retrain it "
+                              f"(sigma_p^2 b^3 = {shift + DEFAULT_CONSTANT_CAP:.3g}) makes eq. 9's variance cancel "
+                              "below float64 precision, so its 99% bands may carry the noise variance only. Retrain it "
                               "(gpnarx train CONFIG --registry DIR writes a new version)", BundleWarning, stacklevel=2)
     except BundleError as exc:
         msg = str(exc)
@@ -397,7 +398,8 @@ class Registry:
         if version is None:
             version = self.versions(name)[-1]
         if str(version) not in self.bundles[name]:
-            raise KeyError(f"version {version!r} of model {name!r} not found; available: {', '.join(self.versions(name))}")
+            raise KeyError(f"version {version!r} of model {name!r} not found; "
+                           f"available: {', '.join(self.versions(name))}")
         return self.bundles[name][str(version)]
 
 

@@ -360,10 +360,11 @@ def multistart_lbfgsb(fun, args: tuple, starts: list, bounds: list, n_restarts: 
     fixed ``starts`` in order, then ``n_restarts`` seeded N(0, 1) log-space perturbations of
     ``starts[0]`` (clipped to ``bounds``). Once every fixed start has run, it stops as soon as two
     finished starts agree within ``agree_tol`` (same units as ``fun``, nats for an NLML). A start
-    raising ``failure`` keeps its best point so far, or is recorded as (inf, 0) if it had none. With ``stall_evals``, a start also ends once that
-    many consecutive evaluations improved its best value by less than ``stall_tol`` (its best point
-    is kept; n_iter is then recorded as -1). Returns (best result, with ``x``, ``fun``, ``nfev``,
-    or None; history of (value, n_iter) per start; total evaluations).
+    raising ``failure`` keeps its best point so far, or is recorded as (inf, 0) if it had none. With
+    ``stall_evals``, a start also ends once that many consecutive evaluations improved its best value
+    by less than ``stall_tol`` (its best point is kept; n_iter is then recorded as -1). Returns (best
+    result, with ``x``, ``fun``, ``nfev``, or None; history of (value, n_iter) per start; total
+    evaluations).
     """
     from scipy.optimize import OptimizeResult
 

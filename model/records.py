@@ -89,6 +89,7 @@ def _as_signal(a, label: str, name: str) -> np.ndarray:
     bad = ~np.isfinite(arr)
     if bad.any():
         raise RecordError(
-            f"{name}: {label} holds {int(bad.sum())} non-finite value(s) (NaN/inf), first at sample {int(np.argmax(bad))}"
+            f"{name}: {label} holds {int(bad.sum())} non-finite value(s) (NaN/inf), "
+            f"first at sample {int(np.argmax(bad))}"
         )
     return arr

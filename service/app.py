@@ -28,7 +28,6 @@ import json
 import logging
 import math
 import signal
-import sys
 import time
 import uuid
 from contextlib import asynccontextmanager
@@ -320,7 +319,8 @@ class GuardMiddleware:
                 if not given or not hmac.compare_digest(given.encode("utf-8", "replace"),
                                                         st.settings.api_key.encode("utf-8")):
                     await reply(ProblemError(401, f"a valid API key is required in the {API_KEY_HEADER} header",
-                                             API_KEY_HEADER, headers={"WWW-Authenticate": f'ApiKey header="{API_KEY_HEADER}"'}))
+                                             API_KEY_HEADER,
+                                             headers={"WWW-Authenticate": f'ApiKey header="{API_KEY_HEADER}"'}))
                     return
             cl = headers.get("content-length")
             if cl is not None:
@@ -711,7 +711,7 @@ def build_openapi(app: FastAPI) -> dict:
         "description": "Required on /v1 routes only when the server sets GPNARX_API_KEY."}}
     problem_ref = {"schema": {"$ref": "#/components/schemas/Problem"}}
     for path, item in doc.get("paths", {}).items():
-        for method, op in item.items():
+        for op in item.values():
             responses = op.setdefault("responses", {})
             responses.setdefault("500", {"description": "Internal error (a problem detail, never a stack trace)"})
             for code, resp in responses.items():

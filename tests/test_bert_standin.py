@@ -94,7 +94,8 @@ def test_scatter_multiplies_the_log_deviations():
         d1 = np.log(getattr(one, name) / getattr(nominal, name))
         d10 = np.log(getattr(ten, name) / getattr(nominal, name))
         assert d1 != 0.0 and d10 == pytest.approx(10 * d1, rel=1e-9)
-    np.testing.assert_allclose(np.log(np.divide(ten.slip, nominal.slip)), 10 * np.log(np.divide(one.slip, nominal.slip)))
+    np.testing.assert_allclose(np.log(np.divide(ten.slip, nominal.slip)),
+                               10 * np.log(np.divide(one.slip, nominal.slip)))
     assert BertStandin(seed=3, scatter=0).params == nominal
     assert BertStandin(seed=None, scatter=10).params == nominal
     for bad in (-1, 101, float("nan"), "x"):

@@ -6,8 +6,8 @@ import types
 import numpy as np
 import pytest
 
-from gpnarx.cli import main as cli
 from gpnarx.cli import cmd_simulate
+from gpnarx.cli import main as cli
 from gpnarx.training.excitations import swept_sine
 from gpnarx.training.simulators.boucwen import BoucWen
 
@@ -33,7 +33,8 @@ def test_bouc_wen_sweep_record_contract(tmp_path, capsys):
 
 def test_json_summary_and_csv(tmp_path, capsys):
     out = tmp_path / "s.csv"
-    assert cli.main(["simulate", "bouc-wen", "--excitation", "sine", "--amplitude", "10", "--out", str(out), "--json"]) == 0
+    argv = ["simulate", "bouc-wen", "--excitation", "sine", "--amplitude", "10", "--out", str(out), "--json"]
+    assert cli.main(argv) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["fs"] == 750.0 and summary["n"] == 1500 and summary["freq"] == 35.59
     assert summary["units"] == {"u": "N", "y": "m"}
@@ -62,13 +63,15 @@ def test_noise_fraction_is_seeded_and_sized(tmp_path):
 
 def test_multisine_and_noise_defaults(tmp_path):
     m = tmp_path / "m.npz"
-    assert _run("bouc-wen", "--excitation", "multisine", "--amplitude", "10", "--seed", "1", "--duration", "2", "--out", m) == 0
+    assert _run("bouc-wen", "--excitation", "multisine", "--amplitude", "10", "--seed", "1", "--duration", "2",
+                "--out", m) == 0
     d = np.load(m)
     assert d["u"].size == 1500 and np.sqrt(np.mean(d["u"] ** 2)) == pytest.approx(10.0)
     # periodic steady state: equals the periodic simulation of the same period
     np.testing.assert_allclose(d["y"], BoucWen().simulate(d["u"], periodic=True)["y"], atol=1e-15)
     n = tmp_path / "n.npz"
-    assert _run("bouc-wen", "--excitation", "noise", "--amplitude", "5", "--duration", "1", "--seed", "2", "--out", n) == 0
+    assert _run("bouc-wen", "--excitation", "noise", "--amplitude", "5", "--duration", "1", "--seed", "2",
+                "--out", n) == 0
     assert np.load(n)["u"].size == 750
 
 

@@ -59,7 +59,7 @@ def test_small_config_loads_and_materialises(tmp_path):
     assert isinstance(cfg, DatasetConfig)
     assert cfg.name == "bw-small" and cfg.fs == 750.0 and cfg.units == {"u": "N", "y": "m"}
     assert cfg.model["ny"] == 3 and cfg.model["kernel"] == "rbf+cubic" and cfg.model["mode"] == "exact"
-    assert cfg.model["max_train_points"] == 2000 and cfg.predict == {"mc_paths": 64, "confidence": 0.99}
+    assert cfg.model["max_train_points"] == 2000 and cfg.predict == {"mc_paths": 64, "confidence": 0.99, "method": "mc"}
     assert cfg.novelty["false_alarm_rate"] == 0.01 and cfg.physics["mass"] == 2.0
     assert cfg.novelty["method"] == "rms_standardised_residual"  # the default score
     assert parse_range(cfg.lags["nu"]) == [2, 5, 8]
@@ -142,7 +142,8 @@ def test_fs_mismatch_names_both_records(tmp_path):
 
 def test_unit_mismatch(tmp_path):
     rng = np.random.default_rng(2)
-    write_record(tmp_path / "v.npz", Record(rng.standard_normal(20), rng.standard_normal(20), 750.0, {"u": "N", "y": "m/s"}))
+    write_record(tmp_path / "v.npz",
+                 Record(rng.standard_normal(20), rng.standard_normal(20), 750.0, {"u": "N", "y": "m/s"}))
     text = """
     name = "units"
     [system]
@@ -168,16 +169,19 @@ def test_unit_mismatch(tmp_path):
          "no record has role 'train'"),
         ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train','tesst']\npath='x.npz'\n",
          "records.a.roles: unknown role 'tesst'"),
-        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\n", "give exactly one of path or simulate"),
+        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\n",
+         "give exactly one of path or simulate"),
         ("name='x'\n[system]\nfs=750.0\n[model]\nkernel='laplace'\n[[records]]\nname='a'\nroles=['train']\npath='x'\n",
          "model.kernel: must be one of"),
         ("name='x'\n[system]\nfs=750.0\n[lags]\nny='24:1'\n[[records]]\nname='a'\nroles=['train']\npath='x'\n",
          "lags.ny"),
         ("name='x'\n[system]\nfs=750.0\nunits={u='N', y='furlong'}\n[[records]]\nname='a'\nroles=['train']\npath='x'\n",
          "system.units"),
-        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\npath='x'\nnoise={fraction=0.1, reference='zz'}\n",
+        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\npath='x'\n"
+         "noise={fraction=0.1, reference='zz'}\n",
          "no record named 'zz'"),
-        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\nsimulate={system='duffing', amplitude=1.0}\n",
+        ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\n"
+         "simulate={system='duffing', amplitude=1.0}\n",
          "records.a.simulate.system"),
         ("name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\npath='x'\ncolour='red'\n",
          "unknown key(s) colour"),
@@ -234,11 +238,23 @@ def test_standin_scatter_reaches_the_simulator(tmp_path):
     [[records]]
     name = "wide"
     roles = ["train"]
-    simulate = { system = "bert-standin", excitation = "noise", amplitude = 0.05, duration = 1.0, seed = 3, scatter = 10.0 }
+    [records.simulate]
+    system = "bert-standin"
+    excitation = "noise"
+    amplitude = 0.05
+    duration = 1.0
+    seed = 3
+    scatter = 10.0
     [[records]]
     name = "bad"
     roles = ["verify"]
-    simulate = { system = "bert-standin", excitation = "noise", amplitude = 0.05, duration = 1.0, seed = 3, scatter = 500.0 }
+    [records.simulate]
+    system = "bert-standin"
+    excitation = "noise"
+    amplitude = 0.05
+    duration = 1.0
+    seed = 3
+    scatter = 500.0
     """
     cfg = load_config(_write(tmp_path, text))
     rec = cfg.records_for("train")[0]
@@ -260,7 +276,7 @@ def test_bert_standin_and_real_data_records(tmp_path, monkeypatch):
     [[records]]
     name = "noise-9Nm"
     roles = ["train", "healthy"]
-    simulate = { system = "bert-standin", excitation = "noise", amplitude = 0.01, duration = 1.0, seed = 3, torque = 9.0 }
+    simulate = {system = "bert-standin", excitation = "noise", amplitude = 0.01, duration = 1.0, seed = 3, torque = 9.0}
     [[records]]
     name = "rig-rand"
     roles = ["verify"]

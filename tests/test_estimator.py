@@ -4,8 +4,8 @@ import pytest
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.metrics import band_width, coverage, fit_percent, nrmse, rmse
 from gpnarx.model.psd import peak_frequencies, psd
-from gpnarx.model.regressors import narx_regressors, stack_regressors
 from gpnarx.model.records import Record, RecordError
+from gpnarx.model.regressors import narx_regressors, stack_regressors
 
 
 def test_regressors_follow_eq3_and_never_straddle_records():

@@ -8,14 +8,14 @@ from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, Sum, White, ker
 def test_paper_kernel_equals_direct_evaluation():
     rng = np.random.default_rng(3)
     X, X2 = rng.normal(size=(30, 7)), rng.normal(size=(20, 7))
-    sm, l, sp, s, b = 1.7, 2.3, 0.4, 0.6, 1.3
-    k = Matern32(sm, l) + CubicPolynomial(sp, s, b)
+    sm, ell, sp, s, b = 1.7, 2.3, 0.4, 0.6, 1.3
+    k = Matern32(sm, ell) + CubicPolynomial(sp, s, b)
     K = k(X, X2)
     direct = np.empty((30, 20))
     for i in range(30):
         for j in range(20):
             r = np.sqrt(np.sum((X[i] - X2[j]) ** 2))
-            k1 = sm * (1 + np.sqrt(3) * r / l) * np.exp(-np.sqrt(3) * r / l)  # eq. (10)
+            k1 = sm * (1 + np.sqrt(3) * r / ell) * np.exp(-np.sqrt(3) * r / ell)  # eq. (10)
             k2 = sp * (s * (X[i] @ X2[j]) + b) ** 3  # eq. (11)
             direct[i, j] = k1 + k2  # eq. (12)
     assert np.max(np.abs(K - direct)) < 1e-12 * np.max(np.abs(direct))

@@ -1,13 +1,12 @@
 """Training pipeline, bundles, registry, lag surface and the CLI (issue 6)."""
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from gpnarx.model.bundle import BundleError, Registry, load_bundle, save_bundle
 from gpnarx.cli.main import main
+from gpnarx.model.bundle import BundleError, Registry, load_bundle, save_bundle
 
 SMALL_CONFIG = """
 name = "bw-small"

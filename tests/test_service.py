@@ -247,8 +247,8 @@ def test_novelty_outside_the_calibration_envelope_is_novel(client):
                                                              "y": noisy(simulate(0.1 * u), 23).tolist()}).json()
     assert set(small["out_of_range"]) == {"u", "y"} and small["verdict"] == "novel", small
     # version 1 was calibrated without an envelope: no range check, the score alone decides
-    old = client.post("/v1/models/boucwen/versions/1/novelty", json={**base, "u": (0.1 * u).tolist(),
-                                                                      "y": noisy(simulate(0.1 * u), 23).tolist()}).json()
+    body = {**base, "u": (0.1 * u).tolist(), "y": noisy(simulate(0.1 * u), 23).tolist()}
+    old = client.post("/v1/models/boucwen/versions/1/novelty", json=body).json()
     assert old["out_of_range"] == [] and old["verdict"] == ("novel" if old["score"] > old["threshold"] else "healthy")
 
 
@@ -322,8 +322,9 @@ def test_batch_envelope_errors(client):
 
 # ------------------------------------------------------------------------------------------ bounds and bad input
 def test_bounds(registry):
-    c = TestClient(create_app(registry, settings(max_samples=100, max_batch=2, mc_paths_default=16, mc_paths_max=64, max_mc_work=2000,
-                                                 max_body_bytes=20000)), raise_server_exceptions=False)
+    c = TestClient(create_app(registry, settings(max_samples=100, max_batch=2, mc_paths_default=16, mc_paths_max=64,
+                                                 max_mc_work=2000, max_body_bytes=20000)),
+                   raise_server_exceptions=False)
     body, _ = rec(n=50)
     p = assert_problem(c.post("/v1/models/boucwen/predict", json={**body, "u": [0.0] * 101}), 413, "u")
     assert "100" in p["detail"] and p["limit"] == 100

@@ -28,7 +28,8 @@ from gpnarx.training.records import read_record, write_record
 ROOT = Path(__file__).resolve().parents[1]
 BERT_SINE = ROOT.parent / "shared" / "data" / "bert-t5nm" / "Sine" / "Sine_09Hz"
 PROBLEM = "application/problem+json"
-PNG = base64.b64decode("iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mP8z8BQDwAEhQGAhKmMIQAAAABJRU5ErkJggg==")
+PNG = base64.b64decode("iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mP8z8BQDwAEhQGAhKmMIQ"
+                       "AAAABJRU5ErkJggg==")
 
 
 def make_reports(root: Path) -> Path:

@@ -76,8 +76,8 @@ class FrolsNARX:
         y = np.concatenate([r.y for r in records])[:, None]
         self.scale_u_, self.scale_y_ = float(np.std(u)) or 1.0, float(np.std(y)) or 1.0
         self.model_ = FROLS(order_selection=True, n_info_values=self.n_info_values, ylag=self.ny, xlag=self.nu,
-                            info_criteria="aic", estimator=LeastSquares(), basis_function=Polynomial(degree=self.degree),
-                            model_type="NARMAX")
+                            info_criteria="aic", estimator=LeastSquares(),
+                            basis_function=Polynomial(degree=self.degree), model_type="NARMAX")
         self.model_.fit(X=u / self.scale_u_, y=y / self.scale_y_)
         self.fit_seconds_ = time.perf_counter() - t0
         return self

@@ -613,7 +613,8 @@ def _record_spec(r: dict, i: int, path: Path) -> RecordSpec:
     key = f"records.{name}"
     unknown = set(r) - _RECORD_KEYS
     if unknown:
-        raise _err(path, key, f"unknown key(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(_RECORD_KEYS))}")
+        raise _err(path, key,
+                   f"unknown key(s) {', '.join(sorted(unknown))}; allowed: {', '.join(sorted(_RECORD_KEYS))}")
     roles = r.get("roles")
     if roles is None:
         raise _err(path, f"{key}.roles", "missing required key (e.g. roles = [\"train\"])")
@@ -638,11 +639,14 @@ def _record_spec(r: dict, i: int, path: Path) -> RecordSpec:
             raise _err(path, f"{key}.simulate", "must be a table like { system = \"bouc-wen\", ... }")
         bad = set(sim) - _SIM_KEYS
         if bad:
-            raise _err(path, f"{key}.simulate", f"unknown option(s) {', '.join(sorted(bad))}; allowed: {', '.join(sorted(_SIM_KEYS))}")
+            raise _err(path, f"{key}.simulate",
+                       f"unknown option(s) {', '.join(sorted(bad))}; allowed: {', '.join(sorted(_SIM_KEYS))}")
         if sim.get("system") not in SIM_SYSTEMS:
-            raise _err(path, f"{key}.simulate.system", f"must be one of {', '.join(SIM_SYSTEMS)}, got {sim.get('system')!r}")
+            raise _err(path, f"{key}.simulate.system",
+                       f"must be one of {', '.join(SIM_SYSTEMS)}, got {sim.get('system')!r}")
         if sim.get("excitation", "sweep") not in SIM_EXCITATIONS:
-            raise _err(path, f"{key}.simulate.excitation", f"must be one of {', '.join(SIM_EXCITATIONS)}, got {sim.get('excitation')!r}")
+            raise _err(path, f"{key}.simulate.excitation",
+                       f"must be one of {', '.join(SIM_EXCITATIONS)}, got {sim.get('excitation')!r}")
         if "amplitude" not in sim:
             raise _err(path, f"{key}.simulate.amplitude", "missing required key")
         sim = dict(sim)
@@ -652,7 +656,8 @@ def _record_spec(r: dict, i: int, path: Path) -> RecordSpec:
             raise _err(path, f"{key}.noise", "must be a table like { fraction = 0.1, reference = \"...\", seed = 1 }")
         bad = set(noise) - _NOISE_KEYS
         if bad:
-            raise _err(path, f"{key}.noise", f"unknown key(s) {', '.join(sorted(bad))}; allowed: fraction, reference, seed")
+            raise _err(path, f"{key}.noise",
+                       f"unknown key(s) {', '.join(sorted(bad))}; allowed: fraction, reference, seed")
         if "fraction" not in noise:
             raise _err(path, f"{key}.noise.fraction", "missing required key")
         fr = noise["fraction"]

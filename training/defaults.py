@@ -2,10 +2,11 @@
 
 ``ensure_default_registry()`` returns the registry folder (``$GPNARX_REGISTRY`` or
 ``~/.cache/gpnarx/registry``), training any missing default bundle first: Bouc-Wen, the BERT
-stand-in and its bolt-loosening monitor (9 Hz sine probe, novelty calibrated) always, the real BERT bundle too when the lab records are present
-(``$GPNARX_BERT_DATA`` or ``../shared/data/bert-t5nm`` beside the repository). The default build
-uses fewer Monte Carlo paths for its verification report than the full protocol
-(``gpnarx reproduce``) so it finishes in a few minutes on 2 cores.
+stand-in and its bolt-loosening monitor (9 Hz sine probe, novelty calibrated) always, the real
+BERT bundle too when the lab records are present (``$GPNARX_BERT_DATA`` or
+``../shared/data/bert-t5nm`` beside the repository). The default build uses fewer Monte Carlo
+paths for its verification report than the full protocol (``gpnarx reproduce``) so it finishes in
+a few minutes on 2 cores.
 """
 from __future__ import annotations
 
@@ -37,7 +38,8 @@ def _bert_data_present() -> bool:
     return (d / "Sine").is_dir()
 
 
-def ensure_default_registry(path=None, progress: bool = True, names=DEFAULT_BUNDLES, mc_paths: int = DEFAULT_MC) -> Path:
+def ensure_default_registry(path=None, progress: bool = True, names=DEFAULT_BUNDLES,
+                            mc_paths: int = DEFAULT_MC) -> Path:
     """Build the missing default bundles into ``path`` (default registry) and return it."""
     root = Path(path) if path else default_registry_dir()
     root.mkdir(parents=True, exist_ok=True)

@@ -18,8 +18,15 @@ from tqdm import tqdm
 from gpnarx.model.bundle import save_bundle
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.metrics import summary
-from gpnarx.model.novelty import (RMS_METHOD, calibrate_threshold, novelty_score, novelty_start, outside_envelope,
-                                  record_envelope, verdict)
+from gpnarx.model.novelty import (
+    RMS_METHOD,
+    calibrate_threshold,
+    novelty_score,
+    novelty_start,
+    outside_envelope,
+    record_envelope,
+    verdict,
+)
 from gpnarx.model.records import Record
 from gpnarx.training.baselines import fit_baselines, score_baselines
 from gpnarx.training.config import DatasetConfig, load_config
@@ -190,7 +197,8 @@ def train(config, registry, name: str | None = None, version: str | None = None,
                 "kernel": repr(model.kernel_), "noise_var": model.noise_var_,
                 "noise_calibration": model.noise_calibration_, "n_train": model.n_train_,
                 "fit_seconds": model.fit_seconds_, "mc_paths": n_paths, "novelty": novelty,
-            }, evals + list(extra_evals or []), physics=physics, lag_surface=lag_surface, baselines=baselines, paper=paper)
+            }, evals + list(extra_evals or []), physics=physics, lag_surface=lag_surface, baselines=baselines,
+                paper=paper)
             # the report's richer per-record metrics (PSD peaks, loop areas) go into the manifest too
             rj = json.loads((report_dir / "report.json").read_text())
             for rm in rj.get("records", []):

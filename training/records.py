@@ -122,7 +122,8 @@ def read_record(path, fs=None, name=None, fs_default=None) -> Record:
         return read_lms(p.parent, fs=fs, name=name)
     if ext not in FORMATS:
         raise RecordFileError(
-            p, f"unsupported record format {p.suffix or '(no extension)'!r}; use .csv, .npz, .npy, .mat or an LMS folder"
+            p, f"unsupported record format {p.suffix or '(no extension)'!r}; "
+            "use .csv, .npz, .npy, .mat or an LMS folder"
         )
     try:
         with open(p, "rb") as fh:

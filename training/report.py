@@ -558,7 +558,8 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
         rows, chosen, pp = lag
         if chosen is not None:
             cf = next((r["fit"] for r in rows if (r["ny"], r["nu"]) == chosen), None)
-            srows.append(["chosen lags (ny, nu)", f"{chosen[0]}, {chosen[1]}" + (f" (fit {_fmt(cf)} %)" if cf is not None else "")])
+            fit_note = f" (fit {_fmt(cf)} %)" if cf is not None else ""
+            srows.append(["chosen lags (ny, nu)", f"{chosen[0]}, {chosen[1]}{fit_note}"])
         if pp is not None:
             srows.append(["paper lags (ny, nu)", f"{_fmt(pp[0])}, {_fmt(pp[1])}"
                           + (f" (fit {_fmt(pp[2])} %)" if len(pp) > 2 and pp[2] is not None else "")])

@@ -259,8 +259,8 @@ class BertStandin:
     def describe(self) -> dict:
         """Parameters as a plain dict (for reports and bundle metadata)."""
         d = asdict(self.params)
-        d.update(torque=self.torque, scatter=self.scatter, seed=self.seed if isinstance(self.seed, (int, type(None))) else str(self.seed),
-                 input_gain=self.input_gain, kind="bert-standin")
+        seed = self.seed if isinstance(self.seed, (int, type(None))) else str(self.seed)
+        d.update(torque=self.torque, scatter=self.scatter, seed=seed, input_gain=self.input_gain, kind="bert-standin")
         return d
 
     # ------------------------------------------------------------------ simulation
@@ -557,7 +557,8 @@ def format_calibration_table(rows: list[dict] | None = None) -> str:
     """Plain-text (Markdown) rendering of :func:`calibration_table`."""
     rows = calibration_table() if rows is None else rows
     lines = [
-        "| f [Hz] | drive [V] | rig v1 [m/s] | stand-in v1 [m/s] | error [%] | rig 2x/1x | stand-in 2x/1x | rig 3x/1x | stand-in 3x/1x |",
+        "| f [Hz] | drive [V] | rig v1 [m/s] | stand-in v1 [m/s] | error [%] | rig 2x/1x | stand-in 2x/1x "
+        "| rig 3x/1x | stand-in 3x/1x |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:

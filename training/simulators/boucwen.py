@@ -235,7 +235,8 @@ class BoucWen:
                         ua = 0.5 * th
                         uc = 0.5 * (1.0 + th)
                         y1, v1, z1 = step(y, v, z, u0, u0 + ua * (qa + ua * qb), u0 + th * (qa + th * qb), th * h)
-                        yn, vn, zn = step(y1, v1, z1, u0 + th * (qa + th * qb), u0 + uc * (qa + uc * qb), u1, (1.0 - th) * h)
+                        yn, vn, zn = step(y1, v1, z1, u0 + th * (qa + th * qb), u0 + uc * (qa + uc * qb), u1,
+                                          (1.0 - th) * h)
                 y, v, z = yn, vn, zn
             if not (abs(y) < 1e6):
                 raise FloatingPointError(f"Bouc-Wen integration diverged at sample {i + 1} (|y| = {abs(y):g} m)")
