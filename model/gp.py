@@ -629,12 +629,13 @@ class SparsePosterior:
     evaluated as k(Xs, Xs) - |G k|^2 with the factor A = G^T G,
     G = diag(sqrt(s / (1 + s))) Q^T Lm^-1, where S = Q diag(s) Q^T is the eigendecomposition of
     sigma_y^-2 Lm^-1 Kmn Knm Lm^-T (so Kmm^-1 - Sigma^-1 = Lm^-T (I - (I + S)^-1) Lm^-1).
-    Forming A itself is the same number in exact arithmetic, but its entries reach 1/jitter (1e8)
-    while the variance is 1e-7: on the real BERT model (sigma_y^2 = 1e-8) k^T A k gave 5.2e-7 or
-    6.4e-7 depending on the BLAS thread count against 3.41e-7 here, which agrees with a QR
-    evaluation of Sigma^-1 (no Gram product, no explicit inverse) to 5e-6. |G k|^2 is a sum of
-    squares of O(1) numbers, and it costs the same one (rows x M x M) product as k^T A k did.
-    Bundles written before 2026-11-24 hold ``A``; they still load (``legacy_A``; the loader warns).
+    Forming A itself is the same number in exact arithmetic, but when sigma_y^2 sits at ML-II's
+    floor its entries reach 1/jitter while the variance is orders of magnitude smaller, so k^T A k
+    carries rounding error larger than the variance and depends on the BLAS thread count. |G k|^2
+    is a sum of squares of O(1) numbers, agrees with a QR evaluation of Sigma^-1
+    (``sparse_variance_reference``), and costs the same one (rows x M x M) product as k^T A k
+    (docs/numerics.md, safeguard 2). Bundles that store ``A`` itself still load (``legacy_A``; the
+    loader warns).
     Building costs O(N M^2 + M^3).
     """
 

@@ -70,16 +70,16 @@ Realizations (``seed`` given): each realization draws its parameters around the 
 fractions and viscous damping 0.5 %, gain 0.2 %, even term 1 %. ``seed=None`` gives the nominal
 parameters.
 
-Why so small (calibration of the scatter, 2026-11-23). Only one quantitative statement bounds the
+Why so small (calibration of the scatter). Only one quantitative statement bounds the
 rig's realization-to-realization repeatability of a swept-sine *time history*: the paper's lag
 surface, whose chosen lags predict a held-out 0.10 V realization at 96.1 % fit (eq. 14, Fig. 14).
 No predictor can beat the true system's own scatter, so the scatter must let the nominal system
 predict its realizations at about that level. Over 24 realizations of the 0.10 V sweep, the median
-fit of the nominal stand-in to a realization is 96.4 % at ``scatter=1`` (p10 90.6 %). The former
-assumption, 10x larger (``scatter=10``: stuck frequency 0.4 %, "like the day-to-day scatter of the
-rig's FRFs, Fig. 13"), gave a median of 66.0 % (p10 22.6 %): an exact copy of the stand-in's own
-equations, or the ensemble mean of 40 realizations (median 70.4 %), could not reach the paper's
-figure, so that scatter contradicted the paper. The resonance frequency is what matters: a lightly
+fit of the nominal stand-in to a realization is 96.4 % at ``scatter=1`` (p10 90.6 %). A 10x
+larger scatter (``scatter=10``: stuck frequency 0.4 %, the order of the day-to-day scatter of the
+rig's FRFs, Fig. 13) gives a median of 66.0 % (p10 22.6 %): an exact copy of the stand-in's own
+equations, or the ensemble mean of 40 realizations (median 70.4 %), cannot reach the paper's
+figure, so that scatter contradicts the paper. The resonance frequency is what matters: a lightly
 damped mode swept at 5 Hz/s rings after resonance, and a 0.3 % frequency error alone costs about
 40 points of fit. Evidence the other way: the rig's noise run, recorded four days after its sine runs,
 sits slightly lower in frequency (see the FRF calibration above), so day-to-day drift of the order of
@@ -184,7 +184,7 @@ class BertStandin:
     seed: ``None`` for the nominal (calibrated) parameters, or an int/SeedSequence to draw one
     realization (small scatter of stiffness, friction, damping, gain: :data:`REALIZATION_SD`).
     scatter: multiplier [-] of the realization standard deviations (>= 0; 1 is the calibrated
-    default, 10 the former assumption; see the module docstring). Ignored when ``seed`` is None.
+    default, 10 the order of the rig's day-to-day FRF scatter; see the module docstring). Ignored when ``seed`` is None.
     substeps: RK4 steps per sample (default: enough for a 4096 Hz internal rate).
     """
 
