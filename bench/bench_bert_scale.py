@@ -1,4 +1,4 @@
-"""The paper-scale BERT run (issue 9): 4096 Monte Carlo paths x 16384 samples, sparse mode, on 2 cores.
+"""The paper-scale BERT run: 4096 Monte Carlo paths x 16384 samples, sparse mode, on 2 cores.
 
 Section 4 of the paper propagates 4096 Monte Carlo paths through 16384-sample (16 s at 1024 Hz)
 free-run predictions of the BERT rig. Product: ``GPNARX`` built from the settings of
