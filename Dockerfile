@@ -23,7 +23,7 @@ RUN groupadd --system --gid 10001 gpnarx \
     && chown -R gpnarx:gpnarx /var/lib/gpnarx
 
 WORKDIR /app
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md LICENSE ./
 COPY model ./model
 COPY training ./training
 COPY service ./service
