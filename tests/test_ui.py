@@ -275,4 +275,4 @@ def test_shipped_examples_parse_as_listed(client):
         assert r.status_code == 200
         got = _parse(client, (e["file"], r.content)).json()
         assert got["fs"] == e["fs"] and got["n_samples"] == e["samples"] <= 4096 and got["y"] is not None
-        assert set(e["models"]) <= set(DEFAULT_BUNDLES), e
+        assert set(e["models"]) <= set(DEFAULT_BUNDLES) and e["start"] in ("rest", "measured"), e

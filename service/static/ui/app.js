@@ -191,6 +191,9 @@ async function loadExample() {
   if (!file) return;
   try {
     const blob = await staticBlob(`/static/examples/${enc(file)}`);
+    // steady-state examples start their free run from the measured outputs (index.json says which)
+    const start = state.examples.find((e) => e.file === file)?.start;
+    if (start) $("start").value = start;
     await useFiles([new File([blob], file)], file);
   } catch (err) {
     showError(err);
