@@ -10,9 +10,8 @@ on short records. The mean negative log predictive density is reported alongside
 
 Robust variant (``method="segment_median_rms"``, opt-in per bundle): the standardised residuals
 are cut into ``SEGMENTS`` (16) contiguous segments and the score is the median of their RMS values.
-Real laser-vibrometer records carry isolated spikes and dropouts: on the real BERT 8.5 Hz sine a
-few spikes lift the RMS score of a healthy 2 s window to 2.0-6.9, against 0.4-0.8 elsewhere
-(README). A spike spoils at most the segments it falls in, and the median ignores up to 7 of 16,
+Real laser-vibrometer records carry isolated spikes and dropouts (the real BERT 8.5 Hz sine holds
+measurement bursts that lift the RMS score of a healthy window several-fold). A spike spoils at most the segments it falls in, and the median ignores up to 7 of 16,
 while a torque change raises every segment, so the variant keeps the sensitivity to persistent
 change. The method is chosen in the dataset config (``[novelty] method``), stored with the
 threshold in the bundle, and every scorer (training, ``gpnarx novelty``, the service) uses the
@@ -27,6 +26,11 @@ the service's novelty route all use this rule, so scores and thresholds are comp
 Calibration: scores of healthy records are modelled as log-normal; the threshold is the
 (1 - false_alarm_rate) quantile of that fit, and never below the largest healthy score seen
 when fewer than 1/false_alarm_rate healthy records are available.
+
+Probe contract: the threshold also holds only for the excitation it was calibrated with. A bundle
+calibrated from healthy records states that probe (``novelty["probe"]``: kind, frequency, amplitude
+range, start rule; ``model.probe``), and a record whose drive does not match it is reported with
+"probe" in ``out_of_range`` and is not judged by its score (``verdict``).
 
 Calibration envelope: the score is only meaningful in the regime the threshold was calibrated in.
 A record far outside it (a probe switched off, a sensor gain error, values around 1e30) can make the
@@ -140,7 +144,20 @@ def calibrate_threshold(healthy_scores, false_alarm_rate: float = 0.01) -> dict:
             "log_mean": mu, "log_std": sd, "healthy_scores": [float(v) for v in s]}
 
 
-def verdict(score: float, threshold: float, out_of_range=()) -> str:
-    """'novel' when the score exceeds the threshold or the record left the calibration envelope
-    (``out_of_range`` non-empty, see ``outside_envelope``), else 'healthy'."""
-    return "novel" if score > threshold or len(out_of_range) > 0 else "healthy"
+def verdict(score: float, threshold: float, out_of_range=(), probe_match: bool | None = None) -> str:
+    """'novel' when the record left the calibration envelope (``out_of_range`` non-empty, see
+    ``outside_envelope``) or, when its drive matches the monitor's probe, when the score exceeds the
+    threshold; else 'healthy'.
+
+    ``probe_match`` False (the drive is not the probe the threshold was calibrated for, see
+    ``model.probe``): the score is not compared with the threshold, since it measures the model's
+    accuracy at another excitation, not a change of the structure. The verdict is then 'healthy'
+    unless the envelope was left: it means "no change this monitor can judge", not evidence of
+    health; the answer carries "probe" in its out_of_range and ``probe_match`` false, which is what
+    an alerting rule should read. None (a bundle without a probe contract) or True: the score decides.
+    """
+    if len(out_of_range) > 0:
+        return "novel"
+    if probe_match is False:
+        return "healthy"
+    return "novel" if score > threshold else "healthy"

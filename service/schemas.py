@@ -1,6 +1,6 @@
 """Request and response models (pydantic v2) of the HTTP API.
 
-Field names follow the contract in design.md: records are ``u``, ``fs``, ``y``, ``y0``,
+Field names are the API contract (docs/api.md): records are ``u``, ``fs``, ``y``, ``y0``,
 ``mc_paths``, ``seed``, ``confidence`` (and ``method``); answers hold ``mean``, ``lower``,
 ``upper``, ``std`` and, when a measured ``y`` was sent, ``fit``, ``rmse``, ``coverage``.
 Numbers must be finite JSON numbers (NaN/Infinity are refused); numeric fields are strict (a
@@ -179,6 +179,41 @@ class Physics(BaseModel):
     output: Literal["displacement", "velocity"]
 
 
+class Cycle(BaseModel):
+    """One steady cycle of the record (see docs/api.md, per-cycle loops)."""
+
+    start: float = Field(..., description="Start of the cycle [s from the record's first sample].")
+    end: float = Field(..., description="End of the cycle [s].")
+    energy: float | None = Field(..., description="Energy dissipated over the cycle by the predicted mean loop "
+                                 "(loop area, integral of R dx) [`units.energy`, J].")
+    energy_lower: float | None = Field(..., description="Lower end of the energy's interval at `confidence`: "
+                                       "quantile of the per-path energies across the Monte Carlo paths; for "
+                                       "method 'linear', w.mean - z sqrt(w' C w) with the linearised output "
+                                       "covariance C over the cycle [J].")
+    energy_upper: float | None = Field(..., description="Upper end of the energy's interval [J].")
+    stiffness: float | None = Field(..., description="Secant stiffness of the predicted mean loop over the "
+                                    "cycle, (R(x_max) - R(x_min)) / (x_max - x_min) [`units.stiffness`, N/m].")
+    stiffness_lower: float | None = Field(None, description="Lower end of the secant stiffness across the Monte "
+                                          "Carlo paths (null for 'linear'); wide when the model's noise is large, "
+                                          "as R holds the second derivative of each path.")
+    stiffness_upper: float | None = Field(None, description="Upper end of the secant stiffness across the paths.")
+    measured_energy: float | None = Field(None, description="Only when `y` was sent: the measured loop's energy "
+                                          "over the same cycle [J].")
+    measured_stiffness: float | None = Field(None, description="Only when `y` was sent: the measured loop's "
+                                             "secant stiffness [N/m].")
+
+
+class CycleBasis(BaseModel):
+    basis: Literal["drive", "response"] = Field(..., description="'drive': cycles of a sine drive (zero "
+                                                "crossings of the sine fitted to u at its dominant frequency); "
+                                                "'response': a broadband drive, cycles of the predicted "
+                                                "displacement (upward zero crossings).")
+    frequency: float | None = Field(..., description="Dominant frequency of u [Hz].")
+    n_cycles: int = Field(..., description="Whole cycles found in the record.")
+    steady_from: int = Field(..., description="Index of the first steady cycle among them; the earlier ones "
+                             "(start-up of a free run from rest) are not in `cycles`.")
+
+
 class LoopsResponse(_Knowledge):
     model: str
     version: str
@@ -188,11 +223,46 @@ class LoopsResponse(_Knowledge):
     seed: int
     n_samples: int
     physics: Physics
-    units: dict[str, str] = Field(..., description="Units of `x` and `force`.")
+    units: dict[str, str] = Field(..., description="Units of `x`, `force` (N: g converts the input), `energy` "
+                                  "and `stiffness`, from the bundle's output unit.")
     predicted: Loop = Field(..., description="Loop of the predicted mean response.")
-    lower: Loop = Field(..., description="Loop of the lower band edge.")
+    lower: Loop = Field(..., description="Loop of the lower band edge (not a confidence statement about the "
+                        "loop: see `cycles` for intervals).")
     upper: Loop = Field(..., description="Loop of the upper band edge.")
     measured: Loop | None = Field(None, description="Only when `y` was sent: loop of the measured response.")
+    cycles: list[Cycle] = Field(default_factory=list, description="One entry per steady cycle: dissipated "
+                                "energy and secant stiffness of the predicted loop with intervals across the "
+                                "Monte Carlo paths (or the linearised equivalent), and the measured loop's when "
+                                "`y` was sent.")
+    cycle_basis: CycleBasis | None = Field(None, description="How the record was cut into cycles.")
+
+
+class Drive(BaseModel):
+    kind: Literal["sine", "broadband"] = Field(..., description="'sine' when at least 80 % of u's power lies at "
+                                               "its dominant frequency, else 'broadband'.")
+    frequency: float | None = Field(..., description="Dominant frequency of u [Hz].")
+    amplitude: float = Field(..., description="Sine: peak of the sine fitted at the dominant frequency; "
+                             "broadband: RMS of u [input unit].")
+    amplitude_kind: Literal["peak", "rms"]
+
+
+class Probe(BaseModel):
+    """The excitation a monitor's novelty threshold was calibrated for (from its healthy records)."""
+
+    model_config = ConfigDict(extra="allow")
+    kind: Literal["sine", "broadband"]
+    frequency: float | None = Field(..., description="Probe frequency [Hz]: median dominant frequency of the "
+                                    "healthy records.")
+    frequency_tolerance: float | None = Field(..., description="A sine request whose dominant frequency is "
+                                              "further off [Hz] does not match (at least 3 % of the frequency, "
+                                              "the healthy records' spread and 0.5 / the request's duration).")
+    amplitude: list[float] = Field(..., description="[min, max] amplitude of the healthy records [input unit]: "
+                                   "sine peak or broadband RMS (`amplitude_kind`).")
+    amplitude_kind: Literal["peak", "rms"]
+    amplitude_tolerance: float = Field(..., description="Relative widening of the amplitude range each way.")
+    start: Literal["rest", "measured"] = Field(..., description="Start rule of the free run the threshold was "
+                                               "calibrated with.")
+    n_records: int
 
 
 class NoveltyResponse(_Knowledge):
@@ -205,8 +275,19 @@ class NoveltyResponse(_Knowledge):
         "rms_standardised_residual", description="How the score was computed: the bundle's calibrated method, "
         "so score and threshold are always comparable.")
     threshold: float = Field(..., description="Score above which the record is 'novel'.")
-    verdict: Literal["healthy", "novel"] = Field(..., description="'novel' when score > threshold or the record "
-                                                 "left the calibration envelope ('u' or 'y' in out_of_range).")
+    verdict: Literal["healthy", "novel"] = Field(..., description="'novel' when the record left the calibration "
+                                                 "envelope ('u' or 'y' in out_of_range) or, its drive matching the "
+                                                 "monitor's probe, when score > threshold; else 'healthy'. When the "
+                                                 "drive does not match the probe ('probe' in out_of_range, "
+                                                 "`probe_match` false) the score is not compared with the "
+                                                 "threshold and 'healthy' means only 'no change this monitor can "
+                                                 "judge'.")
+    probe_match: bool | None = Field(None, description="Whether the request's drive (and start rule) matches the "
+                                     "probe the threshold was calibrated for (the model's `probe`); null when "
+                                     "the bundle states no probe.")
+    probe_reasons: list[str] = Field(default_factory=list, description="Why the drive does not match the probe "
+                                     "(empty when it does).")
+    drive: Drive | None = Field(None, description="The request's drive as estimated from `u`.")
     false_alarm_rate: float | None = Field(..., description="False-alarm rate the threshold was calibrated for "
                                               "(null if the calibration does not say).")
     nlpd: float = Field(..., description="Mean negative log predictive density.")
@@ -259,6 +340,10 @@ class ModelDetail(BaseModel):
     training: dict[str, Any] = Field(..., description="Training metrics.")
     novelty: dict[str, Any] | None = Field(None, description="Novelty calibration (threshold, "
                                               "false_alarm_rate, n_healthy, ...) or null.")
+    probe: Probe | None = Field(None, description="The probe contract of the novelty calibration: the excitation "
+                                "(kind, frequency [Hz], amplitude range [input unit], start rule) the threshold "
+                                "holds for; null when the model has no novelty calibration or was calibrated "
+                                "before probe contracts existed.")
     physics: dict[str, Any] = Field(..., description="Physical constants for restoring force.")
     package_versions: dict[str, Any] = {}
 
@@ -272,11 +357,28 @@ class Live(BaseModel):
     status: Literal["alive"]
 
 
+class StartupStatus(BaseModel):
+    """Bundles the server is still building at start-up (``gpnarx serve`` without ``--registry``
+    builds the missing default bundles in the background, one at a time, lightest first)."""
+
+    built: list[str] = Field(..., description="Loaded and served: present at start or built since.")
+    building: list[str] = Field(..., description="Being built now (at most one).")
+    pending: list[str] = Field(..., description="Waiting to be built, in build order.")
+    failed: list[str] = Field(..., description="Builds that failed (reason in `reasons`); the others are served.")
+    skipped: list[str] = Field(default_factory=list, description="Not built (reason in `reasons`), e.g. the real "
+                               "BERT bundle without its lab records.")
+    reasons: dict[str, str] = Field(default_factory=dict, description="Why each failed or skipped bundle was "
+                                    "not built.")
+    done: bool = Field(..., description="True when nothing is building or pending.")
+
+
 class Ready(BaseModel):
     status: Literal["ready"]
     bundles: int
     models: dict[str, list[str]]
     refused: list[RefusedBundle]
+    startup: StartupStatus | None = Field(None, description="Only while or after the server builds its default "
+                                          "bundles (`gpnarx serve` without `--registry`); also in the 503 answer.")
 
 
 class ReloadResponse(BaseModel):
