@@ -1,11 +1,20 @@
-"""``gpnarx build-defaults [--registry DIR]``: build the embedded default bundles now."""
+"""``gpnarx build-defaults [--registry DIR] [--only NAME[,NAME]] [--mc N]``: build the embedded default
+bundles now (the missing ones, lightest first; ``--only`` or ``$GPNARX_DEFAULTS`` name a subset).
+
+Progress lines go to stderr (the bar only without ``--json``). ``gpnarx serve`` without
+``--registry`` runs ``build-defaults --only NAME --json`` in a child process per missing bundle.
+"""
 from __future__ import annotations
+
+import sys
 
 
 def add_parser(sub):
     p = sub.add_parser("build-defaults", help="build the default registry (Bouc-Wen, BERT stand-in, real BERT)")
     p.add_argument("--registry", default=None,
                    help="registry folder (default: $GPNARX_REGISTRY or ~/.cache/gpnarx/registry)")
+    p.add_argument("--only", default=None, metavar="NAME[,NAME]",
+                   help="build only these defaults (default: $GPNARX_DEFAULTS or all)")
     p.add_argument("--mc", type=int, default=128, help="Monte Carlo paths of the verification report")
     p.set_defaults(func=run)
 
@@ -13,8 +22,10 @@ def add_parser(sub):
 def run(args):
     # start-up: imported when the command runs (see gpnarx.cli)
     from gpnarx.model.bundle import Registry
-    from gpnarx.training.defaults import ensure_default_registry
+    from gpnarx.training.defaults import default_names, ensure_default_registry
 
-    root = ensure_default_registry(args.registry, progress=not args.json, mc_paths=args.mc)
+    names = default_names(args.only) if args.only is not None else None
+    root = ensure_default_registry(args.registry, progress=not args.json, names=names, mc_paths=args.mc,
+                                   log=lambda m: print(f"[gpnarx] {m}", file=sys.stderr, flush=True))
     reg = Registry(root).scan()
     return {"registry": str(root), "models": {n: reg.versions(n) for n in reg.names()}, "refused": reg.refused}

@@ -2,11 +2,17 @@
 
 ``ensure_default_registry()`` returns the registry folder (``$GPNARX_REGISTRY`` or
 ``~/.cache/gpnarx/registry``), training any missing default bundle first: Bouc-Wen, the BERT
-stand-in and its bolt-loosening monitor (9 Hz sine probe, novelty calibrated) always, the real
-BERT bundle too when the lab records are present (``$GPNARX_BERT_DATA`` or
-``../shared/data/bert-t5nm`` beside the repository). The default build uses fewer Monte Carlo
-paths for its verification report than the full protocol (``gpnarx reproduce``) so it finishes in
-a few minutes on 2 cores.
+stand-in and its bolt-loosening monitor (9 Hz sine probe, novelty calibrated) always, the real BERT bundle too when the lab records are present
+(``$GPNARX_BERT_DATA`` or ``../shared/data/bert-t5nm`` beside the repository).
+``$GPNARX_DEFAULTS`` (comma-separated names, e.g. ``bouc-wen``) limits the defaults built.
+
+``DEFAULT_BUNDLES`` is in build order, lightest first (measured: docs/benchmarks.md, "First
+start"), so ``gpnarx serve`` on an empty registry has a model to serve as soon as possible. A
+default build writes the same model as ``gpnarx train NAME`` but a lighter verification report
+(``build_default``): fewer Monte Carlo paths (``DEFAULT_MC``) than the full protocol
+(``gpnarx reproduce``), and linearised bands for the bundles without a novelty calibration
+(``LIGHT_METHOD``), whose report runs take seconds instead of minutes; the monitor keeps Monte Carlo
+runs because its novelty threshold is calibrated on them.
 """
 from __future__ import annotations
 
@@ -19,11 +25,16 @@ from gpnarx.model.bundle import Registry
 from gpnarx.training.config import bert_data_dir
 from gpnarx.training.pipeline import train
 
-__all__ = ["CONFIG_DIR", "DEFAULT_BUNDLES", "DEFAULT_MC", "default_registry_dir", "ensure_default_registry",
-           "shipped_config", "shipped_config_names"]
+__all__ = ["CONFIG_DIR", "DEFAULT_BUNDLES", "DEFAULT_MC", "LIGHT_METHOD", "build_default", "default_names",
+           "default_registry_dir", "ensure_default_registry", "plan_defaults", "shipped_config",
+           "shipped_config_names"]
 
+#: build order, lightest first (first start on 2 cores: docs/benchmarks.md)
 DEFAULT_BUNDLES = ("bouc-wen", "bert-standin", "bert-standin-monitor", "bert-real")
 DEFAULT_MC = 128
+#: report method of a default build; absent: the config's own (``[predict] method``)
+LIGHT_METHOD = {"bouc-wen": "linear", "bert-standin": "linear"}
+DEFAULTS_ENV = "GPNARX_DEFAULTS"
 
 
 def default_registry_dir() -> Path:
@@ -33,26 +44,67 @@ def default_registry_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "gpnarx" / "registry"
 
 
+def default_names(spec: str | None = None) -> tuple[str, ...]:
+    """The defaults to build, lightest first: all, or those named in ``spec`` / ``$GPNARX_DEFAULTS``."""
+    if spec is None:
+        spec = os.environ.get(DEFAULTS_ENV, "")
+    wanted = [s.strip() for s in spec.split(",") if s.strip()]
+    if not wanted:
+        return DEFAULT_BUNDLES
+    unknown = [w for w in wanted if w not in DEFAULT_BUNDLES]
+    if unknown:
+        raise ValueError(f"{DEFAULTS_ENV}: unknown default bundle {unknown[0]!r}; choose among "
+                         f"{', '.join(DEFAULT_BUNDLES)}")
+    return tuple(n for n in DEFAULT_BUNDLES if n in wanted)
+
+
 def _bert_data_present() -> bool:
     d = bert_data_dir()
     return (d / "Sine").is_dir()
 
 
-def ensure_default_registry(path=None, progress: bool = True, names=DEFAULT_BUNDLES,
-                            mc_paths: int = DEFAULT_MC) -> Path:
-    """Build the missing default bundles into ``path`` (default registry) and return it."""
-    root = Path(path) if path else default_registry_dir()
-    root.mkdir(parents=True, exist_ok=True)
-    have = Registry(root).scan().bundles
-    log = (lambda m: print(f"[gpnarx] {m}", file=sys.stderr)) if progress else None
+def plan_defaults(root, names=None) -> dict:
+    """What a default build of ``root`` has to do: ``present``, ``missing`` (in build order) and
+    ``skipped`` ({name: reason}) default names."""
+    names = default_names() if names is None else tuple(names)
+    root = Path(root)
+    have = Registry(root).scan().bundles if root.is_dir() else {}
+    plan = {"present": [], "missing": [], "skipped": {}}
     for name in names:
         if name in have:
-            continue
-        if name == "bert-real" and not _bert_data_present():
-            if log:
-                log("real BERT records not found ($GPNARX_BERT_DATA or ../shared/data/bert-t5nm): skipping bert-real")
-            continue
+            plan["present"].append(name)
+        elif name == "bert-real" and not _bert_data_present():
+            plan["skipped"][name] = "real BERT records not found ($GPNARX_BERT_DATA or ../shared/data/bert-t5nm)"
+        else:
+            plan["missing"].append(name)
+    return plan
+
+
+def build_default(name: str, root, progress: bool = False, log=None, mc_paths: int = DEFAULT_MC) -> dict:
+    """Train the default bundle ``name`` into ``root`` (the shipped config, lighter report)."""
+    if name not in DEFAULT_BUNDLES:
+        raise ValueError(f"{name!r} is not a default bundle; choose among {', '.join(DEFAULT_BUNDLES)}")
+    return train(shipped_config(name), Path(root), progress=progress, mc_paths=mc_paths, log=log,
+                 method=LIGHT_METHOD.get(name))
+
+
+def ensure_default_registry(path=None, progress: bool = True, names=None, mc_paths: int = DEFAULT_MC,
+                            log=None) -> Path:
+    """Build the missing default bundles into ``path`` (default registry) and return it.
+
+    ``names``: the defaults to build (default: ``default_names()``); ``log``: a callable taking one
+    line (default: stderr when ``progress``).
+    """
+    root = Path(path) if path else default_registry_dir()
+    root.mkdir(parents=True, exist_ok=True)
+    if log is None and progress:
+        log = lambda m: print(f"[gpnarx] {m}", file=sys.stderr, flush=True)  # noqa: E731
+    plan = plan_defaults(root, names)
+    for name, why in plan["skipped"].items():
+        if log:
+            log(f"{why}: skipping {name}")
+    for name in plan["missing"]:
         if log:
             log(f"building default bundle {name} into {root} (first use only)")
-        train(shipped_config(name), root, progress=progress, mc_paths=mc_paths, log=log)
+        build_default(name, root, progress=progress, log=log, mc_paths=mc_paths)
     return root

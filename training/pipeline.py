@@ -112,8 +112,12 @@ def train(config, registry, name: str | None = None, version: str | None = None,
           mc_paths: int | None = None, ny: int | None = None, nu: int | None = None, report: bool = True,
           lag_surface: dict | None = None, baselines: dict | None = None, paper: dict | None = None,
           model_overrides: dict | None = None, log=None, max_seconds: float | None = None,
-          extra_evals: list | None = None) -> dict:
-    """Train from a dataset config and write a bundle; returns name, version, path and metrics."""
+          extra_evals: list | None = None, method: str | None = None) -> dict:
+    """Train from a dataset config and write a bundle; returns name, version, path and metrics.
+
+    ``method`` ('mc' or 'linear') overrides the config's ``predict.method`` for the report's free
+    runs only (the model written is the same); ``mc_paths`` likewise overrides ``predict.mc_paths``.
+    """
     cfg = as_config(config)
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
@@ -133,7 +137,10 @@ def train(config, registry, name: str | None = None, version: str | None = None,
             f"residuals: sigma_y^2 {nc['noise_var_ml2']:.3g} (ML-II) -> {nc['noise_var']:.3g} (standardised)")
     n_paths = int(mc_paths or cfg.predict.get("mc_paths", 1024))
     conf = float(cfg.predict.get("confidence", 0.99))
-    method = cfg.predict.get("method", "mc")
+    method = method or cfg.predict.get("method", "mc")
+    if method not in ("mc", "linear"):
+        raise ValueError(f"method must be 'mc' or 'linear', got {method!r}")
+    method_used = method
     todo = []
     for role in EVAL_ROLES:
         for rec in records(role):
@@ -180,7 +187,8 @@ def train(config, registry, name: str | None = None, version: str | None = None,
         "fit_seconds": model.fit_seconds_, "n_train": model.n_train_, "n_rows": model.n_rows_,
         "nlml": model.nlml_, "train_records": [r.name for r in train_recs],
         "records": {ev["name"]: {"role": ev["role"], **{k: v for k, v in ev["metrics"].items()}} for ev in evals},
-        "mc_paths": n_paths, "confidence": conf, "wall_seconds": None, "baselines": baselines,
+        "mc_paths": n_paths, "method": method_used, "confidence": conf, "wall_seconds": None,
+        "baselines": baselines,
     }
     physics = dict(cfg.physics)
     physics.setdefault("output", cfg.system.get("output", "displacement"))
@@ -196,7 +204,8 @@ def train(config, registry, name: str | None = None, version: str | None = None,
                 "config": str(cfg.path), "ny": model.ny, "nu": model.nu, "mode": model.mode,
                 "kernel": repr(model.kernel_), "noise_var": model.noise_var_,
                 "noise_calibration": model.noise_calibration_, "n_train": model.n_train_,
-                "fit_seconds": model.fit_seconds_, "mc_paths": n_paths, "novelty": novelty,
+                "fit_seconds": model.fit_seconds_, "mc_paths": n_paths, "method": method_used,
+                "novelty": novelty,
             }, evals + list(extra_evals or []), physics=physics, lag_surface=lag_surface, baselines=baselines,
                 paper=paper)
             # the report's richer per-record metrics (PSD peaks, loop areas) go into the manifest too
