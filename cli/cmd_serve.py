@@ -7,8 +7,10 @@
     gpnarx export-openapi [--out openapi/openapi.json]
 
 ``serve`` runs the HTTP service (``service.app``) with uvicorn over a registry folder. Without
-``--registry`` the default registry is used, built on first use from the embedded defaults
-(``training.defaults.ensure_default_registry``). Bounds and the optional API key come from
+``--registry`` the default registry is used (``$GPNARX_REGISTRY`` or ~/.cache/gpnarx/registry):
+the port opens at once and the missing default bundles (``$GPNARX_DEFAULTS`` limits them) are
+built in the background, lightest first, each loaded as soon as it is written
+(``cli.startup``); ``/health/ready`` lists them under ``startup``. Bounds and the optional API key come from
 ``GPNARX_*`` environment variables (``service.settings``); ``--workers``/``--queue`` override
 GPNARX_WORKERS/GPNARX_QUEUE_SIZE. SIGHUP rescans the registry (like ``POST /v1/admin/reload``).
 
@@ -42,19 +44,46 @@ def add_parser(sub):
     q.set_defaults(func=run_export)
 
 
-def _registry(arg) -> Path:
+def _registry(arg) -> tuple[Path, dict | None]:
+    """The registry folder and, for the default registry, the default-build plan
+    (``training.defaults.plan_defaults``: present, missing and skipped names)."""
     if arg:
         root = Path(arg).expanduser()
         if not root.is_dir():
             raise CLIError(f"--registry {arg}: no such folder")
-        return root
-    # start-up: the default-registry builder (the training pipeline) only without --registry (see gpnarx.cli);
+        return root, None
+    # start-up: the default-registry planner (the training package) only without --registry (see gpnarx.cli);
     # a build without it still serves a given registry and says so in one line otherwise
     try:
-        from gpnarx.training.defaults import ensure_default_registry
+        from gpnarx.training.defaults import default_registry_dir, plan_defaults
     except ImportError:
         raise CLIError("no --registry given and the default registry builder is not available") from None
-    return Path(ensure_default_registry())
+    root = default_registry_dir()
+    root.mkdir(parents=True, exist_ok=True)
+    return root, plan_defaults(root)
+
+
+def _log(msg: str) -> None:
+    print(f"[gpnarx] {msg}", file=sys.stderr, flush=True)
+
+
+def _builder(root: Path, plan: dict):
+    """The background builder of the missing defaults (``cli.startup``); started by run_serve."""
+    from gpnarx.cli.startup import ChildBuild, DefaultBuilder
+
+    return DefaultBuilder(plan["missing"], ChildBuild(root, log=lambda line: print(line, file=sys.stderr,
+                                                                                   flush=True)),
+                          present=plan["present"], skipped=plan["skipped"], log=_log)
+
+
+def _loader(state):
+    """``on_built(name)``: rescan the app's registry; fail when the new bundle did not load."""
+    def on_built(name: str) -> None:
+        state.reload_from_thread()
+        if name not in state.registry.bundles:
+            why = [r["reason"] for r in state.refused() if r["path"].split("/")[0] == name]
+            raise RuntimeError(f"{name} was written but not loaded: {why[0] if why else 'not in the registry'}")
+    return on_built
 
 
 def run_serve(args):
@@ -66,13 +95,14 @@ def run_serve(args):
     from gpnarx.service.app import create_app
     from gpnarx.service.settings import Settings
 
-    root = _registry(args.registry)
+    root, plan = _registry(args.registry)
     try:
         settings = Settings.from_env(workers=args.workers, queue_size=args.queue, registry=str(root),
                                      sighup_reload=True)
     except (TypeError, ValueError) as exc:
         raise CLIError(str(exc)) from None
-    app = create_app(root, settings)
+    builder = _builder(root, plan) if plan is not None else None
+    app = create_app(root, settings, startup_status=builder.status if builder is not None else None)
     state = app.state.service
     n = state.n_bundles()
     print(f"[gpnarx] serving {n} bundle(s) from {root} on http://{args.host}:{args.port}"
@@ -80,7 +110,19 @@ def run_serve(args):
           file=sys.stderr)
     for r in state.refused():
         print(f"[gpnarx] refused {r['path']}: {r['reason']}", file=sys.stderr)
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=30)
+    if builder is not None:
+        for name, why in plan["skipped"].items():
+            _log(f"{why}: skipping {name}")
+        if plan["missing"]:
+            _log(f"building default bundle(s) {', '.join(plan['missing'])} into {root} in the background "
+                 f"(first use only; /health/ready lists them under 'startup')")
+        builder.on_built = _loader(state)
+        builder.start()
+    try:
+        uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=30)
+    finally:
+        if builder is not None:
+            builder.stop()
 
 
 def run_export(args):

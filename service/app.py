@@ -153,8 +153,12 @@ def problem_response(p: ProblemError) -> ProblemResponse:
 class ServiceState:
     """Registry (swapped atomically on reload), executor, metrics and settings of one app."""
 
-    def __init__(self, registry_dir, settings: Settings):
+    def __init__(self, registry_dir, settings: Settings, startup_status=None):
         self.settings = settings
+        # start-up hook: a callable returning a dict (schemas.StartupStatus) of the bundles a launcher is
+        # still building into the registry (``gpnarx serve`` without --registry); shown by /health/ready
+        self.startup_status = startup_status
+        self.loop: asyncio.AbstractEventLoop | None = None  # the server's loop while the app runs
         self.registry_dir = Path(registry_dir) if registry_dir else None
         self.registry = Registry(self.registry_dir or Path("/nonexistent-gpnarx-registry"))
         if self.registry_dir is not None:
@@ -196,6 +200,27 @@ class ServiceState:
         return {"bundles": self.n_bundles(new), "models": self.models(new), "refused": self.refused(new),
                 "added": sorted(after - before), "removed": sorted(before - after)}
 
+    def reload_from_thread(self, timeout: float | None = 300.0) -> dict:
+        """``reload()`` called from another thread (e.g. a launcher that has just written a bundle).
+
+        Runs on the server's event loop while the app runs (so it takes turns with admin reloads), else
+        in this thread; returns reload()'s answer.
+        """
+        loop = self.loop
+        if loop is not None and loop.is_running():
+            return asyncio.run_coroutine_threadsafe(self.reload(), loop).result(timeout)
+        return asyncio.run(self.reload())
+
+    def startup(self) -> dict | None:
+        """The start-up hook's status (None without a hook, or if the hook fails: logged)."""
+        if self.startup_status is None:
+            return None
+        try:
+            return self.startup_status()
+        except Exception:  # pragma: no cover - a launcher's bug must not break readiness
+            log.exception("the start-up status hook failed")
+            return None
+
     def lookup(self, name: str, version: str | None):
         try:
             check_name(name)
@@ -209,6 +234,12 @@ class ServiceState:
         try:
             return self.registry.get(name, version)
         except KeyError as exc:
+            startup = self.startup() or {}
+            if name not in self.registry.bundles and name in [*startup.get("building", []),
+                                                               *startup.get("pending", [])]:
+                raise ProblemError(503, f"model {name!r} is still being built at start-up (see /health/ready); "
+                                        f"retry after {self.settings.retry_after} s", "name",
+                                   headers={"Retry-After": str(self.settings.retry_after)}) from None
             msg = exc.args[0] if exc.args else "not found"
             raise ProblemError(404, str(msg), "version" if name in self.registry.bundles else "name") from None
 
@@ -401,17 +432,23 @@ def limit_blas_threads(n: int) -> None:
         log.warning("threadpoolctl is not installed: BLAS threads are not limited")
 
 
-def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
-    """The service app over the registry folder ``registry_dir`` (None: an empty registry)."""
+def create_app(registry_dir=None, settings: Settings | None = None, startup_status=None) -> FastAPI:
+    """The service app over the registry folder ``registry_dir`` (None: an empty registry).
+
+    ``startup_status``: optional callable returning what a launcher is still building into the
+    registry (a dict of ``schemas.StartupStatus``'s fields), shown by /health/ready; the launcher
+    calls ``app.state.service.reload_from_thread()`` after writing each bundle.
+    """
     settings = settings or Settings.from_env()
     limit_blas_threads(settings.blas_threads)
     tune_malloc(settings.mmap_threshold)
     if registry_dir is None and settings.registry:
         registry_dir = settings.registry
-    state = ServiceState(registry_dir, settings)
+    state = ServiceState(registry_dir, settings, startup_status)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        state.loop = asyncio.get_running_loop()
         if settings.sighup_reload and hasattr(signal, "SIGHUP"):
             loop = asyncio.get_running_loop()
 
@@ -432,6 +469,7 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            state.loop = None
             state.executor.shutdown()
 
     # /docs and /redoc are served by service.ui from vendored assets (no CDN: they work offline)
@@ -474,16 +512,21 @@ def create_app(registry_dir=None, settings: Settings | None = None) -> FastAPI:
         return JSONBytesResponse({"status": "alive"})
 
     @app.get("/health/ready", response_model=Ready, tags=["health"], operation_id="health_ready",
-             summary="Readiness: at least one bundle is loaded (lists refused bundles)",
-             responses={503: {"description": "No bundle loaded (refused bundles listed in `refused`)"}})
+             summary="Readiness: at least one bundle is loaded (lists refused bundles and start-up builds)",
+             responses={503: {"description": "No bundle loaded (refused bundles listed in `refused`, bundles "
+                                             "still being built at start-up in `startup`)"}})
     async def health_ready():
         n = state.n_bundles()
+        startup = state.startup()
+        extra = {} if startup is None else {"startup": startup}
         if n == 0:
+            building = [*(startup or {}).get("building", []), *(startup or {}).get("pending", [])]
             raise ProblemError(503, "no model bundle is loaded" + (
-                f"; {len(state.registry.refused)} refused (see `refused`)" if state.registry.refused else ""),
-                bundles=0, refused=state.refused(), headers={"Retry-After": str(settings.retry_after)})
+                f"; {len(state.registry.refused)} refused (see `refused`)" if state.registry.refused else "") + (
+                f"; building {', '.join(building)} (see `startup`)" if building else ""),
+                bundles=0, refused=state.refused(), headers={"Retry-After": str(settings.retry_after)}, **extra)
         return JSONBytesResponse({"status": "ready", "bundles": n, "models": state.models(),
-                                  "refused": state.refused()})
+                                  "refused": state.refused(), **extra})
 
     @app.get("/metrics", tags=["health"], operation_id="metrics", summary="Prometheus metrics",
              response_class=Response, responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}},
