@@ -1,4 +1,4 @@
-"""``gpnarx predict`` and ``gpnarx novelty`` on record files."""
+"""``gpnarx predict``, ``gpnarx loops`` and ``gpnarx novelty`` on record files."""
 from __future__ import annotations
 
 import os
@@ -6,8 +6,8 @@ import sys
 
 import numpy as np
 
-from gpnarx.model.envelope import assess
 from gpnarx.cli.errors import CLIError
+from gpnarx.model.envelope import assess
 
 
 def _common(p):
@@ -51,6 +51,17 @@ def add_parser(sub):
     q = sub.add_parser("novelty", help="bolt-loosening novelty score, threshold and verdict for a measured record")
     _common(q)
     q.set_defaults(func=run_novelty)
+    lp = sub.add_parser("loops", help="restoring-force loops and per-cycle dissipated energy and secant stiffness "
+                                      "with 99%% intervals (the HTTP loops answer)")
+    _common(lp)
+    lp.add_argument("--confidence", type=float, default=0.99, help="interval level (default 0.99)")
+    lp.add_argument("--start", choices=("rest", "measured"), default="rest",
+                    help="initial state of the free run: 'rest' (default) or 'measured' (the record's first ny "
+                         "measured outputs; for a window of a steady run)")
+    lp.add_argument("--arrays", action="store_true",
+                    help="also give the loops' x and force arrays (predicted, lower, upper, measured); without it "
+                         "each loop holds its area only")
+    lp.set_defaults(func=run_loops)
 
 
 def resolve_registry(registry):
@@ -180,13 +191,15 @@ def _write_prediction(path, rec, run):
 
 def run_novelty(args):
     from gpnarx.model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
+    from gpnarx.model.probe import probe_check
 
     bundle, rec, mc = load(args)
     if rec.y is None:
         raise CLIError(f"{args.record}: novelty needs the measured output y")
     nov = bundle.manifest.get("novelty")
     if not nov:
-        raise CLIError(f"model {bundle.name}:{bundle.version} has no novelty calibration (train it with 'healthy' records; "
+        raise CLIError(f"model {bundle.name}:{bundle.version} has no novelty calibration "
+                       "(train it with 'healthy' records; "
                        "the default bert-standin-monitor bundle has one)")
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method,
                                 y0=novelty_start(rec.y, bundle.model.ny))
@@ -194,7 +207,57 @@ def run_novelty(args):
     outside = outside_envelope(rec.u, rec.y, nov.get("envelope"))
     flags = assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y)
     flagged = flags["out_of_range"] + [f for f in outside if f not in flags["out_of_range"]]
+    probe = probe_check(rec.u, rec.fs, nov.get("probe"), "measured")
+    if probe["probe_match"] is False:
+        flagged.append("probe")
     return {"model": bundle.name, "version": bundle.version, "score": s["score"], "nlpd": s["nlpd"],
-            "threshold": nov["threshold"], "verdict": verdict(s["score"], nov["threshold"], outside),
+            "threshold": nov["threshold"], "verdict": verdict(s["score"], nov["threshold"], outside,
+                                                              probe["probe_match"]),
             "false_alarm_rate": nov["false_alarm_rate"], "out_of_range": flagged,
-            "diverged_paths": flags["diverged_paths"], "start": "measured", "score_method": s["method"]}
+            "diverged_paths": flags["diverged_paths"], "start": "measured", "score_method": s["method"], **probe}
+
+
+def run_loops(args):
+    """Loops of the predicted mean (and band edges, and the measured record), and per-cycle energy and
+    stiffness with intervals across the Monte Carlo paths (``model.cycles``): the HTTP loops answer."""
+    from gpnarx.model.cycles import cov_window_for, cycles
+    from gpnarx.model.novelty import novelty_start
+    from gpnarx.model.restoring import loop_area, loop_units, restoring_force
+
+    bundle, rec, mc = load(args)
+    phys = dict(bundle.manifest.get("physics") or {})
+    try:
+        mass = float(phys["mass"])
+    except (KeyError, TypeError, ValueError):
+        raise CLIError(f"model {bundle.name}:{bundle.version} has no physical constants (mass) for the restoring "
+                       "force; loops are not available for it") from None
+    phys.update(mass=mass, input_gain=float(phys.get("input_gain", 1.0)), output=phys.get("output", "displacement"))
+    y0 = None
+    if args.start == "measured":
+        y0 = None if rec.y is None else novelty_start(rec.y, bundle.model.ny)
+        if y0 is None:
+            raise CLIError(f"--start measured needs the record's measured output y, longer than ny={bundle.model.ny} "
+                           "samples")
+    extra = {"keep_paths": True} if args.method == "mc" else {"cov_window": cov_window_for(rec.u, rec.fs,
+                                                                                           bundle.model.ny)}
+    bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
+    run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, confidence=args.confidence, method=args.method,
+                                progress=cb, y0=y0, **extra)
+    if bar is not None:
+        bar.close()
+    kw = dict(fs=rec.fs, mass=phys["mass"], input_gain=phys["input_gain"], output=phys["output"])
+    out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "start": args.start,
+           "mc_paths": run.n_paths, "method": run.method, "confidence": run.confidence,
+           **assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y),
+           "physics": phys, "units": loop_units(bundle.manifest.get("units"), phys)}
+    loops = {"predicted": run.mean, "lower": run.lower, "upper": run.upper}
+    if rec.y is not None:
+        loops["measured"] = rec.y
+    for key, y in loops.items():
+        x, r = restoring_force(rec.u, y, **kw)
+        out[key] = {"area": loop_area(x, r), **({"x": x, "force": r} if args.arrays else {})}
+    cyc = cycles(rec.u, rec.fs, phys, run.mean, paths=run.paths, cov_band=run.cov_band, y=rec.y,
+                 confidence=run.confidence)
+    out["cycle_basis"] = {k: cyc[k] for k in ("basis", "frequency", "n_cycles", "steady_from")}
+    out["cycles"] = cyc["cycles"]
+    return out

@@ -24,6 +24,7 @@ COMMAND_MODULES = [
     "gpnarx.cli.cmd_lags",
     "gpnarx.cli.cmd_train",
     "gpnarx.cli.cmd_predict",
+    "gpnarx.cli.cmd_calibrate",
     "gpnarx.cli.cmd_serve",
     "gpnarx.cli.cmd_build",
     "gpnarx.cli.cmd_reproduce",

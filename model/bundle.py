@@ -234,6 +234,50 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
     return target
 
 
+def derive_bundle(bundle: "Bundle", registry, updates: dict, version=None, name: str | None = None) -> Path:
+    """Write a new version of ``bundle`` whose manifest is the old one with ``updates`` applied
+    (top-level keys replaced), atomically, without refitting: every array file is copied byte for
+    byte after its checksum is verified again, so the GP (lags, scalers, hyperparameters,
+    posterior) is the very same. ``created`` is the new write's time and ``derived_from`` names the
+    source version. The source's ``report/`` is not copied (it describes the source's training and
+    its novelty figures). Returns the new bundle folder; used by ``gpnarx calibrate``.
+    """
+    registry = Path(registry)
+    name = check_name(name or bundle.name)
+    protected = {"schema_version", "name", "version", "created", "files", "lags", "kernel", "noise_var", "mode",
+                 "estimator", "hyperparameters"}
+    bad = sorted(set(updates) & protected)
+    if bad:
+        raise BundleError(f"a derived bundle keeps the source's model: {', '.join(bad)} cannot be changed")
+    version = next_version(registry, name) if version is None else check_version(version)
+    target = registry / name / version
+    if target.exists():
+        raise BundleError(f"bundle {name}:{version} already exists at {target}; versions are never overwritten")
+    (registry / name).mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(registry, STALE_TMP_SECONDS, name)
+    src = Path(bundle.path)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=registry / name))
+    try:
+        for fn, sha in bundle.manifest["files"].items():
+            shutil.copyfile(src / fn, tmp / fn)
+            if _sha256(tmp / fn) != sha:
+                raise BundleError(f"{src / fn}: sha256 checksum does not match the manifest (file changed)")
+        manifest = {**bundle.manifest, **updates, "name": name, "version": version,
+                    "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                    "derived_from": {"name": bundle.name, "version": bundle.version,
+                                     "created": bundle.manifest.get("created")}}
+        with open(tmp / MANIFEST, "w") as f:
+            json.dump(manifest, f, indent=1, allow_nan=False, default=_json_default)
+            f.flush()
+            os.fsync(f.fileno())
+        (tmp / MANIFEST_SUM).write_text(_sha256(tmp / MANIFEST) + "\n")
+        os.rename(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target
+
+
 def _json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()

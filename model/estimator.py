@@ -143,7 +143,7 @@ class GPNARX:
                 raise ValueError(f"heldout: {exc}") from None
         need = first_index(self.ny, self.nu) + 2
         for label, group in (("records", pairs), ("heldout", held or [])):
-            for k, (u, y) in enumerate(group):
+            for k, (u, _y) in enumerate(group):
                 if u.size < need:
                     raise ValueError(f"{label}[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} "
                                      f"need at least {need}")
@@ -239,7 +239,8 @@ class GPNARX:
         return self.kernel_.for_posterior(None if self.constant_cap is None else float(self.constant_cap))
 
     def simulate(self, u, n_paths: int = 1024, seed: int | None = 0, y0=None, confidence: float = 0.99,
-                 method: str = "mc", float32: bool = False, keep_paths: bool = False, progress=None):
+                 method: str = "mc", float32: bool = False, keep_paths: bool = False, progress=None,
+                 cov_window: int = 0):
         """Free-run prediction for input u (input units) with uncertainty propagation.
 
         method: 'mc' (Monte Carlo over n_paths, seeded) or 'linear' (first-order propagation).
@@ -248,6 +249,9 @@ class GPNARX:
             2 % on the Bouc-Wen model). Not for models whose noise variance sits near ML-II's
             floor (real BERT): their latent variance (1e-7, standardised) is below float32's
             resolution of k(x, x) (about 1), and the band would be rounding noise.
+        keep_paths: Monte Carlo only, keep every path in ``FreeRun.paths`` (n x n_paths).
+        cov_window: linearised only, also return ``FreeRun.cov_band``, the output covariance over
+            that many lags (``freerun.simulate_linear``).
         Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units); Monte Carlo runs
         count in ``diverged_paths`` the paths that left the training envelope (``model.envelope``).
         """
@@ -264,7 +268,7 @@ class GPNARX:
         if method == "linear":
             return freerun.simulate_linear(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                            y0=y0, confidence=confidence, include_noise=self.include_noise,
-                                           progress=progress)
+                                           progress=progress, cov_window=cov_window)
         raise ValueError(f"method must be 'mc' or 'linear', got {method!r}")
 
     def __repr__(self) -> str:

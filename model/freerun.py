@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import ndtri
 
-
 LAG_CLIP = 1e3  # standardised lagged outputs are clipped to +/- this (diverging paths stay finite)
 VAR_CAP = LAG_CLIP**2  # linearised variance cap (standardised units)
 
@@ -39,6 +38,7 @@ class FreeRun:
     path_steps: int = 0
     paths: np.ndarray | None = field(default=None, repr=False)
     diverged_paths: int = 0  # Monte Carlo paths whose |y| passed ``diverge_limit`` (see model.envelope)
+    cov_band: np.ndarray | None = field(default=None, repr=False)  # linearised cov(y_i, y_{i-k}), (n, L)
 
     @property
     def band_width(self) -> np.ndarray:
@@ -176,12 +176,18 @@ def simulate_linear(
     confidence: float = 0.99,
     include_noise: bool = True,
     progress=None,
+    cov_window: int = 0,
 ) -> FreeRun:
     """First-order (linearised) propagation of mean and covariance through the lagged outputs.
 
     State: mean m and covariance S (ny x ny) of [y_{i-1}, ..., y_{i-ny}] (output units). With
     J = d mu / d y_lags at the mean regressor (chain rule through the standardisation):
     var(y_i) = sigma_f^2 + sigma_y^2 + J S J^T, cov(y_i, y_{i-k}) = (S J^T)_k; the state shifts.
+
+    cov_window: when L = cov_window > ny, the covariance state covers the last L outputs (J is
+    zero beyond the ny lags, so mean and std are unchanged) and ``FreeRun.cov_band`` holds
+    cov(y_i, y_{i-k}) for k < L, shape (n, L): what a linear functional of a window of outputs
+    (e.g. a cycle's energy, ``model.cycles``) needs for its variance.
     """
     t_start = time.perf_counter()
     confidence = _check_confidence(confidence)
@@ -198,7 +204,9 @@ def simulate_linear(
     m = np.zeros(ny)
     if i0:
         m[:] = y0v[::-1]
-    S = np.zeros((ny, ny))
+    L = max(ny, int(cov_window or 0))
+    S = np.zeros((L, L))
+    band = np.zeros((n, L)) if L > ny else None
     noise = posterior.noise_var if include_noise else 0.0
     x = np.empty(ny + nu)
     dscale = ys / xs[:ny]  # d y_out / d x_std for the lag columns
@@ -208,11 +216,11 @@ def simulate_linear(
         x[ny:] = Ulag[i]
         mu, var_f, grad = posterior.mean_grad(x)
         J = grad[:ny] / xs[:ny] * ys  # d mu_out / d y_lag (output units)
-        SJ = S @ J
+        SJ = S[:, :ny] @ J
         if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
             SJ = np.nan_to_num(SJ, nan=cap, posinf=cap, neginf=-cap)
         np.clip(SJ, -cap, cap, out=SJ)
-        var_y = (var_f + noise) * ys * ys + float(J @ SJ)
+        var_y = (var_f + noise) * ys * ys + float(J @ SJ[:ny])
         var_y = min(var_y, cap) if np.isfinite(var_y) else cap
         y_mean = mu * ys + ym
         mean[i] = y_mean
@@ -222,10 +230,13 @@ def simulate_linear(
         S[0, 1:] = SJ[:-1]
         S[1:, 0] = SJ[:-1]
         S[0, 0] = var_y
+        if band is not None:
+            band[i, 0] = var_y
+            band[i, 1:] = SJ[:-1]
         m[1:] = m[:-1]
         m[0] = y_mean
         if progress is not None and (i % 256 == 0 or i == n - 1):
             progress(i + 1, n)
     del dscale
     return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
-                   time.perf_counter() - t_start, n - i0)
+                   time.perf_counter() - t_start, n - i0, cov_band=band)

@@ -44,6 +44,18 @@ def restoring_force(u, y, fs: float, mass: float, input_gain: float = 1.0, outpu
     return x, input_gain * np.asarray(u, float) - mass * acc
 
 
+def loop_units(units: dict | None, physics: dict | None) -> dict:
+    """Units of a loop from a bundle's ``units`` and ``physics``: ``{"x", "force", "energy",
+    "stiffness"}``. x is the output's unit (displacement output) or the output's unit without "/s"
+    (velocity output, integrated); the force R = g u - m x'' is in N whatever the input's unit
+    (g converts it: N/N or N/V), energy in N x the x unit (J for m), stiffness in N per x unit."""
+    yu = str((units or {}).get("y") or "m")
+    output = (physics or {}).get("output", "displacement")
+    x = yu if output == "displacement" else (yu[:-2] if yu.endswith("/s") else "m")
+    x = x or "m"
+    return {"x": x, "force": "N", "energy": "J" if x == "m" else f"N {x}", "stiffness": f"N/{x}"}
+
+
 def loop_area(x, r) -> float:
     """Area enclosed by the (x, R) trajectory (energy dissipated, J), by the shoelace formula."""
     x = np.asarray(x, float)

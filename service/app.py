@@ -551,7 +551,8 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
                 "hyperparameters": m.get("hyperparameters") or {},
                 "noise_calibration": m.get("noise_calibration"), "n_train": m.get("n_train"),
                 "training": m.get("training") or {}, "novelty": m.get("novelty"), "physics": m.get("physics") or {},
-                "package_versions": m.get("package_versions") or {}}
+                "package_versions": m.get("package_versions") or {},
+                "probe": (m.get("novelty") or {}).get("probe") if isinstance(m.get("novelty"), dict) else None}
 
     v1 = "/v1"
     tags = ["models"]

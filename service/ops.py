@@ -14,10 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from gpnarx.model.bundle import Bundle
+from gpnarx.model.cycles import cov_window_for, cycles
 from gpnarx.model.envelope import assess
 from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
-from gpnarx.model.restoring import loop_area, restoring_force
+from gpnarx.model.probe import probe_check
+from gpnarx.model.restoring import loop_area, loop_units, restoring_force
 
 from .problems import ProblemError
 from .settings import Settings
@@ -115,7 +117,8 @@ def novelty_of(bundle: Bundle) -> dict:
     nov = bundle.manifest.get("novelty")
     if not isinstance(nov, dict) or not isinstance(nov.get("threshold"), (int, float)):
         raise ProblemError(409, f"model {bundle.name}:{bundle.version} has no novelty calibration; train it with "
-                                f"'healthy' records to get a threshold (the default bert-standin-monitor bundle has one)")
+                                f"'healthy' records to get a threshold (the default bert-standin-monitor bundle has "
+                                f"one)")
     return nov
 
 
@@ -140,9 +143,13 @@ def _simulate(plan: Plan, req, token: CancelToken | None = None):
                 y0 = novelty_start(req.y if req.y is not None else [], model.ny, req.y0)
             else:
                 y0 = req.y0 or None
+            extra = {}
+            if plan.operation == "loops":  # per-cycle energy intervals need every path / the covariance band
+                extra = ({"keep_paths": True} if plan.method == "mc"
+                         else {"cov_window": cov_window_for(u, plan.bundle.fs, model.ny)})
             run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=y0,
                                  confidence=float(req.confidence), method=plan.method,
-                                 progress=None if token is None else token.progress)
+                                 progress=None if token is None else token.progress, **extra)
     except ValueError as exc:
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
         raise ProblemError(422, msg, _field_from_message(msg)) from None
@@ -189,10 +196,18 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
                 raise ProblemError(422, "the restoring force is not finite for this record", "u")
             return {"x": x, "force": r, "area": loop_area(x, r)}
 
-        out = {**head, **common, "n_samples": int(u.size), "physics": phys, "units": {"x": "m", "force": "N"},
+        out = {**head, **common, "n_samples": int(u.size), "physics": phys,
+               "units": loop_units(b.manifest.get("units"), phys),
                "predicted": loop(run.mean), "lower": loop(run.lower), "upper": loop(run.upper)}
-        if req.y is not None:
-            out["measured"] = loop(np.asarray(req.y, float))
+        y = None if req.y is None else np.asarray(req.y, float)
+        if y is not None:
+            out["measured"] = loop(y)
+        if token is not None:
+            token.check()
+        cyc = cycles(u, b.fs, phys, run.mean, paths=run.paths, cov_band=run.cov_band, y=y,
+                     confidence=float(run.confidence))
+        out["cycles"] = [{k: (_num(v) if isinstance(v, float) else v) for k, v in c.items()} for c in cyc["cycles"]]
+        out["cycle_basis"] = {k: cyc[k] for k in ("basis", "frequency", "n_cycles", "steady_from")}
         return out, steps
     if plan.operation == "novelty":
         nov = novelty_of(b)
@@ -204,9 +219,16 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
         far = nov.get("false_alarm_rate")
         outside = outside_envelope(req.u, req.y, nov.get("envelope"))
         flagged = flags["out_of_range"] + [f for f in outside if f not in flags["out_of_range"]]
-        out = {**head, "score": s["score"], "threshold": thr, "verdict": verdict(s["score"], thr, outside),
+        try:
+            probe = probe_check(u, b.fs, nov.get("probe"), start_of(plan.operation, req))
+        except ValueError as exc:  # a malformed contract in the manifest: say so rather than guess
+            raise ProblemError(409, f"model {b.name}:{b.version} has an unusable probe contract: {exc}") from None
+        if probe["probe_match"] is False:
+            flagged.append("probe")
+        out = {**head, "score": s["score"], "threshold": thr,
+               "verdict": verdict(s["score"], thr, outside, probe["probe_match"]),
                "false_alarm_rate": float(far) if isinstance(far, (int, float)) else None,
                "nlpd": s["nlpd"], "n_samples": s["n_samples"], "score_method": s["method"], **common,
-               "out_of_range": flagged}
+               "out_of_range": flagged, **probe}
         return out, steps
     raise ProblemError(422, f"operation must be one of {OPERATIONS}", "operation")

@@ -207,7 +207,7 @@ def test_loops(client):
     body, y = rec(n=128)
     d = client.post("/v1/models/boucwen/loops", json={**body, "y": y.tolist()}).json()
     assert d["physics"]["mass"] == 2.0 and d["physics"]["output"] == "displacement"
-    assert d["units"] == {"x": "m", "force": "N"}
+    assert d["units"] == {"x": "m", "force": "N", "energy": "J", "stiffness": "N/m"}
     for k in ("predicted", "lower", "upper", "measured"):
         assert len(d[k]["x"]) == len(d[k]["force"]) == 128 and d[k]["area"] >= 0
     # R = u - m x'' for a displacement output: the predicted loop's x is the predicted mean

@@ -27,6 +27,7 @@ from gpnarx.model.novelty import (
     record_envelope,
     verdict,
 )
+from gpnarx.model.probe import probe_contract
 from gpnarx.model.records import Record
 from gpnarx.training.baselines import fit_baselines, score_baselines
 from gpnarx.training.config import DatasetConfig, load_config
@@ -180,6 +181,8 @@ def train(config, registry, name: str | None = None, version: str | None = None,
         novelty["method"] = method
         novelty["mc_paths"] = n_paths
         novelty["envelope"] = record_envelope([(ev["u"], ev["y"]) for ev in healthy])
+        # the probe contract: the excitation (and start rule) the threshold holds for (model.probe)
+        novelty["probe"] = probe_contract([ev["u"] for ev in healthy], cfg.fs, start="measured")
         for ev in scored:
             ev["metrics"]["verdict"] = verdict(ev["metrics"]["novelty_score"], novelty["threshold"],
                                                outside_envelope(ev["u"], ev["y"], novelty["envelope"]))

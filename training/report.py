@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 
 from gpnarx.model import metrics as _metrics  # noqa: E402
 from gpnarx.model import psd as _psd  # noqa: E402
-from gpnarx.model.restoring import loop_area, restoring_force  # noqa: E402
+from gpnarx.model.restoring import loop_area, loop_units, restoring_force  # noqa: E402
 from gpnarx.training.lagchoice import edge_message, grid_edge  # noqa: E402
 
 GP_NAME = "GP-NARX"
@@ -328,10 +328,9 @@ def record_figure(rec: dict, physics: dict | None, path: Path) -> Path:
             e.plot(x, r, ".", color=_C_MEAS, ms=1.0, label="measured")
         x, r = _loop(d["u"], d["mean"], fs, physics)
         e.plot(x, r, "-", color=_C_MEAN, lw=0.5, label="model mean")
-        xu = d["uy"] if physics.get("output", "displacement") == "displacement" else \
-            (d["uy"].replace("/s", "") if d["uy"].endswith("/s") else "")
-        e.set_xlabel(_lab("displacement", xu))
-        e.set_ylabel(_lab("restoring force", d["uu"] or "N"))
+        lu = loop_units({"y": d["uy"]}, physics)  # R = g u - m x'' is a force [N] whatever u's unit (V)
+        e.set_xlabel(_lab("displacement", lu["x"]))
+        e.set_ylabel(_lab("restoring force", lu["force"]))
         e.set_title("(d) restoring force x displacement")
     elif d["u"] is not None:
         if d["y"] is not None:
@@ -595,9 +594,9 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
 
     # spectral / physics
     has_clean_loop = any("loop_area_clean" in e["metrics"] for e in rec_entries)
-    head = ["record", "PSD peaks measured [Hz]", "PSD peaks predicted [Hz]", "loop area measured"] + \
-        (["loop area noise-free"] if has_clean_loop else []) + \
-        ["loop area predicted", "drive [Hz]", "harmonics 1-3 measured [dB]", "harmonics 1-3 predicted [dB]"]
+    head = ["record", "PSD peaks measured [Hz]", "PSD peaks predicted [Hz]", "loop area measured [J]"] + \
+        (["loop area noise-free [J]"] if has_clean_loop else []) + \
+        ["loop area predicted [J]", "drive [Hz]", "harmonics 1-3 measured [dB]", "harmonics 1-3 predicted [dB]"]
     rows = []
     for e in rec_entries:
         m = e["metrics"]

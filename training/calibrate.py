@@ -1,0 +1,80 @@
+"""Recalibrate a bundle's novelty monitor from new healthy records, without refitting the GP.
+
+``calibrate(bundle, records, registry)`` scores each healthy record exactly as ``gpnarx novelty``
+and the service do (free run from the record's first ny measured outputs, the bundle's score
+method, ``model.novelty``), fits the threshold for the false-alarm rate (``calibrate_threshold``),
+takes the calibration envelope (peak |u|, |y| range) and the probe contract (``model.probe``:
+excitation kind, frequency, amplitude range, start rule) from the same records, and writes a new
+version of the bundle whose arrays are the source's, byte for byte (``model.bundle.derive_bundle``).
+
+Why offline only (a CLI command, no HTTP route): the service is read-only over its registry (it
+loads versions written by training and never writes them), so a new threshold goes through the same
+path as a new model: written atomically as a new version, picked up by the server's registry poll
+or reload, and the old version stays servable for comparison and rollback. Calibration also runs
+one free run per healthy record, which is training-sized work, not request-sized.
+"""
+from __future__ import annotations
+
+from gpnarx.model.bundle import Bundle, derive_bundle
+from gpnarx.model.novelty import (
+    RMS_METHOD,
+    calibrate_threshold,
+    check_method,
+    method_of,
+    novelty_score,
+    novelty_start,
+    outside_envelope,
+    record_envelope,
+    verdict,
+)
+from gpnarx.model.probe import probe_check, probe_contract
+
+__all__ = ["calibrate", "score_healthy"]
+
+
+def score_healthy(bundle: Bundle, records, method: str, n_paths: int = 1024, seed: int = 0,
+                  propagation: str = "mc", progress=None) -> list[dict]:
+    """Novelty score of each record (``model.records.Record`` with y) by the scoring rule of
+    ``gpnarx novelty``; record k uses seed ``seed + k``."""
+    model = bundle.model
+    out = []
+    for k, rec in enumerate(records):
+        if rec.y is None:
+            raise ValueError(f"{rec.name}: a healthy record needs its measured output y")
+        if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
+            raise ValueError(f"{rec.name}: fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs "
+                             f"{bundle.fs} Hz")
+        y0 = novelty_start(rec.y, model.ny)
+        if y0 is None:
+            raise ValueError(f"{rec.name}: a healthy record must be longer than ny={model.ny} samples")
+        run = model.simulate(rec.u, n_paths=n_paths, seed=seed + k, method=propagation, y0=y0,
+                             progress=None if progress is None else progress(rec))
+        s = novelty_score(rec.y, run.mean, run.std, method)
+        out.append({"name": rec.name, "score": s["score"], "n_samples": rec.n})
+    return out
+
+
+def calibrate(bundle: Bundle, records, registry, *, false_alarm_rate: float = 0.01, score_method: str | None = None,
+              n_paths: int = 1024, seed: int = 0, propagation: str = "mc", version=None, progress=None) -> dict:
+    """Write a new version of ``bundle`` calibrated on healthy ``records``; returns its name, version,
+    path, the novelty calibration and each record's score and verdict under it."""
+    records = list(records)
+    if len(records) < 2:
+        raise ValueError(f"at least 2 healthy records are needed to calibrate, got {len(records)}")
+    old = bundle.manifest.get("novelty") if isinstance(bundle.manifest.get("novelty"), dict) else None
+    method = check_method(score_method or (method_of(old) if old else RMS_METHOD))
+    scored = score_healthy(bundle, records, method, n_paths, seed, propagation, progress)
+    novelty = calibrate_threshold([s["score"] for s in scored], false_alarm_rate)
+    novelty["method"] = method
+    novelty["mc_paths"] = int(n_paths) if propagation == "mc" else 0
+    novelty["envelope"] = record_envelope([(r.u, r.y) for r in records])
+    novelty["probe"] = probe_contract([r.u for r in records], bundle.fs, start="measured")
+    novelty["calibration"] = {"records": [r.name for r in records], "source_version": bundle.version,
+                              "propagation": propagation, "seed": int(seed), "refit": False}
+    for s, r in zip(scored, records):
+        probe = probe_check(r.u, r.fs, novelty["probe"], "measured")
+        s["verdict"] = verdict(s["score"], novelty["threshold"], outside_envelope(r.u, r.y, novelty["envelope"]),
+                               probe["probe_match"])
+    path = derive_bundle(bundle, registry, {"novelty": novelty}, version=version)
+    return {"name": bundle.name, "version": path.name, "path": str(path), "source_version": bundle.version,
+            "novelty": novelty, "records": scored}
