@@ -11,7 +11,8 @@ on short records. The mean negative log predictive density is reported alongside
 Robust variant (``method="segment_median_rms"``, opt-in per bundle): the standardised residuals
 are cut into ``SEGMENTS`` (16) contiguous segments and the score is the median of their RMS values.
 Real laser-vibrometer records carry isolated spikes and dropouts (the real BERT 8.5 Hz sine holds
-measurement bursts that lift the RMS score of a healthy window several-fold). A spike spoils at most the segments it falls in, and the median ignores up to 7 of 16,
+measurement bursts that lift the RMS score of a healthy window several-fold). A spike spoils at
+most the segments it falls in, and the median ignores up to 7 of 16,
 while a torque change raises every segment, so the variant keeps the sensitivity to persistent
 change. The method is chosen in the dataset config (``[novelty] method``), stored with the
 threshold in the bundle, and every scorer (training, ``gpnarx novelty``, the service) uses the

@@ -16,7 +16,6 @@ settings. ``--quick`` runs the same code path on a tiny grid, short records and 
 from __future__ import annotations
 
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -41,8 +40,8 @@ GRIDS = {
 # low-frequency sines and the noise run; a model good on average can still drift on one of them).
 LAG_CRITERION = {"bouc-wen": "mean", "bert-standin": "mean", "bert-real": "worst"}
 SURFACE_SETTINGS = {"max_train_points": 500, "mode": "sparse", "inducing": 256, "score_clean": True}
-QUICK = {"grid": ([2, 4], [2, 4]), "max_seconds": 1.0, "surface": {"max_train_points": 150, "mode": "sparse", "score_clean": True,
-                                                                     "inducing": 32},
+QUICK = {"grid": ([2, 4], [2, 4]), "max_seconds": 1.0,
+         "surface": {"max_train_points": 150, "mode": "sparse", "score_clean": True, "inducing": 32},
          "model": {"max_train_points": 200, "inducing": 64}, "mc_paths": 32, "novelty_n": 3}
 MONITOR_CONFIG = "bert-standin-monitor"  # the bolt-loosening monitor trained by reproduce bert-standin
 MC_PATHS = {"bouc-wen": 1024, "bert-standin": 4096, "bert-real": 1024}
@@ -90,7 +89,8 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
     write_surface(surface, out / "lag_surface.json")
     ch = surface["chosen"]
     log(f"[{system}] chosen lags ny={ch['ny']} nu={ch['nu']} fit={ch['fit']:.2f}% "
-        f"(paper: ny={PAPER[system]['lags']['ny']} nu={PAPER[system]['lags']['nu']} fit={PAPER[system]['lags']['fit']}%)")
+        f"(paper: ny={PAPER[system]['lags']['ny']} nu={PAPER[system]['lags']['nu']} "
+        f"fit={PAPER[system]['lags']['fit']}%)")
     if surface["edge"]:
         log(f"[{system}] note: {edge_message(surface)}")
     n_paths = int(mc_paths or (QUICK["mc_paths"] if quick else MC_PATHS[system]))
@@ -100,7 +100,8 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
                 model_overrides=QUICK["model"] if quick else None)
     summary = {
         "system": system, "quick": quick, "chosen_lags": {"ny": ch["ny"], "nu": ch["nu"], "fit": ch["fit"]},
-        "paper_lags": PAPER[system]["lags"], "lag_grid_edge": surface["edge"], "mc_paths": n_paths, "bundle": res["path"],
+        "paper_lags": PAPER[system]["lags"], "lag_grid_edge": surface["edge"], "mc_paths": n_paths,
+        "bundle": res["path"],
         "records": {k: v for k, v in res["metrics"]["records"].items()},
         "baselines": res["metrics"].get("baselines"),
     }
@@ -138,7 +139,8 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
         if docs_page:
             Path(docs_page).write_text(page)
     (out / "summary.json").write_text(json.dumps(_clean(summary), indent=1))
-    log(f"[{system}] done in {summary['wall_seconds']:.1f} s; report in {res['path']}/report, summary {out / 'summary.json'}")
+    log(f"[{system}] done in {summary['wall_seconds']:.1f} s; report in {res['path']}/report, "
+        f"summary {out / 'summary.json'}")
     return summary
 
 
