@@ -1,8 +1,12 @@
-"""Shared set-up for the benchmarks: the Bouc-Wen protocol, the scikit-learn baseline, timing helpers.
+"""Shared set-up for the benchmarks: the Bouc-Wen protocol, the baselines, timing helpers.
 
-Every script under ``bench/`` measures the product and its scikit-learn baseline in the same run
-(interleaved repetitions, so load from other processes hits both) and prints one line
-``RESULT key=value ...`` with the product's figure, the baseline's and ``ratio=``.
+Every script under ``bench/`` measures the product and a baseline in the same run and prints one
+line ``RESULT key=value ...`` with the product's figure, the baseline's (``baseline=``, described by
+``baseline_what=``) and ``ratio=``. ``ratio=`` compares EQUAL WORK: the same model size (N or M),
+precision, BLAS thread count and process tuning on both sides, repetitions interleaved (A, B, A, B,
+...) so load from other processes hits both, and the median of the per-repetition ratios. A
+comparison with what a user would otherwise run (scikit-learn exact at the protocol's size, library
+defaults) is a separate field, ``user_ratio...=``, labelled by ``user_baseline=``.
 
 Bouc-Wen protocol (section 3 of the paper; docs/results-bouc-wen.md): training records are the 10 N and 80 N
 sweeps with Gaussian output noise of variance 0.1 * mean(y10^2) added to both; ny=20, nu=17
@@ -186,11 +190,11 @@ def lagged_inputs(u: np.ndarray, nu: int = NU) -> np.ndarray:
     return np.stack([upad[nu - 1 - j: nu - 1 - j + u.size] for j in range(nu)], axis=1)
 
 
-def sklearn_freerun(gpr, noise_var, xsc, ysc, u, y0, n_paths, seed=0, keep_X=(), confidence=0.99):
-    """The per-step Monte Carlo loop a user would write around GaussianProcessRegressor.predict.
+def mc_freerun(predict, noise_var, xsc, ysc, u, y0, n_paths, seed=0, keep_X=(), confidence=0.99, ny=NY, nu=NU):
+    """The per-step Monte Carlo loop a user would write around a predictor ``predict(Xs) -> (mu, std)``.
 
-    Starts from the first ny measured outputs y0 (like ``simulate_mc(..., y0=y0)``); each step builds
-    the (n_paths, D) regressor block, standardises it, calls ``predict(X, return_std=True)``, samples
+    Starts from the first ny outputs y0 (like ``simulate_mc(..., y0=y0)``); each step builds the
+    (n_paths, ny + nu) regressor block, standardises it, calls ``predict``, samples
     y ~ N(mu, std^2 + noise) per path and feeds it back. Returns (mean, lower, upper, seconds,
     path_steps, {step: standardised X block} for the steps in keep_X).
     """
@@ -198,24 +202,78 @@ def sklearn_freerun(gpr, noise_var, xsc, ysc, u, y0, n_paths, seed=0, keep_X=(),
     P = int(n_paths)
     n = u.size
     rng = np.random.default_rng(seed)
-    Ulag = lagged_inputs(u)
-    ylag = np.tile(np.asarray(y0, float)[:NY][::-1], (P, 1))
+    Ulag = lagged_inputs(u, nu)
+    ylag = np.tile(np.asarray(y0, float)[:ny][::-1], (P, 1))
     ym, ys = float(ysc.mean_[0]), float(ysc.scale_[0])
     q = (1.0 - confidence) / 2.0
     mean, lower, upper = np.zeros(n), np.zeros(n), np.zeros(n)
-    mean[:NY] = lower[:NY] = upper[:NY] = np.asarray(y0, float)[:NY]
+    mean[:ny] = lower[:ny] = upper[:ny] = np.asarray(y0, float)[:ny]
     kept = {}
-    for i in range(NY, n):
+    for i in range(ny, n):
         Xraw = np.hstack([ylag, np.tile(Ulag[i], (P, 1))])
         Xs = xsc.transform(Xraw)
         if i in keep_X:
             kept[i] = Xs.copy()
-        mu, sd = gpr.predict(Xs, return_std=True)
+        mu, sd = predict(Xs)
         ysamp = (mu + np.sqrt(sd ** 2 + noise_var) * rng.standard_normal(P)) * ys + ym
         mean[i] = mu.mean() * ys + ym
         lower[i], upper[i] = np.quantile(ysamp, [q, 1.0 - q])
         ylag = np.hstack([ysamp[:, None], ylag[:, :-1]])
-    return mean, lower, upper, time.perf_counter() - t0, (n - NY) * P, kept
+    return mean, lower, upper, time.perf_counter() - t0, (n - ny) * P, kept
+
+
+def sklearn_freerun(gpr, noise_var, xsc, ysc, u, y0, n_paths, seed=0, keep_X=(), confidence=0.99, ny=NY, nu=NU):
+    """``mc_freerun`` around scikit-learn's ``GaussianProcessRegressor.predict(X, return_std=True)``."""
+    return mc_freerun(lambda Xs: gpr.predict(Xs, return_std=True), noise_var, xsc, ysc, u, y0, n_paths, seed=seed,
+                      keep_X=keep_X, confidence=confidence, ny=ny, nu=nu)
+
+
+class NumpySparse:
+    """Plain numpy/scipy predictive of the SAME sparse posterior as the product (equal-work baseline).
+
+    scikit-learn has no sparse GP, so the equal-work baseline of the sparse mode is the
+    straightforward implementation of its equations on the product's own posterior arrays
+    (inducing inputs Z, weights w, variance factor G; kernel parameters of eq. 12 including the
+    constant cap of ``CubicPolynomial``): per call, K(Xs, Z) from ``scipy.spatial.distance.cdist``
+    and numpy elementwise operations over all rows at once, mean K w, latent variance
+    k(x, x) - rowsum((K G^T)^2). Same M, float64, same process. What it lacks, by design, is the
+    product's engineering (one Gram product shared by both kernel parts, in-place kernels,
+    cache-sized row blocks). ``predict(Xs)`` returns (mean, std) in standardised units.
+    """
+
+    def __init__(self, post):
+        from gpnarx.model.kernels import CubicPolynomial, Matern32
+
+        parts = getattr(post.kernel, "parts", [post.kernel])
+        mat = [p for p in parts if isinstance(p, Matern32)]
+        cub = [p for p in parts if isinstance(p, CubicPolynomial)]
+        if len(mat) != 1 or len(cub) != 1 or len(parts) != 2 or getattr(post, "G", None) is None:
+            raise ValueError("NumpySparse reproduces the eq. (12) kernel (Matern 3/2 + cubic) with a G factor")
+        self.var_m, self.ls = np.exp(mat[0].theta)
+        self.var_p, self.s, self.b = np.exp(cub[0].theta)
+        const = float(self.var_p * self.b ** 3)
+        cap = cub[0].constant_cap
+        self.const_var = const if cap is None else min(const, float(cap))  # the variance's kernel
+        self.const_mean = const  # the mean's kernel (eq. 8) is uncapped
+        self.Z = np.asarray(post.X, float)
+        self.w = np.asarray(post.w, float)
+        self.GT = np.asarray(post.G, float).T
+
+    def _poly(self, T):
+        """var_p [t (3 b^2 + 3 b t + t^2)]: the cubic kernel of eq. (11) without its constant term."""
+        b = self.b
+        return self.var_p * T * (3.0 * b * b + 3.0 * b * T + T * T)
+
+    def predict(self, Xs):
+        from scipy.spatial.distance import cdist
+
+        a = math.sqrt(3.0) / self.ls * cdist(Xs, self.Z)
+        K = self.var_m * (1.0 + a) * np.exp(-a) + self._poly(self.s * (Xs @ self.Z.T))
+        mean = K @ self.w + self.const_mean * float(np.sum(self.w))
+        K += self.const_var
+        diag = self.var_m + self._poly(self.s * np.sum(Xs * Xs, axis=1)) + self.const_var
+        var = diag - np.sum((K @ self.GT) ** 2, axis=1)
+        return mean, np.sqrt(np.maximum(var, 1e-300))
 
 
 # --- timing helpers --------------------------------------------------------------------------------
@@ -237,6 +295,21 @@ def dgemm_gflops(n: int = 2000, p: int = 1024, repeat: int = 3) -> float:
     A @ B
     t, _ = best(lambda: A @ B, repeat)
     return 2.0 * n * n * p / t / 1e9
+
+
+def interleave(sides: dict, reps: int) -> dict:
+    """Call each side's function in turn, ``reps`` times: A, B, A, B, ... (so a change of machine load hits
+    every side alike); returns {name: [return value of each repetition]}."""
+    out = {k: [] for k in sides}
+    for _ in range(int(reps)):
+        for k, fn in sides.items():
+            out[k].append(fn())
+    return out
+
+
+def median_ratio(num, den) -> float:
+    """Median over repetitions of num[i] / den[i] (the RESULT ``ratio=`` of interleaved repetitions)."""
+    return float(statistics.median([a / b for a, b in zip(num, den, strict=True)]))
 
 
 def median(xs):

@@ -6,24 +6,34 @@ points over all ~4000 training rows, ML-II on 1000 stride rows; trained once wit
 50 N Bouc-Wen sweep (5-150 Hz at 53.55 Hz/s: 2031 samples at 750 Hz, written by
 ``gpnarx simulate``). Timed: the whole ``python -m gpnarx predict --registry R --model
 bouc-wen REC --mc 1024 --out OUT.npz --json`` subprocess (interpreter start, imports, bundle load
-with checksums, 1024-path Monte Carlo free run from rest, writing OUT.npz and the JSON), best and
-median of a few runs; path-steps = 2031 x 1024. Also timed once more with the process tuning off
-(``GPNARX_BLAS_THREADS=0 GPNARX_MMAP_THRESHOLD=0``: library-default BLAS threads, default malloc)
-to show what ``model/runtime.py`` buys.
+with checksums, 1024-path Monte Carlo free run from rest, writing OUT.npz and the JSON);
+path-steps = 2031 x 1024. The command applies its process tuning (``model/runtime.py``: one BLAS
+thread, glibc mmap threshold 32 MiB).
 
-Baseline (same run): the per-step loop a user would write around scikit-learn's
-``GaussianProcessRegressor.predict(X, return_std=True)``, exact GP at N=4000 training rows of the
-Bouc-Wen protocol, D=37 (ny=20, nu=17), 1024 paths (``_common.sklearn_freerun``); it runs a few
-steps (half before, half after the product) and is converted to path-steps per second.
-Its hyperparameters are THETA_REF (a per-step timing does not depend on their values).
-ratio = product path-steps/s (whole process) / baseline path-steps/s. Target >= 50.
+Baseline, equal work (``ratio=``): a subprocess of this script (``--reference-child``) that does
+the same job with the same process tuning (it calls the same ``tune_for_free_run``): it loads the
+same bundle through the same registry code, reads the record, runs the 1024-path Monte Carlo
+free run from rest over the whole record with ``_common.NumpySparse`` (a plain numpy/scipy
+evaluation of the bundle's own sparse posterior: same M, Z, w, G, float64; scikit-learn has no
+sparse GP), computes fit and coverage and writes OUT.npz and a JSON line. Product and baseline
+processes alternate (A, B, A, B, ...); ratio = median over repetitions of baseline wall / product
+wall. Also timed once: the product command with its tuning off (``GPNARX_BLAS_THREADS=0
+GPNARX_MMAP_THRESHOLD=0``: library-default BLAS threads, default malloc), to show what the tuning buys.
 
-    python bench/bench_predict_e2e.py [--quick] [--threads N] [--retrain]
+User comparison (NOT equal work; ``user_ratio=``, ``user_baseline=``): the per-step loop a user
+would write around scikit-learn's ``GaussianProcessRegressor.predict(X, return_std=True)``, exact GP
+at N=4000 training rows of the Bouc-Wen protocol (D=37), 1024 paths, in this process with library
+defaults (or ``--threads``); a few steps, half before and half after the product runs, converted to
+path-steps per second. Its hyperparameters are THETA_REF (a per-step timing does not depend on
+their values). user_ratio = product path-steps/s (whole process) / that.
 
---quick: a tiny config (M=32, 150 ML-II rows, train records only), 300 samples, 256 paths, N=500 baseline.
+    python bench/bench_predict_e2e.py [--quick] [--threads N] [--retrain] [--reps R]
+
+--quick: a tiny config (M=32, 150 ML-II rows, train records only), 300 samples, 256 paths, N=500 user baseline.
 """
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
@@ -117,19 +127,65 @@ def cached_registry(quick: bool, retrain: bool) -> tuple[Path, str]:
     return reg, note
 
 
+def reference_child(registry: str, record: str, out: str, paths: int) -> None:
+    """The equal-work baseline process: same tuning, same bundle, numpy evaluation of its sparse posterior."""
+    from gpnarx.model.bundle import Registry
+    from gpnarx.model.metrics import summary
+    from gpnarx.model.runtime import tune_for_free_run
+
+    t0 = time.perf_counter()
+    tuning = tune_for_free_run(None)
+    model = Registry(registry).scan().get("bouc-wen").model
+    d = np.load(record)
+    u, y = np.asarray(d["u"], float), np.asarray(d["y"], float)
+    ref = C.NumpySparse(model.posterior_)
+    ny = model.ny
+    uu = np.concatenate([np.zeros(ny), u])  # from rest: ny zero outputs and inputs before the record
+    mean, lower, upper, sim_s, path_steps, _ = C.mc_freerun(
+        ref.predict, float(model.posterior_.noise_var), model.x_scaler_, model.y_scaler_, uu, np.zeros(ny), paths,
+        seed=0, ny=ny, nu=model.nu)
+    mean, lower, upper = mean[ny:], lower[ny:], upper[ny:]
+    m = summary(y, mean, lower, upper)
+    np.savez(out, fs=float(d["fs"]), u=u, y=y, mean=mean, lower=lower, upper=upper)
+    print(json.dumps({"seconds": sim_s, "path_steps": path_steps, "fit": m["fit"], "coverage": m["coverage"],
+                      "tuning": tuning, "process_s": time.perf_counter() - t0}))
+
+
 def main():
-    args = C.parse_args(__doc__, lambda ap: ap.add_argument("--retrain", action="store_true",
-                                                            help="retrain the cached bundle"))
+    def extra(ap):
+        ap.add_argument("--retrain", action="store_true", help="retrain the cached bundle")
+        ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; 2 with --quick)")
+        ap.add_argument("--reference-child", nargs=4, metavar=("REGISTRY", "RECORD", "OUT", "PATHS"),
+                        help=argparse.SUPPRESS)
+
+    args = C.parse_args(__doc__, extra)
+    if args.reference_child:
+        reg, rec, out, paths = args.reference_child
+        reference_child(reg, rec, out, int(paths))
+        return
     with tempfile.TemporaryDirectory(prefix="gpnarx-e2e-") as tmp:
         run(args, Path(tmp))
+
+
+def child(*argv, timeout=3600):
+    """Run this script as the equal-work baseline process; (seconds, parsed JSON line)."""
+    e = dict(os.environ)
+    e["PYTHONPATH"] = str(C.ROOT) + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--reference-child", *map(str, argv)],
+                          cwd=C.ROOT, env=e, check=False, capture_output=True, text=True, timeout=timeout)
+    dt = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"reference child failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return dt, json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def run(args, tmp: Path):
     q = args.quick
     P = 256 if q else 1024
-    N_base = 500 if q else 4000
-    base_steps = 2 if q else 4
-    reps = 2 if q else 3
+    N_user = 500 if q else 4000
+    user_steps = 2 if q else 4
+    reps = args.reps or (2 if q else 3)
 
     reg, reg_note = cached_registry(q, args.retrain)
     rec = tmp / "sweep50.npz"
@@ -139,11 +195,22 @@ def run(args, tmp: Path):
         np.savez(rec, u=d["u"][:300], y=d["y"][:300], fs=d["fs"])
     n = int(np.load(rec)["u"].size)
     out = tmp / "pred.npz"
+    out_ref = tmp / "ref.npz"
     predict = ("predict", "--registry", reg, "--model", "bouc-wen", rec, "--mc", P, "--out", out, "--json")
 
-    # baseline set-up (in this process) and its first half
+    # the equal-work reference computes the bundle's own posterior: check it on one regressor block
+    from gpnarx.model.bundle import Registry
+
+    model = Registry(reg).scan().get("bouc-wen").model
+    Zp = model.posterior_.X
+    Xchk = Zp + 0.05 * np.random.default_rng(0).standard_normal(Zp.shape)
+    ref_mean_diff = float(np.max(np.abs(model.posterior_.predict(Xchk)[0] - C.NumpySparse(model.posterior_)
+                                        .predict(Xchk)[0])))
+    del model
+
+    # user comparison set-up (in this process) and its first half
     theta = C.THETA_REF.copy()
-    Xb, yb, xsc, ysc = C.training_set(N_base)
+    Xb, yb, xsc, ysc = C.training_set(N_user)
     gpr = C.sk_gpr(theta, Xb, yb)
     noise = float(np.exp(theta[-1]))
     r50 = C.record(50.0)
@@ -152,44 +219,64 @@ def run(args, tmp: Path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         C.sklearn_freerun(gpr, noise, xsc, ysc, uu[: C.NY + 1], y0, P)  # warm-up
-        *_, s1, ps1, _ = C.sklearn_freerun(gpr, noise, xsc, ysc, uu[: C.NY + base_steps // 2], y0, P, seed=1)
+        *_, s1, ps1, _ = C.sklearn_freerun(gpr, noise, xsc, ysc, uu[: C.NY + user_steps // 2], y0, P, seed=1)
 
     cli(*predict)  # warm-up (file cache, .pyc)
-    walls = []
-    for _ in range(reps):
+    last = {}
+
+    def product():
         t, proc = cli(*predict)
-        walls.append(t)
-    res = json.loads(proc.stdout)
+        last["product"] = json.loads(proc.stdout)
+        return t
+
+    def baseline():
+        t, res = child(reg, rec, out_ref, P)
+        last["baseline"] = res
+        return t
+
+    walls = C.interleave({"product": product, "baseline": baseline}, reps)
+    res, bres = last["product"], last["baseline"]
     untuned, _ = cli(*predict, env={"GPNARX_BLAS_THREADS": "0", "GPNARX_MMAP_THRESHOLD": "0"})
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        *_, s2, ps2, _ = C.sklearn_freerun(gpr, noise, xsc, ysc, uu[: C.NY + base_steps - base_steps // 2], y0, P,
+        *_, s2, ps2, _ = C.sklearn_freerun(gpr, noise, xsc, ysc, uu[: C.NY + user_steps - user_steps // 2], y0, P,
                                            seed=2)
-    base_ps = (ps1 + ps2) / (s1 + s2)
-    base_step_s = P / base_ps
+    user_ps = (ps1 + ps2) / (s1 + s2)
+    user_step_s = P / user_ps
     path_steps = n * P
-    wall = C.median(walls)
+    wall = C.median(walls["product"])
+    base_wall = C.median(walls["baseline"])
     ps = path_steps / wall
-    ps_best = path_steps / min(walls)
+    base_ps = path_steps / base_wall
+    ratio = C.median_ratio(walls["baseline"], walls["product"])
     sim_s = float(res["seconds"])
-    assert out.is_file() and len(res["mean"]) == n
+    assert out.is_file() and out_ref.is_file() and len(res["mean"]) == n
 
     print(f"bench_predict_e2e: gpnarx predict --mc {P} on a {n}-sample Bouc-Wen 50 N sweep ({reg_note}); "
           f"{C.env_note()} in the bench process")
-    print(f"  product, whole process (start, load, predict, write): {', '.join(f'{w:.2f}' for w in walls)} s "
-          f"(median {wall:.2f} s; simulate() itself {sim_s:.2f} s); {ps:,.0f} path-steps/s "
-          f"(best {ps_best:,.0f}); fit {res.get('fit', float('nan')):.1f} %, "
-          f"coverage {res.get('coverage', float('nan')):.1f} %")
+    print(f"  product, whole process (start, load, predict, write): "
+          f"{', '.join(f'{w:.2f}' for w in walls['product'])} s "
+          f"(median {wall:.2f} s; simulate() itself {sim_s:.2f} s); {ps:,.0f} path-steps/s; "
+          f"fit {res.get('fit', float('nan')):.1f} %, coverage {res.get('coverage', float('nan')):.1f} %")
+    print(f"  baseline (equal work), numpy reference of the same bundle's posterior, same tuning {bres['tuning']}, "
+          f"whole process: {', '.join(f'{w:.2f}' for w in walls['baseline'])} s (median {base_wall:.2f} s; its loop "
+          f"{bres['seconds']:.2f} s); fit {bres['fit']:.1f} %, coverage {bres['coverage']:.1f} %; max |mean diff| on "
+          f"one block {ref_mean_diff:.1e}")
+    print(f"  ratio (median of {reps} interleaved baseline/product wall ratios): {ratio:.2f}")
     print(f"  same command with the process tuning off (library BLAS threads, default malloc): {untuned:.2f} s "
           f"(x{untuned / wall:.2f} the tuned median)")
-    print(f"  baseline sklearn predict loop, exact N={N_base}, D={C.D}, {P} paths: {base_step_s:.3f} s/step "
-          f"measured on {(ps1 + ps2) // P} steps (half before, half after); {base_ps:,.0f} path-steps/s; "
-          f"the record would take {base_step_s * n:.0f} s (extrapolated)")
-    print(f"  ratio {ps / base_ps:.1f} (target >= 50)")
-    C.result(path_steps_per_s=ps, baseline=base_ps, ratio=ps / base_ps, wall_s=wall, wall_best_s=min(walls),
-             simulate_s=sim_s, untuned_wall_s=untuned, samples=n, paths=P, N_base=N_base,
-             fit=res.get("fit", float("nan")), coverage=res.get("coverage", float("nan")), load=C.load(),
+    print(f"  user comparison (NOT equal work): sklearn predict loop, exact N={N_user}, D={C.D}, {P} paths, "
+          f"in this process: {user_step_s:.3f} s/step measured on {(ps1 + ps2) // P} steps (half before, half "
+          f"after); {user_ps:,.0f} path-steps/s; the record would take {user_step_s * n:.0f} s (extrapolated); "
+          f"user_ratio {ps / user_ps:.1f}")
+    C.result(path_steps_per_s=ps, baseline=base_ps, baseline_what="numpy-reference-same-bundle-same-tuning-process",
+             ratio=ratio, wall_s=wall, baseline_wall_s=base_wall, wall_best_s=min(walls["product"]),
+             simulate_s=sim_s, baseline_loop_s=float(bres["seconds"]), untuned_wall_s=untuned,
+             user_baseline=f"sklearn-exact-N{N_user}-inprocess", user_baseline_ps=user_ps, user_ratio=ps / user_ps,
+             ref_max_mean_diff=ref_mean_diff, reps=reps, samples=n, paths=P,
+             fit=res.get("fit", float("nan")), coverage=res.get("coverage", float("nan")),
+             baseline_fit=bres["fit"], baseline_coverage=bres["coverage"], load=C.load(),
              blas_threads=C.blas_threads())
 
 
