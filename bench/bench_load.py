@@ -13,6 +13,8 @@ predict): multisine records of ``--samples`` samples at 750 Hz, ``--paths`` Mont
 2. Load: ``--clients`` concurrent clients (httpx async, one connection each) share the same list;
    every answer must be 200 (errors are counted and printed; the script exits 1 if any). The
    server's queue is ``--queue`` (default: clients, so the load phase is never shed).
+   Phases 1 and 2 alternate ``--reps`` times (A, B, A, B; same calls, same server and process
+   tuning); ``ratio=`` is the median over repetitions of concurrent / sequential throughput.
 3. Overload: ``--overload`` requests (default 3 x (workers + queue)), each a 4x longer predict,
    sent at once: more than the server's workers + queue slots, so the surplus must be shed with
    503 + Retry-After at once and no other 5xx may appear. Meanwhile, and before the load
@@ -245,6 +247,8 @@ def main(argv=None):
     ap.add_argument("--paths", type=int, default=None, help="Monte Carlo paths (default 32; 16 with --quick)")
     ap.add_argument("--workers", type=int, default=2, help="server worker threads (default 2)")
     ap.add_argument("--queue", type=int, default=None, help="server queue size (default: --clients)")
+    ap.add_argument("--reps", type=int, default=2, help="interleaved repetitions of the sequential and concurrent "
+                    "phases (default 2)")
     ap.add_argument("--overload", type=int, default=None, help="simultaneous requests of the overload phase "
                     "(default 3 x (workers + queue))")
     args = ap.parse_args(argv)
@@ -253,6 +257,7 @@ def main(argv=None):
     samples = args.samples or (128 if args.quick else 256)
     paths = args.paths or (16 if args.quick else 32)
     queue_size = clients if args.queue is None else args.queue
+    reps = max(1, args.reps)
     n_over = args.overload or 3 * (args.workers + queue_size)
     if not 1 <= clients <= 256 or n_calls < 4 or n_over <= args.workers + queue_size:
         raise SystemExit("need 1 <= clients <= 256, requests >= 4 and overload > workers + queue")
@@ -305,8 +310,18 @@ def main(argv=None):
 
         idle_health: list = []
         asyncio.run(poll_health(url, asyncio.Event(), idle_health, max_polls=50))
-        base_lat, base_err, base_wall = asyncio.run(run_calls(url, calls, 1))
-        load_lat, load_err, load_wall = asyncio.run(run_calls(url, calls, clients))
+        # sequential (baseline) and concurrent phases alternate, A, B, A, B, ...: the same calls on the same
+        # server, so a change of machine load hits both; ratio = median of the per-repetition throughput ratios
+        base_lat, load_lat = {k: [] for k in (*TYPES, "server")}, {k: [] for k in (*TYPES, "server")}
+        base_err, load_err, base_walls, load_walls = [], [], [], []
+        for _ in range(reps):
+            for lat, err, walls, n_clients in ((base_lat, base_err, base_walls, 1),
+                                               (load_lat, load_err, load_walls, clients)):
+                lt, er, wall = asyncio.run(run_calls(url, calls, n_clients))
+                for k, v in lt.items():
+                    lat[k].extend(v)
+                err.extend(er)
+                walls.append(wall)
         over, over_health, over_wall = asyncio.run(overload(url, f"/v1/models/{model}/predict", long_body, n_over))
         with httpx.Client(base_url=url, timeout=30) as c:
             metrics = c.get("/metrics").text
@@ -318,8 +333,9 @@ def main(argv=None):
         if tmp is not None:
             tmp.cleanup()
 
-    base_rps = n_calls / base_wall
-    rps = n_calls / load_wall
+    base_rps = n_calls / C.median(base_walls)
+    rps = n_calls / C.median(load_walls)
+    ratio = C.median_ratio(base_walls, load_walls)  # (n / load wall) / (n / sequential wall), per repetition
     statuses = [s for s, *_ in over]
     n200 = sum(1 for s in statuses if s == 200)
     n503 = sum(1 for s in statuses if s == 503)
@@ -345,7 +361,8 @@ def main(argv=None):
         comp = [b for _, b in lat["server"]]
         print(f"server side ({phase}, predict/novelty): queue p50 {pct(q, 50) * 1e3:.1f} ms, compute p50 "
               f"{pct(comp, 50) * 1e3:.1f} ms")
-    print(f"throughput: sequential {base_rps:.2f} req/s, {clients} clients {rps:.2f} req/s (x{rps / base_rps:.2f}); "
+    print(f"throughput ({reps} interleaved repetitions, median): sequential {base_rps:.2f} req/s, {clients} clients "
+          f"{rps:.2f} req/s (ratio {ratio:.2f}); "
           f"errors {len(base_err)} sequential, {len(load_err)} under load")
     for e in (base_err + load_err)[:5]:
         print("  error:", e)
@@ -356,8 +373,9 @@ def main(argv=None):
           f"{pct(h_over, 95) * 1e3:.2f} ms ({len(h_over)} polls, max {max(h_over, default=float('nan')) * 1e3:.1f} ms)")
     shed_metric = next((ln.split()[-1] for ln in metrics.splitlines() if ln.startswith("gpnarx_requests_shed_total")),
                        "nan")
-    kv = {"rps": rps, "baseline": base_rps, "ratio": rps / base_rps, "errors": len(load_err) + len(base_err),
-          "clients": clients, "requests": n_calls}
+    kv = {"rps": rps, "baseline": base_rps, "baseline_what": "sequential-client-same-calls-same-server",
+          "ratio": ratio, "errors": len(load_err) + len(base_err), "clients": clients, "requests": n_calls,
+          "reps": reps}
     for k in TYPES:
         kv[f"p50_{k}_ms"] = pct(load_lat[k], 50) * 1e3
         kv[f"p95_{k}_ms"] = pct(load_lat[k], 95) * 1e3

@@ -1,8 +1,11 @@
 """Smoke test of the benchmarks: each bench/ script runs in --quick mode and prints the contract line.
 
 Contract (design.md): one line starting ``RESULT `` with key=value pairs, among them the product's
-figure, the baseline's and ``ratio=`` (a finite number). Runs with ``--threads 1`` so a machine
-oversubscribed by other processes does not make single small BLAS calls wait for a second thread.
+figure, the baseline's and ``ratio=`` (a finite number). ``baseline_what=`` says what the
+baseline is (``ratio=`` compares equal work, docs/benchmarks.md); a comparison with what a user
+would otherwise run comes as ``user_ratio...=`` fields with a ``user_baseline=`` label. Runs with
+``--threads 1`` so a machine oversubscribed by other processes does not make single small BLAS
+calls wait for a second thread.
 """
 import math
 import subprocess
@@ -15,9 +18,15 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py",
            "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
            "bench_sparse_accuracy.py", "bench_sparse_variance.py"]
-# fields of the new benches' RESULT lines that must be finite numbers (besides ratio and baseline)
-FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "baseline_record_s_extrapolated"),
-          "bench_predict_e2e.py": ("wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s")}
+# fields of some RESULT lines that must be finite positive numbers (besides ratio and baseline)
+FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_extrapolated", "user_ratio"),
+          "bench_predict_e2e.py": ("wall_s", "baseline_wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s",
+                                   "user_ratio"),
+          "bench_modes.py": ("ratio_exact", "ratio_sparse32", "ratio_sparse64", "linear_vs_mc", "user_ratio"),
+          "bench_fit.py": ("eval_s", "fit_ratio_plain", "user_ratio")}
+# the baselines' numerics agree with the product's (same model on both sides of ratio=)
+MATCH = {"bench_freerun.py": "max_mean_diff", "bench_modes.py": "max_mean_diff",
+         "bench_bert_scale.py": "ref_max_mean_diff", "bench_predict_e2e.py": "ref_max_mean_diff"}
 
 
 def parse_result(stdout: str) -> dict:
@@ -39,14 +48,24 @@ def test_bench_quick(script):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, f"{script} exited {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
     kv = parse_result(proc.stdout)
-    assert "ratio" in kv and "baseline" in kv, kv
-    ratio = float(kv["ratio"])
-    assert math.isfinite(ratio) and ratio > 0, kv
-    assert math.isfinite(float(kv["baseline"])), kv
+    check_contract(kv)
     for key in FINITE.get(script, ()):
         assert key in kv and math.isfinite(float(kv[key])) and float(kv[key]) > 0, (key, kv)
     if script == "bench_sparse_variance.py":  # the factored variance matches the QR reference
         assert float(kv["product_rel_err"]) < 1e-6 < float(kv["baseline_rel_err"]), kv
+    if script in MATCH:
+        assert float(kv[MATCH[script]]) < 1e-8, kv
+
+
+def check_contract(kv: dict) -> None:
+    """ratio= finite and positive, a numeric baseline= described by baseline_what=, user_ratio* labelled."""
+    assert "ratio" in kv and "baseline" in kv, kv
+    ratio = float(kv["ratio"])
+    assert math.isfinite(ratio) and ratio > 0, kv
+    assert math.isfinite(float(kv["baseline"])), kv
+    assert kv.get("baseline_what"), f"no baseline_what= saying what the baseline is: {kv}"
+    if any(k.startswith("user_ratio") for k in kv):
+        assert kv.get("user_baseline"), f"user_ratio without a user_baseline= label: {kv}"
 
 
 def test_parse_result_rejects_garbage():
@@ -55,14 +74,25 @@ def test_parse_result_rejects_garbage():
     assert parse_result("table\nRESULT a=1 ratio=2.5 baseline=3\n")["ratio"] == "2.5"
 
 
+def test_contract_check_rejects_unlabelled_lines():
+    check_contract(parse_result("RESULT a=1 ratio=2.5 baseline=3 baseline_what=x user_ratio=9 user_baseline=y"))
+    for bad in ("RESULT a=1 ratio=2.5 baseline=3",  # no baseline_what
+                "RESULT a=1 baseline=3 baseline_what=x",  # no ratio
+                "RESULT a=1 ratio=2.5 baseline_what=x",  # no baseline
+                "RESULT ratio=2.5 baseline=3 baseline_what=x user_ratio=9"):  # user_ratio without its label
+        with pytest.raises(AssertionError):
+            check_contract(parse_result(bad))
+
+
 def test_bench_load_quick():
     """Loopback load test (bench/bench_load.py --quick): zero errors, shedding with Retry-After, live health."""
     proc = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_load.py"), "--quick"], cwd=ROOT,
                           capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, f"exited {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr[-3000:]}"
     kv = parse_result(proc.stdout)
+    check_contract(kv)
     assert int(kv["errors"]) == 0, kv
-    assert math.isfinite(float(kv["ratio"])) and float(kv["ratio"]) > 0 and float(kv["baseline"]) > 0, kv
+    assert float(kv["baseline"]) > 0, kv
     for t in ("predict", "novelty", "batch"):
         assert math.isfinite(float(kv[f"p95_{t}_ms"])), kv
     # overload: more simultaneous requests than workers + queue -> the surplus is shed with 503 + Retry-After
