@@ -8,12 +8,12 @@ states its probe contract, and every novelty request's drive is estimated and ma
 
 Drive estimate (``drive_of``): the dominant frequency of u (Hann-windowed spectrum of the
 mean-removed input, zero-padded 8x, parabolic interpolation of the log magnitude around the
-peak), its ``concentration`` (share of the input's power within +/- ``LOBE_BINS`` bins of the
-peak on the unpadded spectrum), and the kind: ``"sine"`` when the concentration is at least
-``SINE_CONCENTRATION`` (a steady sine, even with some distortion), else ``"broadband"`` (noise,
-multisine, sweep). Amplitude: for a sine, the peak of the least-squares sine fitted at the
-dominant frequency (robust to measurement noise, unlike the sample peak); for a broadband drive,
-the RMS of u. Units: the input unit of the bundle (e.g. V or N), frequency in Hz.
+peak), its ``concentration`` (share of u's variance that one least-squares sine at that frequency
+explains over the whole record), and the kind: ``"sine"`` when the concentration is at least
+``SINE_CONCENTRATION`` (a steady sine, even with some distortion or noise), else ``"broadband"``
+(noise, multisine, and a sweep, whose phase drifts away from any single sine). Amplitude: for a
+sine, the peak of that least-squares sine (robust to measurement noise, unlike the sample peak);
+for a broadband drive, the RMS of u. Units: the input unit of the bundle (e.g. V or N), frequency in Hz.
 
 Probe contract (``probe_contract``), from the healthy calibration records::
 
@@ -35,8 +35,7 @@ import math
 
 import numpy as np
 
-SINE_CONCENTRATION = 0.8  # share of the input power near the dominant frequency for a sine drive
-LOBE_BINS = 3  # +/- bins around the peak counted as the sine's (Hann main lobe is +/- 2 bins)
+SINE_CONCENTRATION = 0.8  # share of the input's variance one sine explains, for a sine drive
 PAD = 8  # zero-padding factor of the peak search
 FREQ_TOL_REL = 0.03  # 3 %: 9 Hz +/- 0.27 Hz; an 8 Hz probe is 11 % off
 AMP_TOL_REL = 0.20  # amplitude range widened 20 % each way
@@ -79,19 +78,16 @@ def drive_of(u, fs: float) -> dict:
     if n < MIN_SAMPLES or not np.all(np.isfinite(u)):
         return out
     x = (u - u.mean()) * np.hanning(n)
-    power = np.abs(np.fft.rfft(x)) ** 2
-    power[0] = 0.0
-    total = float(power.sum())
-    if not total > 0:
+    if not np.any(x):
         return out
-    k = int(np.argmax(power))
-    conc = float(power[max(k - LOBE_BINS, 1) : k + LOBE_BINS + 1].sum() / total)
     mag = np.abs(np.fft.rfft(x, PAD * n))
     kp = int(np.argmax(mag[1:]) + 1)
     freq = _refine_peak(mag, kp) * fs / (PAD * n)
+    amp, _, _ = sine_fit(u, fs, freq)
+    var = float(np.var(u))
+    conc = float(min(1.0, 0.5 * amp * amp / var)) if var > 0 else 0.0  # share of u's variance in the sine
     out.update(frequency=float(freq), concentration=conc)
     if conc >= SINE_CONCENTRATION:
-        amp, _, _ = sine_fit(u, fs, freq)
         out.update(kind="sine", amplitude=amp, amplitude_kind="peak")
     return out
 

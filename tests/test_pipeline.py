@@ -190,7 +190,8 @@ def test_predict_and_novelty_cli_json(trained, small_config, tmp_path, capsys):
         np.savez(big, u=d["u"] * 1000, y=d["y"] * 1000, fs=d["fs"])
     assert main(["novelty", "--registry", str(trained), "--model", "bw-small:1", str(big), "--mc", "16", "--json"]) == 0
     far = json.loads(capsys.readouterr().out)
-    assert far["out_of_range"] == ["u", "y", "prediction"] and far["verdict"] == "novel", far
+    # ... and its drive (1000x the healthy amplitude) is not the probe the threshold holds for
+    assert far["out_of_range"] == ["u", "y", "prediction", "probe"] and far["verdict"] == "novel", far
     assert far["diverged_paths"] == 16 and far["start"] == "measured", far  # 1000x the training peak: every path
 
 
