@@ -15,6 +15,8 @@ def add_parser(sub):
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024 Bouc-Wen, 4096 BERT)")
     p.add_argument("--docs", default=None, metavar="FILE",
                    help="also write the results page there (bert-real: docs/results-bert-real.md)")
+    p.add_argument("--table-mc", type=int, default=None, metavar="N",
+                   help="bert-real: Monte Carlo paths of the every-record table (default: --mc; 0: linearised only)")
     p.add_argument("--from-run", action="store_true",
                    help="only re-render the results page (--docs) from the run folder --out, computing nothing")
     p.set_defaults(func=run)
@@ -35,7 +37,8 @@ def run(args):
         return {"system": args.system, "out": out, "docs": args.docs}
     log = None if args.json else (lambda m: print(m, file=sys.stderr, flush=True))
     s = reproduce(args.system, out, quick=args.quick, jobs=args.jobs, scheduler=args.scheduler, mc_paths=args.mc,
-                  log=log, progress=not args.json, docs_page=args.docs)
+                  log=log, progress=not args.json, docs_page=args.docs,
+                  table_mc=args.table_mc)
     keep = ("system", "quick", "chosen_lags", "paper_lags", "mc_paths", "bundle", "wall_seconds")
     res = {k: s[k] for k in keep}
     res["records"] = {k: {m: v.get(m) for m in ("role", "fit", "fit_clean", "coverage", "coverage_clean")}

@@ -34,7 +34,7 @@ from .gp import ExactPosterior, SparsePosterior
 from .kernels import DEFAULT_CONSTANT_CAP, kernel_from_dict
 from .scaling import Standardizer
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # what save_bundle writes; older manifests are migrated on load (MIGRATIONS)
 MANIFEST = "manifest.json"
 MANIFEST_SUM = "manifest.sha256"  # sha256 of manifest.json: an edited manifest is refused too
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -266,6 +266,7 @@ def derive_bundle(bundle: "Bundle", registry, updates: dict, version=None, name:
                     "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                     "derived_from": {"name": bundle.name, "version": bundle.version,
                                      "created": bundle.manifest.get("created")}}
+        manifest.pop("schema_version_written", None)  # the derived manifest is written in today's schema
         with open(tmp / MANIFEST, "w") as f:
             json.dump(manifest, f, indent=1, allow_nan=False, default=_json_default)
             f.flush()
@@ -284,6 +285,42 @@ def _json_default(o):
     if isinstance(o, np.generic):
         return o.item()
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _migrate_1_to_2(m: dict) -> None:
+    """Schema 1 manifests could lack keys that later writers always add; schema 2 holds them all.
+
+    A missing ``estimator.constant_cap`` means the bundle was built without the variance cap
+    (docs/numerics.md, safeguard 1): recorded in ``legacy`` so the load can warn."""
+    est = m["estimator"]
+    legacy = []
+    if "constant_cap" not in est:
+        est["constant_cap"] = None
+        legacy.append("no_constant_cap")
+    for key, default in (("n_inducing", 256), ("max_train_points", None), ("selection", "stride"), ("seed", 0),
+                         ("include_noise", True), ("hyper", "subset"), ("kernel_spec", None)):
+        est.setdefault(key, default)
+    for key, default in (("noise_calibration", None), ("training_envelope", None), ("nlml", None), ("n_train", 0),
+                         ("physics", {}), ("novelty", None), ("training", {})):
+        m.setdefault(key, default)
+    m["legacy"] = legacy
+    m["schema_version"] = 2
+
+
+#: schema version -> in-place migration to the next version
+MIGRATIONS = {1: _migrate_1_to_2}
+
+
+def migrate_manifest(manifest: dict) -> dict:
+    """Bring a manifest of any supported schema version up to ``SCHEMA_VERSION`` (in place)."""
+    v = manifest.get("schema_version")
+    if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= SCHEMA_VERSION:
+        raise BundleError(f"schema_version {v!r} is not supported (this package reads 1 to {SCHEMA_VERSION})")
+    manifest["schema_version_written"] = v
+    while manifest["schema_version"] < SCHEMA_VERSION:
+        MIGRATIONS[manifest["schema_version"]](manifest)
+    manifest.setdefault("legacy", [])
+    return manifest
 
 
 def _read_manifest(path: Path) -> dict:
@@ -306,10 +343,10 @@ def _read_manifest(path: Path) -> dict:
     missing = [k for k in REQUIRED_KEYS if k not in manifest]
     if missing:
         raise BundleError(f"{mf}: missing keys {missing}")
-    if manifest["schema_version"] != SCHEMA_VERSION:
-        raise BundleError(f"{mf}: schema_version {manifest['schema_version']!r} is not supported "
-                          f"(expected {SCHEMA_VERSION})")
-    return manifest
+    try:
+        return migrate_manifest(manifest)
+    except BundleError as exc:
+        raise BundleError(f"{mf}: {exc}") from None
 
 
 def _load_array(path: Path, fn: str, expected_sha: str) -> np.ndarray:
@@ -347,21 +384,21 @@ def load_bundle(path) -> Bundle:
         ny, nu = int(manifest["lags"]["ny"]), int(manifest["lags"]["nu"])
         est = manifest["estimator"]
         kernel = kernel_from_dict(manifest["kernel"])
-        model = GPNARX(ny=ny, nu=nu, kernel=est.get("kernel_spec") or kernel, mode=manifest["mode"],
-                       n_inducing=int(est.get("n_inducing", 256)), max_train_points=est.get("max_train_points"),
-                       selection=est.get("selection", "stride"), seed=int(est.get("seed", 0)),
-                       include_noise=bool(est.get("include_noise", True)), hyper=est.get("hyper", "subset"),
-                       constant_cap=est.get("constant_cap"))  # None in bundles written before the cap
+        model = GPNARX(ny=ny, nu=nu, kernel=est["kernel_spec"] or kernel, mode=manifest["mode"],
+                       n_inducing=int(est["n_inducing"]), max_train_points=est["max_train_points"],
+                       selection=est["selection"], seed=int(est["seed"]),
+                       include_noise=bool(est["include_noise"]), hyper=est["hyper"],
+                       constant_cap=est["constant_cap"])
         model._validate_params()
         model.kernel_ = kernel
         model.theta_ = arrays["theta"]
         model.noise_var_ = float(manifest["noise_var"])
-        model.envelope_ = check_envelope(manifest.get("training_envelope"))  # None: no range checks
-        model.noise_calibration_ = manifest.get("noise_calibration")  # null or absent: no held-out calibration
+        model.envelope_ = check_envelope(manifest["training_envelope"])  # None: no range checks
+        model.noise_calibration_ = manifest["noise_calibration"]  # None: no held-out calibration
         model.noise_var_ml2_ = float(model.noise_calibration_["noise_var_ml2"]) if model.noise_calibration_ \
             else model.noise_var_
-        model.nlml_ = float("nan") if manifest.get("nlml") is None else float(manifest["nlml"])
-        model.n_train_ = int(manifest.get("n_train", 0))
+        model.nlml_ = float("nan") if manifest["nlml"] is None else float(manifest["nlml"])
+        model.n_train_ = int(manifest["n_train"])
         model.x_scaler_ = Standardizer.from_arrays(arrays["x_mean"], arrays["x_scale"])
         model.y_scaler_ = Standardizer.from_arrays(arrays["y_mean"], arrays["y_scale"])
         post = {k[len("posterior_"):]: v for k, v in arrays.items() if k.startswith("posterior_")}
@@ -380,7 +417,7 @@ def load_bundle(path) -> Bundle:
                           "rounding error larger than itself (and depends on the BLAS thread count). Retrain it "
                           "(gpnarx train CONFIG --registry DIR writes a new version) for the factored form",
                           BundleWarning, stacklevel=2)
-        if "constant_cap" not in est:  # no variance cap (docs/numerics.md, safeguard 1)
+        if "no_constant_cap" in manifest["legacy"]:  # no variance cap (docs/numerics.md, safeguard 1)
             shift = kernel.for_posterior(DEFAULT_CONSTANT_CAP).cap_shift()
             if shift > 1e6 * model.noise_var_:  # Bouc-Wen (73 vs 1.1e-2) stays quiet; the stand-in's warns
                 warnings.warn(f"{path}: built before the predictive-variance fix; its cubic kernel constant "

@@ -156,3 +156,38 @@ def test_killed_first_write_of_a_new_model_is_invisible(tmp_path):
     assert remove_stale_temps(root) == [] and tmp.is_dir()
     assert remove_stale_temps(root, 0) == [tmp] and not tmp.exists()
     assert next_version(root, "newmodel") == "1"
+
+
+def test_schema_1_manifest_is_migrated_and_a_future_schema_refused(tmp_path):
+    """Bundles carry a schema version; older ones are migrated by explicit steps, newer ones refused."""
+    import hashlib
+    import json
+
+    from gpnarx.model.bundle import SCHEMA_VERSION, BundleError, load_bundle, migrate_manifest
+
+    m1 = {"schema_version": 1, "estimator": {"n_inducing": 64}}
+    out = migrate_manifest(m1)
+    assert out["schema_version"] == SCHEMA_VERSION == 2 and out["schema_version_written"] == 1
+    assert out["estimator"]["constant_cap"] is None and out["legacy"] == ["no_constant_cap"]
+    assert out["estimator"]["n_inducing"] == 64 and out["training_envelope"] is None and out["n_train"] == 0
+    for bad in (0, 3, "2", True, None):
+        with pytest.raises(BundleError, match="schema_version"):
+            migrate_manifest({"schema_version": bad, "estimator": {}})
+    # on disk: a saved bundle rewritten as schema 1 without the later keys loads, a schema 99 one is refused
+    src = copy_registry(tmp_path / "reg") / "plain" / "1"
+    mf = src / "manifest.json"
+    man = json.loads(mf.read_text())
+    assert man["schema_version"] == SCHEMA_VERSION
+    for k in ("training_envelope", "noise_calibration", "nlml", "n_train"):
+        man.pop(k, None)
+    man["estimator"].pop("constant_cap")
+    for version, ok in ((1, True), (99, False)):
+        man["schema_version"] = version
+        mf.write_text(json.dumps(man))
+        (src / "manifest.sha256").write_text(hashlib.sha256(mf.read_bytes()).hexdigest() + "\n")
+        if ok:
+            b = load_bundle(src)
+            assert b.model.envelope_ is None and b.manifest["schema_version_written"] == 1
+        else:
+            with pytest.raises(BundleError, match="schema_version 99 is not supported"):
+                load_bundle(src)

@@ -184,6 +184,9 @@ def markdown(table: dict, checks: dict) -> str:
             f"{', '.join(g['out_of_range']) or '-'} | {_fmt(r['whole_arx_8_4']['fit'])} | "
             f"{_fmt(r[f'whole_arx_{ny_nu[0]}_{ny_nu[1]}']['fit'])} | {_fmt(w['fit'])} | {w['coverage']:.1f} | "
             f"{_fmt(r['window_arx_8_4']['fit'])} | {_fmt(r[f'window_arx_{ny_nu[0]}_{ny_nu[1]}']['fit'])} |")
+    if not mc:
+        lines.append("")
+        lines.append("Linearised bands only in this run (`--table-mc 0`): the Monte Carlo columns read n/a.")
     lines.append("")
     lines.append(f"Records: {checks['n_records']}; diverged (peak ratio > 3 or diverged paths): "
                  f"{', '.join(checks['diverged']) or 'none'}; GP-NARX whole-record fit at least the better ARX's on "

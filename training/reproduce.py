@@ -60,7 +60,7 @@ def choose_worst(cells: list) -> dict:
 
 def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, scheduler: str | None = None,
               mc_paths: int | None = None, novelty_n: int = 20, log=None, progress: bool = False,
-              docs_page=None) -> dict:
+              docs_page=None, table_mc: int | None = None) -> dict:
     """Run one protocol; returns the summary (also written to OUT/report.json with figures)."""
     from gpnarx.training.config import load_config
     from gpnarx.training.lags import edge_message, lag_surface, write_surface
@@ -124,8 +124,10 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
         from gpnarx.training.real_table import real_table, table_checks
 
         log(f"[{system}] every real record under {bert_data_dir()}: whole records from rest and steady windows, "
-            f"linearised and {n_paths}-path Monte Carlo, next to linear ARX baselines")
-        table = real_table(res["model"], cfg, bert_data_dir(), mc_paths=n_paths, max_seconds=max_seconds,
+            f"linearised and {n_paths if table_mc is None else table_mc}-path Monte Carlo (0: linearised only), next "
+            f"to linear ARX baselines")
+        table_paths = n_paths if table_mc is None else int(table_mc)
+        table = real_table(res["model"], cfg, bert_data_dir(), mc_paths=table_paths, max_seconds=max_seconds,
                            jobs=jobs, log=log)
         table["checks"] = table_checks(table)
         summary["real_table"] = table
