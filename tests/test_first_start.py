@@ -127,8 +127,9 @@ def test_builder_lightest_first_ready_transitions_failure_and_rescan(tmp_path):
         assert r.status_code == 503 and r.headers["retry-after"]
         p = r.json()
         assert p["bundles"] == 0 and "building bouc-wen, bert-standin, bert-standin-monitor" in p["detail"]
-        assert p["startup"] == {"built": [], "building": ["bouc-wen"], "pending": ["bert-standin", "bert-standin-monitor"],
-                                "failed": [], "skipped": ["bert-real"], "reasons": {"bert-real": "records not found"},
+        assert p["startup"] == {"built": [], "building": ["bouc-wen"],
+                                "pending": ["bert-standin", "bert-standin-monitor"], "failed": [],
+                                "skipped": ["bert-real"], "reasons": {"bert-real": "records not found"},
                                 "done": False}
         # a model still to come: 503 + Retry-After, not 404; an unknown one stays 404
         r = c.post("/v1/models/bert-standin/predict", json=body)
@@ -264,7 +265,7 @@ def test_serve_on_empty_registry_opens_its_port_at_once(tmp_path):
     t0 = time.monotonic()
     proc = _serve(registry, port, "bouc-wen")
     try:
-        r = _wait(lambda: proc.poll() is None and (lambda r: r is not None and r.status_code == 200 and r)(
+        _wait(lambda: proc.poll() is None and (lambda r: r is not None and r.status_code == 200 and r)(
             _get(url + "/health/live")), timeout=10, what="/health/live 200")
         live_s = time.monotonic() - t0
         ready = _get(url + "/health/ready")

@@ -2,8 +2,9 @@
 
 ``ensure_default_registry()`` returns the registry folder (``$GPNARX_REGISTRY`` or
 ``~/.cache/gpnarx/registry``), training any missing default bundle first: Bouc-Wen, the BERT
-stand-in and its bolt-loosening monitor (9 Hz sine probe, novelty calibrated) always, the real BERT bundle too when the lab records are present
-(``$GPNARX_BERT_DATA`` or ``../shared/data/bert-t5nm`` beside the repository).
+stand-in and its bolt-loosening monitor (9 Hz sine probe, novelty calibrated) always, the real BERT
+bundle too when the lab records are present (``$GPNARX_BERT_DATA`` or ``../shared/data/bert-t5nm``
+beside the repository).
 ``$GPNARX_DEFAULTS`` (comma-separated names, e.g. ``bouc-wen``) limits the defaults built.
 
 ``DEFAULT_BUNDLES`` is in build order, lightest first (measured: docs/benchmarks.md, "First
