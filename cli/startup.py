@@ -145,8 +145,11 @@ class ChildBuild:
         with self._lock:
             if self._stopped:
                 raise RuntimeError("the server is stopping")
+            # its own session: a Ctrl-C meant for the server does not kill the build half-way with a
+            # spurious failure line; the server's shutdown stops it (stop())
             proc = subprocess.Popen(self.command(name), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                    stderr=subprocess.PIPE, text=True, errors="replace", env=self.env)
+                                    stderr=subprocess.PIPE, text=True, errors="replace", env=self.env,
+                                    start_new_session=True)
             self._proc = proc
             later = self.n_started > 0
             self.n_started += 1
