@@ -71,6 +71,21 @@ def test_start_up_cycles_are_not_steady():
     assert min(p) >= (1 - cy.STEADY_TOL) * np.median(p)
 
 
+def test_start_up_cycles_whose_energy_has_not_settled_are_not_steady():
+    """Same amplitude throughout, but the loop opens over the first cycles (phase lag 0.2 -> 0.7 rad):
+    the peak-to-peak test keeps them, the mean-loop energy test drops them."""
+    fs, f, n = 750.0, 35.59, 1500
+    t = np.arange(n) / fs
+    u = 50.0 * np.sin(2 * np.pi * f * t)
+    phi = 0.7 - 0.5 * np.exp(-t / 0.08)
+    x = 4e-4 * np.sin(2 * np.pi * f * t - phi)
+    assert cy.cycle_bounds(u, fs, x)["steady_from"] == 0
+    res = cy.cycles(u, fs, BW, x)
+    assert 2 <= res["steady_from"] <= 8 and len(res["cycles"]) == res["n_cycles"] - res["steady_from"]
+    e = [c["energy"] for c in res["cycles"]]
+    assert max(abs(v / e[-1] - 1) for v in e) <= cy.STEADY_TOL_ENERGY
+
+
 def test_broadband_drive_uses_response_cycles():
     from gpnarx.training import excitations as ex
 
