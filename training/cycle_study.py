@@ -11,7 +11,8 @@
    (per-cycle energy with its 99 % interval across the Monte Carlo paths, measured energy);
 4. computes, over each of the answer's cycles, the simulator's own dissipated energy: the loop area
    of its true restoring force, integral of (c v + k y + z) v dt, and the drive's work, integral of
-   u v dt (equal over a steady cycle), by the same trapezoid rule (``model.cycles.energy_weights``);
+   u v dt (equal over a steady cycle), by the same trapezoid rule (``model.cycles.energy_weights``),
+   and the secant stiffness of the true loop (``model.cycles.secant_stiffness``);
 5. prints one JSON object: per-cycle rows and the share of cycles whose interval covers the
    measured energy and the simulator's own.
 """
@@ -27,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnarx.model.cycles import energy_weights
+from gpnarx.model.cycles import energy_weights, secant_stiffness
 from gpnarx.training.simulation_specs import DEFAULTS, padded_sine, sine_padding
 from gpnarx.training.simulators.boucwen import BoucWen
 
@@ -76,11 +77,13 @@ def study(registry, model: str = "bouc-wen", amplitude: float = 50.0, freq: floa
         _, w_u = energy_weights(u, fs, ts, te, 1.0, "velocity")
         sl = slice(j0, j0 + w_r.size)
         rows.append({**{k: c.get(k) for k in ("start", "end", "energy", "energy_lower", "energy_upper",
-                                               "measured_energy", "stiffness", "measured_stiffness")},
-                     "simulator_energy": float(w_r @ tr["v"][sl]), "drive_work": float(w_u @ tr["v"][sl])})
+                                               "measured_energy", "stiffness", "stiffness_lower", "stiffness_upper",
+                                               "measured_stiffness")},
+                     "simulator_energy": float(w_r @ tr["v"][sl]), "drive_work": float(w_u @ tr["v"][sl]),
+                     "simulator_stiffness": secant_stiffness(tr["y"], r_true, ts, te)})
 
-    def share(key):
-        ok = [r["energy_lower"] <= r[key] <= r["energy_upper"] for r in rows if r["energy_lower"] is not None]
+    def share(key, lo="energy_lower", hi="energy_upper"):
+        ok = [r[lo] <= r[key] <= r[hi] for r in rows if r[lo] is not None]
         return 100.0 * sum(ok) / len(ok) if ok else None
 
     e = np.array([r["energy"] for r in rows])
@@ -92,6 +95,9 @@ def study(registry, model: str = "bouc-wen", amplitude: float = 50.0, freq: floa
             "cycle_basis": ans["cycle_basis"], "diverged_paths": ans["diverged_paths"],
             "out_of_range": ans["out_of_range"], "n_cycles": len(rows),
             "coverage_measured": share("measured_energy"), "coverage_simulator": share("simulator_energy"),
+            "stiffness_coverage_simulator": share("simulator_stiffness", "stiffness_lower", "stiffness_upper"),
+            "stiffness_mean": float(np.mean([r["stiffness"] for r in rows])) if rows else None,
+            "simulator_stiffness_mean": float(np.mean([r["simulator_stiffness"] for r in rows])) if rows else None,
             "energy_mean": float(e.mean()) if e.size else None,
             "simulator_energy_mean": float(es.mean()) if es.size else None,
             "measured_energy_mean": float(em.mean()) if em.size else None,
