@@ -275,7 +275,8 @@ def test_bundle_built_before_the_variance_fix_warns_on_load(sdof_data, tmp_path)
         [(sdof_data["u"][:1200], sdof_data["yn"][:1200])], theta=theta)
     p = save_bundle(m, tmp_path, "old", fs=1.0, units={"u": "N", "y": "m"})
     man = json.loads((p / "manifest.json").read_text())
-    del man["estimator"]["constant_cap"]  # as written before the fix
+    del man["estimator"]["constant_cap"]  # as written before the fix, in schema 1 (migrated on load)
+    man["schema_version"] = 1
     (p / "manifest.json").write_text(json.dumps(man))
     (p / "manifest.sha256").write_text(_sha256(p / "manifest.json") + "\n")
     with pytest.warns(BundleWarning, match="Retrain it"):
