@@ -19,8 +19,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import sys
 import tempfile
@@ -29,19 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from gpnarx.model.cycles import energy_weights, secant_stiffness
+from gpnarx.training.cli_runner import run_cli
 from gpnarx.training.simulation_specs import DEFAULTS, padded_sine, sine_padding
 from gpnarx.training.simulators.boucwen import BoucWen
 
 
 def _cli(argv: list[str]) -> dict:
-    from gpnarx.cli.main import main
-
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        rc = main(["--json", *argv])
-    if rc != 0:
-        raise RuntimeError(f"gpnarx {' '.join(argv)} failed (exit {rc})")
-    return json.loads(buf.getvalue())
+    return run_cli(argv)
 
 
 def truth(amplitude: float, freq: float, n: int, fs: float = 750.0) -> dict:

@@ -26,8 +26,6 @@ quoted with its split and its counts.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import sys
 import tempfile
@@ -35,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gpnarx.training.cli_runner import run_cli
 from gpnarx.training.config import bert_data_dir
 from gpnarx.training.records import read_record
 
@@ -44,14 +43,7 @@ OFF_PROBE = {"Sine_17Hz": (6.0, 14.0)}
 
 
 def _cli(argv: list[str]) -> dict:
-    from gpnarx.cli.main import main
-
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        rc = main(["--json", *argv])
-    if rc != 0:
-        raise RuntimeError(f"gpnarx {' '.join(argv)} failed (exit {rc})")
-    return json.loads(buf.getvalue())
+    return run_cli(argv)
 
 
 def windows(data: Path, spec: dict, width: float, out: Path) -> list[Path]:

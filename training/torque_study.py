@@ -26,8 +26,6 @@ value leaves [1st, 99th] of the fitted healthy distribution (each tail at 0.5 %)
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import math
 import sys
@@ -39,18 +37,14 @@ import numpy as np
 from gpnarx.model.bundle import Registry
 from gpnarx.model.cycles import cycles
 from gpnarx.model.novelty import calibrate_threshold, method_of, novelty_score, novelty_start
+from gpnarx.training.cli_runner import run_cli
 
 
 def _simulate(torque: float, seed: int, out: Path) -> Path:
-    from gpnarx.cli.main import main
-
     p = out / f"standin-{torque:g}Nm-s{seed}.npz"
-    with contextlib.redirect_stdout(io.StringIO()):
-        rc = main(["--json", "simulate", "bert-standin", "--excitation", "sine", "--amplitude", "0.15", "--freq", "9",
-                   "--duration", "4", "--torque", f"{torque:g}", "--seed", str(seed), "--noise-fraction", "0.0004",
-                   "--out", str(p)])
-    if rc != 0:
-        raise RuntimeError(f"gpnarx simulate failed for torque {torque} seed {seed}")
+    run_cli(["simulate", "bert-standin", "--excitation", "sine", "--amplitude", "0.15", "--freq", "9",
+             "--duration", "4", "--torque", f"{torque:g}", "--seed", str(seed), "--noise-fraction", "0.0004",
+             "--out", str(p)])
     return p
 
 
