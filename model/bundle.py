@@ -159,6 +159,18 @@ def remove_stale_temps(registry, older_than: float = STALE_TMP_SECONDS, name: st
     return removed
 
 
+def _new_version_target(registry: Path, name: str, version) -> tuple[str, Path]:
+    """(version, REGISTRY/NAME/VERSION) for a new bundle: the next free version unless one is given
+    (never an existing one); the model folder exists and stale temporary folders are removed."""
+    version = next_version(registry, name) if version is None else check_version(version)
+    target = registry / name / version
+    if target.exists():
+        raise BundleError(f"bundle {name}:{version} already exists at {target}; versions are never overwritten")
+    (registry / name).mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(registry, STALE_TMP_SECONDS, name)
+    return version, target
+
+
 def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, units: dict,
                 physics: dict | None = None, novelty: dict | None = None, training: dict | None = None,
                 extra: dict | None = None, extra_files: dict | None = None,
@@ -173,12 +185,7 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
         raise BundleError("cannot save an unfitted model")
     registry = Path(registry)
     check_name(name)
-    version = next_version(registry, name) if version is None else check_version(version)
-    target = registry / name / version
-    if target.exists():
-        raise BundleError(f"bundle {name}:{version} already exists at {target}; versions are never overwritten")
-    (registry / name).mkdir(parents=True, exist_ok=True)
-    remove_stale_temps(registry, STALE_TMP_SECONDS, name)
+    version, target = _new_version_target(registry, name, version)
     tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=registry / name))
     try:
         files = {}
@@ -249,12 +256,7 @@ def derive_bundle(bundle: "Bundle", registry, updates: dict, version=None, name:
     bad = sorted(set(updates) & protected)
     if bad:
         raise BundleError(f"a derived bundle keeps the source's model: {', '.join(bad)} cannot be changed")
-    version = next_version(registry, name) if version is None else check_version(version)
-    target = registry / name / version
-    if target.exists():
-        raise BundleError(f"bundle {name}:{version} already exists at {target}; versions are never overwritten")
-    (registry / name).mkdir(parents=True, exist_ok=True)
-    remove_stale_temps(registry, STALE_TMP_SECONDS, name)
+    version, target = _new_version_target(registry, name, version)
     src = Path(bundle.path)
     tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=registry / name))
     try:
