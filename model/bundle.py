@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .discrepancy import check_discrepancy
 from .envelope import check_envelope
 from .estimator import GPNARX
 from .gp import ExactPosterior, SparsePosterior
@@ -211,6 +212,7 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
             "hyperparameters": {**model.kernel_.params, "noise_var": model.noise_var_},
             "noise_var": model.noise_var_,
             "noise_calibration": getattr(model, "noise_calibration_", None),
+            "band_discrepancy": getattr(model, "band_discrepancy_", None),
             "training_envelope": getattr(model, "envelope_", None),
             "nlml": None if not np.isfinite(model.nlml_) else model.nlml_,
             "n_train": model.n_train_,
@@ -397,6 +399,8 @@ def load_bundle(path) -> Bundle:
         model.noise_var_ = float(manifest["noise_var"])
         model.envelope_ = check_envelope(manifest["training_envelope"])  # None: no range checks
         model.noise_calibration_ = manifest["noise_calibration"]  # None: no held-out calibration
+        # None: no model-discrepancy term in the band (model.discrepancy); absent in older bundles
+        model.band_discrepancy_ = check_discrepancy(manifest.get("band_discrepancy"))
         model.noise_var_ml2_ = float(model.noise_calibration_["noise_var_ml2"]) if model.noise_calibration_ \
             else model.noise_var_
         model.nlml_ = float("nan") if manifest["nlml"] is None else float(manifest["nlml"])

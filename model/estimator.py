@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from . import freerun
+from .discrepancy import widen
 from .envelope import check_envelope, divergence_limit, training_envelope
 from .gp import ExactPosterior, SparsePosterior, choose_inducing, default_warm_start_subset, fit_ml2
 from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, make_kernel
@@ -185,6 +186,7 @@ class GPNARX:
         self.posterior_ = build(self.noise_var_)
         self.noise_var_ml2_ = self.noise_var_
         self.noise_calibration_ = None
+        self.band_discrepancy_ = None  # set by calibrate_band (model.discrepancy)
         if held is not None:
             self._calibrate_noise(held, build)
         self.n_train_ = int(Xt.shape[0])
@@ -209,6 +211,33 @@ class GPNARX:
             self.noise_var_ = s2
             self.theta_ = np.concatenate([np.asarray(self.theta_, dtype=float)[:-1], [np.log(s2)]])
             self.posterior_ = build(s2)
+
+    def calibrate_band(self, records, window: int, method: str = "linear", n_paths: int = 256,
+                       confidence: float = 0.99) -> dict:
+        """Calibrate the band's model-discrepancy term (``model.discrepancy``) on held-out records.
+
+        records: (name, u, y, start) tuples of records NOT used by ``fit``; ``start`` is 'rest' or
+            'measured' (the first ny measured outputs are taken as known and not scored).
+        window: samples of the local-amplitude RMS (``discrepancy.DEFAULT_WINDOW_SECONDS`` x fs).
+        method, n_paths: how the calibration records are predicted (the linearised method by default:
+            seconds per whole record). Sets and returns ``band_discrepancy_``.
+        """
+        from .discrepancy import calibrate_scale
+
+        self._check_fitted()
+        for name, _u, _y, start in records:
+            if start not in ("rest", "measured"):
+                raise ValueError(f"records[{name!r}].start must be 'rest' or 'measured', got {start!r}")
+        self.band_discrepancy_ = None  # the calibration runs are predicted without the term
+        runs = []
+        for name, u, y, start in records:
+            y = np.asarray(y, dtype=float).ravel()
+            y0 = y[: self.ny] if start == "measured" else None
+            run = self.simulate(u, n_paths=n_paths, seed=0, y0=y0, confidence=confidence, method=method)
+            runs.append((name, y, run, self.ny if start == "measured" else 0))
+        self.band_discrepancy_ = {**calibrate_scale(runs, int(window)), "calibration_method": method,
+                                  "records": [name for name, *_ in records]}
+        return self.band_discrepancy_
 
     # ------------------------------------------------------------------------------------------
     def _check_fitted(self) -> None:
@@ -254,8 +283,15 @@ class GPNARX:
             that many lags (``freerun.simulate_linear``).
         Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units); Monte Carlo runs
         count in ``diverged_paths`` the paths that left the training envelope (``model.envelope``).
+        When the band was calibrated (``calibrate_band``), std and both bands include the
+        model-discrepancy term of ``model.discrepancy``.
         """
         self._check_fitted()
+        run = self._simulate(u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window)
+        disc = getattr(self, "band_discrepancy_", None)
+        return widen(run, float(disc["scale"]), int(disc["window"])) if disc else run
+
+    def _simulate(self, u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window):
         u = _as_input(u)
         limit = divergence_limit(check_envelope(getattr(self, "envelope_", None)))
         if method == "mc":

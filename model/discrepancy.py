@@ -1,0 +1,112 @@
+"""Model-discrepancy term of the free-run band, calibrated on held-out records.
+
+The band of eqs. (8)-(9) propagated in free run (section 2.2, step 3) holds the GP's latent
+uncertainty and the noise sigma_y^2. On real records neither covers the model-form error of the
+free run: a slightly wrong natural frequency or damping gives an error that grows with the
+response (start-up transients, near resonance) while the band stays at the noise floor. This term
+adds that error as a variance proportional to the square of the local response amplitude:
+
+    std_total(t)^2 = std(t)^2 + (scale * a(t))^2,    a(t) = RMS of the predicted mean over ``window``
+                                                      samples centred on t [output units]
+
+``scale`` is dimensionless (a fraction of the local amplitude). It is calibrated on records the
+GP was not trained on (the config's ``lags`` records): the smallest value of a geometric grid at
+which every calibration record's band reaches the band's confidence level (the worst record, as
+the lag choice), so the band's coverage is a claim checked on held-out data, not a tuned one.
+Band edges are widened in quadrature: lower = mean - sqrt((mean - lower)^2 + (z scale a)^2), the
+same for the latent band (model-form error is not measurement noise).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+from scipy.special import ndtri
+
+#: default averaging window of the local amplitude [s]: several cycles of the rig's resonance
+#: (about 19 Hz), one to two of its lowest drive frequencies (5 Hz)
+DEFAULT_WINDOW_SECONDS = 0.25
+#: the calibration grid of ``scale``: 0 then geometric from 1e-3 to 1 (a band of +/- the amplitude)
+SCALE_GRID = np.concatenate([[0.0], np.geomspace(1e-3, 1.0, 61)])
+
+
+def local_amplitude(mean: np.ndarray, window: int) -> np.ndarray:
+    """Moving RMS of ``mean`` over ``window`` samples centred on each sample [output units]."""
+    m = np.asarray(mean, dtype=float)
+    w = max(1, int(window))
+    return np.sqrt(np.maximum(uniform_filter1d(m * m, size=w, mode="nearest"), 0.0))
+
+
+def check_discrepancy(d: dict | None) -> dict | None:
+    """Validate a stored discrepancy (bundle manifest ``band_discrepancy``); None means no term."""
+    if d is None:
+        return None
+    if not isinstance(d, dict):
+        raise ValueError(f"band_discrepancy must be an object, got {type(d).__name__}")
+    scale, window = d.get("scale"), d.get("window")
+    if not isinstance(scale, (int, float)) or not np.isfinite(scale) or not 0.0 <= scale <= 10.0:
+        raise ValueError(f"band_discrepancy.scale must be a number in [0, 10], got {scale!r}")
+    if isinstance(window, bool) or not isinstance(window, int) or window < 1:
+        raise ValueError(f"band_discrepancy.window must be a positive integer (samples), got {window!r}")
+    return d
+
+
+def _widen_pair(mean, lower, upper, extra):
+    lo = mean - np.sqrt((mean - lower) ** 2 + extra**2)
+    hi = mean + np.sqrt((upper - mean) ** 2 + extra**2)
+    return lo, hi
+
+
+def widen(run, scale: float, window: int):
+    """A copy of the free run ``run`` (``freerun.FreeRun``) with the discrepancy term added.
+
+    scale: fraction of the local amplitude (dimensionless); window: samples of the moving RMS.
+    """
+    if scale <= 0.0:
+        return run
+    extra_sd = float(scale) * local_amplitude(run.mean, window)
+    z = float(ndtri(0.5 + 0.5 * run.confidence))
+    lo, hi = _widen_pair(run.mean, run.lower, run.upper, z * extra_sd)
+    changes = {"std": np.sqrt(run.std**2 + extra_sd**2), "lower": lo, "upper": hi}
+    if getattr(run, "latent_lower", None) is not None:
+        changes["latent_lower"], changes["latent_upper"] = _widen_pair(
+            run.mean, run.latent_lower, run.latent_upper, z * extra_sd)
+    return replace(run, **changes)
+
+
+def coverage_at(y: np.ndarray, run, scale: float, window: int, skip: int = 0) -> float:
+    """Share of samples of the measured ``y`` inside the band widened by ``scale`` (0-1)."""
+    r = widen(run, scale, window)
+    y = np.asarray(y, dtype=float)[skip:]
+    return float(np.mean((y >= r.lower[skip:]) & (y <= r.upper[skip:])))
+
+
+def calibrate_scale(runs, window: int, grid: np.ndarray = SCALE_GRID) -> dict:
+    """The smallest ``scale`` of ``grid`` at which every run's band reaches its confidence.
+
+    runs: list of (name, y_measured, FreeRun, skip) for the held-out calibration records; ``skip``
+    samples at the start are the measured initial outputs (not predicted) and are not scored.
+    Returns the ``band_discrepancy`` record: scale, window, the target, the calibration coverage of
+    each record before and after, and ``reached`` (False when even the largest scale falls short:
+    the largest is then kept and the shortfall is on record).
+    """
+    if not runs:
+        raise ValueError("band calibration needs at least one held-out record")
+    target = min(r.confidence for _, _, r, _ in runs)
+    before = {name: coverage_at(y, r, 0.0, window, skip) for name, y, r, skip in runs}
+    chosen, after, reached = float(grid[-1]), None, False
+    for s in grid:
+        cov = {name: coverage_at(y, r, float(s), window, skip) for name, y, r, skip in runs}
+        if min(cov.values()) >= target:
+            chosen, after, reached = float(s), cov, True
+            break
+    if after is None:
+        after = {name: coverage_at(y, r, chosen, window, skip) for name, y, r, skip in runs}
+    return {"method": "amplitude", "scale": chosen, "window": int(window), "target": float(target),
+            "reached": reached, "criterion": "worst held-out record",
+            "coverage_before": before, "coverage_after": after}
+
+
+__all__ = ["DEFAULT_WINDOW_SECONDS", "SCALE_GRID", "calibrate_scale", "check_discrepancy", "coverage_at",
+           "local_amplitude", "widen"]

@@ -1,0 +1,96 @@
+"""The free-run band's model-discrepancy term (model.discrepancy) and its held-out calibration."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpnarx.model.bundle import load_bundle, save_bundle
+from gpnarx.model.discrepancy import SCALE_GRID, calibrate_scale, check_discrepancy, local_amplitude, widen
+from gpnarx.model.freerun import FreeRun
+
+FS = 1000.0
+
+
+def _sine_run(amp=2.0, n=4000, floor=0.01, f=10.0):
+    t = np.arange(n) / FS
+    mean = amp * np.sin(2 * np.pi * f * t)
+    std = np.full(n, floor)
+    return FreeRun(mean, std, mean - 2.5758 * std, mean + 2.5758 * std, 0.99, 0, "linear",
+                   latent_lower=mean - 2.0 * std, latent_upper=mean + 2.0 * std)
+
+
+def test_local_amplitude_of_a_sine_is_its_rms():
+    run = _sine_run(amp=2.0)
+    a = local_amplitude(run.mean, 500)  # five periods of 10 Hz at 1 kHz
+    assert np.allclose(a[500:-500], 2.0 / np.sqrt(2), rtol=1e-3)
+
+
+def test_widen_adds_the_term_in_quadrature_to_std_and_both_bands():
+    run = _sine_run()
+    assert widen(run, 0.0, 100) is run
+    w = widen(run, 0.05, 100)
+    a = local_amplitude(run.mean, 100)
+    assert np.allclose(w.std, np.sqrt(run.std**2 + (0.05 * a) ** 2))
+    half = np.sqrt((2.5758 * run.std) ** 2 + (2.5758 * 0.05 * a) ** 2)
+    assert np.allclose(w.upper - w.mean, half, rtol=1e-4) and np.allclose(w.mean - w.lower, half, rtol=1e-4)
+    lat = np.sqrt((2.0 * run.std) ** 2 + (2.5758 * 0.05 * a) ** 2)
+    assert np.allclose(w.latent_upper - w.mean, lat, rtol=1e-4)
+    assert np.array_equal(w.mean, run.mean)
+
+
+def test_calibration_finds_the_smallest_scale_that_covers_every_record():
+    rng = np.random.default_rng(3)
+    runs = []
+    for k, amp in enumerate((1.0, 3.0)):
+        run = _sine_run(amp=amp, floor=1e-4)
+        a = local_amplitude(run.mean, 250)
+        y = run.mean + 0.05 * a * rng.standard_normal(run.mean.size)  # a 5 % model error
+        runs.append((f"r{k}", y, run, 0))
+    d = calibrate_scale(runs, 250)
+    assert d["reached"] and d["target"] == 0.99
+    assert 0.04 <= d["scale"] <= 0.07
+    assert min(d["coverage_after"].values()) >= 0.99 and max(d["coverage_before"].values()) < 0.5
+    i = int(np.searchsorted(SCALE_GRID, d["scale"]))
+    smaller = SCALE_GRID[i - 1]  # the grid's previous value falls short on at least one record
+    from gpnarx.model.discrepancy import coverage_at
+    assert min(coverage_at(y, r, smaller, 250, s) for _, y, r, s in runs) < 0.99
+
+
+def test_calibration_that_cannot_reach_the_target_says_so():
+    run = _sine_run(amp=1e-6, floor=1e-9)
+    y = run.mean + 1.0  # an offset no amplitude-proportional term can cover
+    d = calibrate_scale([("off", y, run, 0)], 100)
+    assert d["reached"] is False and d["scale"] == SCALE_GRID[-1] and d["coverage_after"]["off"] < 0.99
+
+
+@pytest.mark.parametrize("bad", [{"scale": -1, "window": 10}, {"scale": 0.1, "window": 0},
+                                 {"scale": float("nan"), "window": 10}, {"scale": 0.1, "window": 2.5}, "x"])
+def test_bad_stored_discrepancy_is_refused(bad):
+    with pytest.raises(ValueError, match="band_discrepancy"):
+        check_discrepancy(bad)
+
+
+def test_model_calibrates_on_held_out_records_and_the_bundle_keeps_it(sdof_model, sdof_data, tmp_path):
+    from conftest import sdof_simulate
+
+    model = sdof_model
+    rng = np.random.default_rng(7)
+    u = rng.normal(size=1200)
+    y = 1.1 * sdof_simulate(u)  # a structure 10 % stiffer in gain than the model knows: model-form error
+    before = model.simulate(u, method="linear")
+    try:
+        d = model.calibrate_band([("held", u, y, "rest")], window=100)
+        assert d["records"] == ["held"] and d["calibration_method"] == "linear"
+        assert d["coverage_before"]["held"] < 0.99 <= d["coverage_after"]["held"] and d["scale"] > 0
+        after = model.simulate(u, method="linear")
+        assert np.array_equal(after.mean, before.mean) and np.all(after.std >= before.std)
+        cov = np.mean((y >= after.lower) & (y <= after.upper))
+        assert cov == pytest.approx(d["coverage_after"]["held"])
+        path = save_bundle(model, tmp_path, "sdof", fs=500.0, units={"u": "N", "y": "m"})
+        back = load_bundle(path).model
+        assert back.band_discrepancy_["scale"] == d["scale"]
+        assert np.allclose(back.simulate(u, method="linear").upper, after.upper)
+        with pytest.raises(ValueError, match="start"):
+            model.calibrate_band([("bad", u, y, "sometime")], window=100)
+    finally:
+        model.band_discrepancy_ = None  # the session fixture is shared
