@@ -11,6 +11,11 @@ lagged regressor. Two propagation methods:
 
 Both return a ``FreeRun`` with mean, std and the two-sided band at ``confidence`` (99% default:
 the 0.5% and 99.5% quantiles over Monte Carlo paths; mean -/+ 2.576 std for the linearised method).
+That predictive band holds the measured output y (noise sigma_y^2 included). ``latent_lower`` and
+``latent_upper`` hold the latent band of the noise-free output f at the same confidence: the
+reporting step's noise term is left out (Monte Carlo: each path's latent draw mu + sigma_f eps with
+the same eps as its output draw, so the paths fed back are unchanged; linearised: var(y_i) without
+sigma_y^2). Score y against the predictive band and a noise-free output against the latent band.
 All arrays are in the record's output units (e.g. m or m/s).
 """
 from __future__ import annotations
@@ -39,6 +44,10 @@ class FreeRun:
     paths: np.ndarray | None = field(default=None, repr=False)
     diverged_paths: int = 0  # Monte Carlo paths whose |y| passed ``diverge_limit`` (see model.envelope)
     cov_band: np.ndarray | None = field(default=None, repr=False)  # linearised cov(y_i, y_{i-k}), (n, L)
+    # the latent band: the same confidence for the noise-free output f (no sigma_y^2 term at the step
+    # reported; fed-back outputs keep their noise), to score against a noise-free output y_clean
+    latent_lower: np.ndarray | None = field(default=None, repr=False)
+    latent_upper: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def band_width(self) -> np.ndarray:
@@ -93,6 +102,7 @@ def simulate_mc(
     keep_paths: bool = False,
     progress=None,
     diverge_limit: float | None = None,
+    latent: bool = True,
 ) -> FreeRun:
     """Monte Carlo free-run over ``n_paths`` paths advanced together (see module docstring).
 
@@ -100,6 +110,7 @@ def simulate_mc(
     units) taken as known; otherwise the system starts from rest. ``progress``: optional callable
     ``progress(done_steps, total_steps)``. ``diverge_limit``: peak |y| [output units] beyond which a
     path counts in ``FreeRun.diverged_paths`` (``model.envelope.divergence_limit``); None: not counted.
+    ``latent``: also the latent band (``FreeRun.latent_lower``/``latent_upper``; see module docstring).
     """
     t_start = time.perf_counter()
     confidence = _check_confidence(confidence)
@@ -133,6 +144,10 @@ def simulate_mc(
     # quantile call per block instead of one per step)
     block = max(1, min(256, (1 << 22) // P))
     buf = np.empty((block, P))
+    lat = latent and noise > 0.0  # without the noise term the latent band is the predictive band
+    lbuf = np.empty((block, P)) if lat else None
+    lat_lo = lower.copy() if lat else None
+    lat_hi = upper.copy() if lat else None
     path_peak = np.zeros(P)  # running peak |y| of each path (output units)
     b0 = i0
     for i in range(i0, n):
@@ -144,6 +159,10 @@ def simulate_mc(
         sd = np.sqrt(var + noise)
         ysamp = buf[i - b0]
         np.multiply(sd, rng.standard_normal(P), out=ysamp)
+        if lat:  # latent draw mu + sigma_f eps with the output draw's eps: f = mu + (y - mu) sigma_f / sd
+            fsamp = lbuf[i - b0]
+            np.multiply(ysamp, np.sqrt(var) / sd, out=fsamp)
+            fsamp += mu
         ysamp += mu
         ysamp *= ys
         ysamp += ym  # back to output units
@@ -157,12 +176,20 @@ def simulate_mc(
             np.maximum(path_peak, np.max(np.abs(chunk), axis=0), out=path_peak)
             std[b0 : i + 1] = np.std(chunk, axis=1)
             lower[b0 : i + 1], upper[b0 : i + 1] = np.quantile(chunk, [q_lo, q_hi], axis=1)
+            if lat:
+                lat_lo[b0 : i + 1], lat_hi[b0 : i + 1] = np.quantile(lbuf[: i - b0 + 1], [q_lo, q_hi], axis=1)
+                lat_lo[b0 : i + 1] *= ys
+                lat_lo[b0 : i + 1] += ym
+                lat_hi[b0 : i + 1] *= ys
+                lat_hi[b0 : i + 1] += ym
             b0 = i + 1
         if progress is not None and (i % 256 == 0 or i == n - 1):
             progress(i + 1, n)
     diverged = 0 if diverge_limit is None else int(np.count_nonzero(~(path_peak <= diverge_limit)))
+    if latent and not lat:
+        lat_lo, lat_hi = lower.copy(), upper.copy()
     return FreeRun(mean, std, lower, upper, confidence, P, "mc", time.perf_counter() - t_start,
-                   (n - i0) * P, paths, diverged)
+                   (n - i0) * P, paths, diverged, latent_lower=lat_lo, latent_upper=lat_hi)
 
 
 def simulate_linear(
@@ -196,6 +223,7 @@ def simulate_linear(
     i0, y0v = _start(n, ny, y0)
     mean = np.zeros(n)
     std = np.zeros(n)
+    lstd = np.zeros(n)  # latent std: var(y_i) without the reporting step's sigma_y^2
     if i0:
         mean[:i0] = y0v
     xm, xs = x_scaler.mean_, x_scaler.scale_
@@ -225,6 +253,8 @@ def simulate_linear(
         y_mean = mu * ys + ym
         mean[i] = y_mean
         std[i] = np.sqrt(max(var_y, 0.0))
+        var_f_out = var_f * ys * ys + float(J @ SJ[:ny])
+        lstd[i] = np.sqrt(max(min(var_f_out, var_y), 0.0)) if np.isfinite(var_f_out) else std[i]
         # shift the state: new first element is y_i
         S[1:, 1:] = S[:-1, :-1]
         S[0, 1:] = SJ[:-1]
@@ -239,4 +269,5 @@ def simulate_linear(
             progress(i + 1, n)
     del dscale
     return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
-                   time.perf_counter() - t_start, n - i0, cov_band=band)
+                   time.perf_counter() - t_start, n - i0, cov_band=band,
+                   latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)
