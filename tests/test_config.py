@@ -191,7 +191,13 @@ def test_unit_mismatch(tmp_path):
         ("name='x'\n[system]\nfs=750.0\n[model]\nnoise_calibration='lags'\n[[records]]\nname='a'\nroles=['train']\n"
          "path='x'\n", "model.noise_calibration: 'lags' needs at least one record with role 'lags'"),
         ("name='x'\n[system]\nfs=750.0\n[model]\nnoise_calibration='lags'\n[[records]]\nname='a'\n"
-         "roles=['train', 'lags']\npath='x'\n", "records.a.roles: a 'lags' record calibrates the noise"),
+         "roles=['train', 'lags']\npath='x'\n", "records.a.roles: a 'lags' record calibrates the band"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nband_calibration='all'\n[[records]]\nname='a'\nroles=['train']\n"
+         "path='x'\n", "model.band_calibration: must be one of 'none', 'lags', got 'all'"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nband_calibration='lags'\n[[records]]\nname='a'\nroles=['train']\n"
+         "path='x'\n", "model.band_calibration: 'lags' needs at least one record with role 'lags'"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nband_window=0\n[[records]]\nname='a'\nroles=['train']\n"
+         "path='x'\n", "model.band_window: must be a number of seconds in (0, 10], got 0"),
         ("name='x'\n[system]\nfs=750.0\n[novelty]\nmethod='max'\n[[records]]\nname='a'\nroles=['train']\npath='x'\n",
          "novelty.method: must be one of rms_standardised_residual, segment_median_rms, got 'max'"),
     ],

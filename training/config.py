@@ -29,6 +29,9 @@ key name below is a contract)::
     seed = 0
     noise_calibration = "none"        # "none" (ML-II's sigma_y^2, the paper) | "lags": raise sigma_y^2 to
                                       # its held-out ML value on the 'lags' records (model.calibration)
+    band_calibration = "none"         # "none" | "lags": add the model-discrepancy term to the free-run
+                                      # band, calibrated on the 'lags' records (model.discrepancy)
+    band_window = 0.25                # [s] window of its local amplitude
 
     [lags]                            # lag-surface ranges, LO:HI inclusive, optional step LO:HI:STEP
     ny = "1:24"
@@ -125,8 +128,11 @@ MODEL_DEFAULTS = {
     "restarts": 3,
     "seed": 0,
     "noise_calibration": "none",
+    "band_calibration": "none",
+    "band_window": 0.25,
 }
 NOISE_CALIBRATIONS = ("none", "lags")
+BAND_CALIBRATIONS = ("none", "lags")
 PREDICT_DEFAULTS = {"mc_paths": 1024, "confidence": 0.99}
 NOVELTY_DEFAULTS = {"false_alarm_rate": 0.01, "method": "rms_standardised_residual"}  # model.novelty.METHODS
 PHYSICS_DEFAULTS = {"mass": None, "input_gain": 1.0}
@@ -547,6 +553,12 @@ def _build(doc: dict, path: Path) -> DatasetConfig:
     model["seed"] = _pos_int(model["seed"], "model.seed", path, minimum=0)
     model["noise_calibration"] = _choice(model["noise_calibration"], "model.noise_calibration", path,
                                          NOISE_CALIBRATIONS)
+    model["band_calibration"] = _choice(model["band_calibration"], "model.band_calibration", path,
+                                        BAND_CALIBRATIONS)
+    bw = model["band_window"]
+    if isinstance(bw, bool) or not isinstance(bw, (int, float)) or not 0 < bw <= 10:
+        raise _err(path, "model.band_window", f"must be a number of seconds in (0, 10], got {bw!r}")
+    model["band_window"] = float(bw)
 
     lags = _table(doc, "lags", path)
     for k, v in lags.items():
@@ -590,15 +602,17 @@ def _build(doc: dict, path: Path) -> DatasetConfig:
             raise _err(path, f"records.{s.name}.noise.reference", f"no record named {s.noise['reference']!r}")
     if not any("train" in s.roles for s in specs):
         raise _err(path, "records", "no record has role 'train'")
-    if model["noise_calibration"] == "lags":
+    for key in ("noise_calibration", "band_calibration"):
+        if model[key] != "lags":
+            continue
         held = [s for s in specs if "lags" in s.roles]
         if not held:
-            raise _err(path, "model.noise_calibration", "'lags' needs at least one record with role 'lags' "
-                       "(held out from gpnarx.training)")
+            raise _err(path, f"model.{key}", "'lags' needs at least one record with role 'lags' "
+                       "(held out from training)")
         for s in held:
             if "train" in s.roles:
-                raise _err(path, f"records.{s.name}.roles", "a 'lags' record calibrates the noise "
-                           "(model.noise_calibration = 'lags') and must not also have role 'train'")
+                raise _err(path, f"records.{s.name}.roles", f"a 'lags' record calibrates the band "
+                           f"(model.{key} = 'lags') and must not also have role 'train'")
 
     known = {"name", "description", "system", "physics", "model", "lags", "predict", "novelty", "records"}
     extra = {k: v for k, v in doc.items() if k not in known}
