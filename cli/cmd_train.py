@@ -1,11 +1,17 @@
-"""``gpnarx train CONFIG.toml|NAME --registry DIR [--name N] [--version V]``.
+"""``gpnarx train CONFIG.toml|NAME --registry DIR [--name N] [--version V] [--choose-lags] [--scheduler ADDRESS]``.
 
 ``NAME`` is a shipped config (``gpnarx.configs``, e.g. ``bouc-wen``), found from any working folder; an
-existing file of that name wins.
+existing file of that name wins. ``--choose-lags`` computes the lag surface over the config's
+``[lags]`` ranges first and trains at the chosen cell (the surface goes into the report).
+``--scheduler``: the lag surface, the verification/validation free runs and the report's figures
+run as tasks on that Dask cluster, with the config and record arrays sent to the workers; the
+bundle's metrics are those of the local run.
 """
 from __future__ import annotations
 
+import importlib.util
 import sys
+from contextlib import ExitStack
 from pathlib import Path
 
 from gpnarx.cli.errors import CLIError
@@ -23,6 +29,15 @@ def add_parser(sub):
     p.add_argument("--ny", type=int, default=None, help="override the config's output lags")
     p.add_argument("--nu", type=int, default=None, help="override the config's input lags")
     p.add_argument("--no-report", action="store_true", help="skip the HTML/PNG report")
+    p.add_argument("--choose-lags", action="store_true",
+                   help="compute the lag surface over the config's [lags] ny/nu ranges first and train at the chosen "
+                        "cell (instead of [model] ny/nu); cells are cached in --lag-cache")
+    p.add_argument("--lag-cache", default=None,
+                   help="cache of finished lag-surface cells (default: CONFIG_DIR/.lagcache, as 'gpnarx lags')")
+    p.add_argument("--jobs", type=int, default=-1, help="local parallel jobs for the lag surface (-1 = all cores)")
+    p.add_argument("--scheduler", default=None,
+                   help="address of a Dask scheduler, e.g. tcp://host:8786: lag surface, free runs and report figures "
+                        "run as tasks on its workers (needs the 'dask' extra); default: this machine")
     p.set_defaults(func=run)
 
 
@@ -42,9 +57,57 @@ def run(args):
     # scipy and scikit-learn: half a second for every gpnarx command; see gpnarx.cli)
     from gpnarx.training.pipeline import train
 
+    if args.scheduler is not None and not args.scheduler.strip():
+        raise CLIError("--scheduler must be a Dask scheduler address such as tcp://host:8786")
+    if args.scheduler and importlib.util.find_spec("distributed") is None:
+        raise CLIError("--scheduler needs dask.distributed: pip install 'gpnarx[dask]'")
     config = resolve_config(args.config)
     quiet = args.json
-    res = train(config, args.registry, name=args.name, version=args.version, progress=not quiet,
-                mc_paths=args.mc, ny=args.ny, nu=args.nu, report=not args.no_report,
-                log=None if quiet else (lambda m: print(m, file=sys.stderr)))
-    return {"name": res["name"], "version": res["version"], "path": res["path"], "metrics": res["metrics"]}
+    log = None if quiet else (lambda m: print(m, file=sys.stderr))
+    with ExitStack() as stack:
+        scheduler = None
+        if args.scheduler:
+            from gpnarx.training.distributed import TaskRunner
+
+            # one client for the lag surface and the training's tasks
+            scheduler = stack.enter_context(TaskRunner(args.scheduler)).client
+        surface, ny, nu = None, args.ny, args.nu
+        if args.choose_lags:
+            surface = _choose_lags(args, config, scheduler, quiet)
+            ch = surface["chosen"]
+            ny, nu = ch["ny"], ch["nu"]
+            if log:
+                log(f"lag surface: chosen ny={ny} nu={nu} (fit {ch['fit']:.2f} %) from {len(surface['cells'])} cells")
+        res = train(config, args.registry, name=args.name, version=args.version, progress=not quiet,
+                    mc_paths=args.mc, ny=ny, nu=nu, report=not args.no_report, lag_surface=surface, log=log,
+                    scheduler=scheduler)
+    out = {"name": res["name"], "version": res["version"], "path": res["path"], "metrics": res["metrics"]}
+    if surface is not None:
+        out["lags"] = {"ny": ny, "nu": nu, "fit": surface["chosen"]["fit"], "cells": len(surface["cells"]),
+                       "cached_cells": surface["cached_cells"]}
+    return out
+
+
+def _choose_lags(args, config, scheduler, quiet) -> dict:
+    from gpnarx.training.config import load_config, parse_range
+    from gpnarx.training.lags import edge_message, lag_surface
+
+    if args.ny is not None or args.nu is not None:
+        raise CLIError("--choose-lags picks ny and nu itself: drop --ny/--nu (the ranges are the config's [lags])")
+    cfg = load_config(config)
+    ranges = []
+    for axis in ("ny", "nu"):
+        spec = cfg.lags.get(axis)
+        if spec is None:
+            raise CLIError(f"{config}: --choose-lags needs [lags] {axis} (a range LO:HI[:STEP]) in the config")
+        try:
+            ranges.append(parse_range(spec))
+        except ValueError as exc:
+            raise CLIError(f"{config}: [lags] {axis}: {exc}") from None
+    if not cfg.names_for("lags"):
+        raise CLIError(f"{config}: --choose-lags needs records with role 'lags'")
+    surface = lag_surface(config, ranges[0], ranges[1], jobs=args.jobs, scheduler=scheduler, cache_dir=args.lag_cache,
+                          progress=not quiet)
+    if surface["edge"] and not quiet:
+        print(f"gpnarx train: warning: {edge_message(surface)}", file=sys.stderr)
+    return surface

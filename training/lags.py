@@ -2,7 +2,8 @@
 
 For every cell the GP-NARX is trained (ML-II) on the config's ``train`` records and its free-run
 mean on the ``lags`` records is scored with eq. (14). Cells run in parallel with joblib on local
-cores, or on an existing Dask cluster (``scheduler`` address: dask.distributed behind joblib).
+cores, or on an existing Dask cluster (``scheduler``: an address or a ``distributed.Client``), where the
+config and the record arrays are sent to the workers (:func:`lag_cell_data`), not read from a path.
 Finished cells are cached on disk (one JSON file per cell, keyed by the config content and the
 settings), so an interrupted surface resumes where it stopped.
 
@@ -21,15 +22,15 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-from joblib import Parallel, delayed, parallel_config
+from joblib import Parallel, delayed
 
 from gpnarx.model.metrics import fit_percent
 from gpnarx.training.config import load_config
 from gpnarx.training.lagchoice import DEFAULT_TOLERANCE, choose_lags, edge_message, grid_edge
 from gpnarx.training.prepare import model_from_config, shorten
 
-__all__ = ["DEFAULT_TOLERANCE", "choose_lags", "edge_message", "grid_edge", "lag_cell", "lag_surface",
-           "write_surface"]
+__all__ = ["DEFAULT_TOLERANCE", "cell_data", "choose_lags", "edge_message", "grid_edge", "lag_cell", "lag_cell_data",
+           "lag_surface", "write_surface"]
 
 
 @lru_cache(maxsize=4)
@@ -46,11 +47,23 @@ def lag_cell(config_path: str, ny: int, nu: int, settings: dict) -> dict:
     back the mean, as eq. (14) scores the model mean output.
     """
     cfg, train, lag_recs = _load(str(config_path), os.path.getmtime(config_path))
+    return lag_cell_data(cell_data(cfg, train, lag_recs, settings), ny, nu, settings)
+
+
+def cell_data(cfg, train: list, lag_recs: list, settings: dict) -> tuple:
+    """What every cell needs: the config and the (quick-mode shortened) ``train`` and ``lags`` records."""
     if settings.get("max_seconds"):  # quick mode: the first max_seconds of every record
         train = [shorten(r, settings["max_seconds"]) for r in train]
         lag_recs = [shorten(r, settings["max_seconds"]) for r in lag_recs]
     if not lag_recs:
-        raise ValueError(f"{config_path}: no record has role 'lags'")
+        raise ValueError(f"{cfg.path}: no record has role 'lags'")
+    return cfg, train, lag_recs
+
+
+def lag_cell_data(data: tuple, ny: int, nu: int, settings: dict) -> dict:
+    """:func:`lag_cell` on data already in memory (``cell_data``): the task a Dask worker runs, with the
+    config and the record arrays sent to it rather than read from a path."""
+    cfg, train, lag_recs = data
     t0 = time.perf_counter()
     try:
         model = model_from_config(cfg, ny, nu, **settings).fit(train)
@@ -75,7 +88,7 @@ def _cache_key(config_path: Path, settings: dict) -> str:
     return h.hexdigest()[:16]
 
 
-def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler: str | None = None,
+def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler=None,
                 cache_dir=None, settings: dict | None = None, progress: bool = False,
                 tolerance: float = DEFAULT_TOLERANCE) -> dict:
     """Compute the surface; returns {"cells": [...], "chosen": {...}, "best": {...}, "edge": [...], ...}
@@ -103,29 +116,33 @@ def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler:
 
         bar = tqdm(total=len(grid), initial=len(grid) - len(todo), desc="lag surface", unit="cell")
 
-    def run(parallel):
-        for res in parallel(delayed(lag_cell)(str(config_path), ny, nu, settings) for ny, nu in todo):
-            tmp = cdir / f".ny{res['ny']}_nu{res['nu']}.json.tmp"
-            tmp.write_text(json.dumps(res, allow_nan=True))
-            os.replace(tmp, cdir / f"ny{res['ny']}_nu{res['nu']}.json")
-            cells[(res["ny"], res["nu"])] = res
-            if bar is not None:
-                bar.update(1)
+    def store(res):
+        tmp = cdir / f".ny{res['ny']}_nu{res['nu']}.json.tmp"
+        tmp.write_text(json.dumps(res, allow_nan=True))
+        os.replace(tmp, cdir / f"ny{res['ny']}_nu{res['nu']}.json")
+        cells[(res["ny"], res["nu"])] = res
+        if bar is not None:
+            bar.update(1)
 
     t0 = time.perf_counter()
     if todo:
-        if scheduler:
-            # dask.distributed is optional (extra "distributed"): only a remote scheduler needs it
-            try:
-                from dask.distributed import Client
-            except ImportError as exc:
-                raise ImportError("a Dask scheduler needs dask.distributed: pip install 'gpnarx[distributed]'") from exc
+        if scheduler not in (None, ""):
+            # on a Dask cluster the config and the record arrays are loaded here and sent to the
+            # workers once, so no worker reads the config or a record file from a path
+            from gpnarx.training.distributed import TaskRunner
 
-            with Client(scheduler, timeout="20s") as client:  # noqa: F841 (registers the dask backend)
-                with parallel_config(backend="dask"):
-                    run(Parallel(return_as="generator"))
+            cfg = load_config(config_path)
+            data = cell_data(cfg, cfg.records_for("train"), cfg.records_for("lags"), settings)
+            with TaskRunner(scheduler) as runner:
+                shared = runner.share(data)
+                for _, res, exc in runner.imap(lag_cell_data, [(shared, ny, nu, settings) for ny, nu in todo]):
+                    if exc is not None:
+                        raise exc
+                    store(res)
         else:
-            run(Parallel(n_jobs=jobs, return_as="generator"))
+            for res in Parallel(n_jobs=jobs, return_as="generator")(
+                    delayed(lag_cell)(str(config_path), ny, nu, settings) for ny, nu in todo):
+                store(res)
     if bar is not None:
         bar.close()
     ordered = [cells[g] for g in grid]

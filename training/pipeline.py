@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 from tqdm import tqdm
@@ -31,6 +32,7 @@ from gpnarx.model.probe import probe_contract
 from gpnarx.model.records import Record
 from gpnarx.training.baselines import fit_baselines, score_baselines
 from gpnarx.training.config import DatasetConfig, load_config
+from gpnarx.training.distributed import TaskRunner
 from gpnarx.training.jsonsafe import to_json_safe
 from gpnarx.training.prepare import model_from_config, shorten
 
@@ -125,12 +127,50 @@ def train(config, registry, name: str | None = None, version: str | None = None,
           mc_paths: int | None = None, ny: int | None = None, nu: int | None = None, report: bool = True,
           lag_surface: dict | None = None, baselines: dict | None = None, paper: dict | None = None,
           model_overrides: dict | None = None, log=None, max_seconds: float | None = None,
-          extra_evals: list | None = None, method: str | None = None) -> dict:
+          extra_evals: list | None = None, method: str | None = None, scheduler=None) -> dict:
     """Train from a dataset config and write a bundle; returns name, version, path and metrics.
 
     ``method`` ('mc' or 'linear') overrides the config's ``predict.method`` for the report's free
     runs only (the model written is the same); ``mc_paths`` likewise overrides ``predict.mc_paths``.
+    ``scheduler`` (a Dask scheduler address or ``distributed.Client``): the verification/validation
+    free runs and the report's per-record metrics and figures run as tasks on that cluster, with
+    the fitted model and the record arrays sent to the workers; the seeds, and so the bundle's
+    metrics, are those of the local run. ML-II, the baselines and the novelty calibration stay here.
     """
+    with ExitStack() as stack:
+        runner = None
+        if scheduler not in (None, ""):
+            runner = stack.enter_context(TaskRunner(scheduler))
+            (log or (lambda msg: None))(f"tasks on {runner.where}")
+        return _train(config, registry, name, version, progress=progress, mc_paths=mc_paths, ny=ny, nu=nu,
+                      report=report, lag_surface=lag_surface, baselines=baselines, paper=paper,
+                      model_overrides=model_overrides, log=log, max_seconds=max_seconds, extra_evals=extra_evals,
+                      method=method, runner=runner)
+
+
+def _evaluate_remote(runner: TaskRunner, model: GPNARX, todo: list, run_key, n_paths: int, conf: float, method: str,
+                     progress: bool, log) -> dict:
+    """The distinct free runs of ``todo`` on ``runner``: {run key: evaluate_record output}, each with the
+    seed the local loop gives it (its first position in ``todo``)."""
+    firsts = {}
+    for k, (role, rec) in enumerate(todo):
+        firsts.setdefault(run_key(role, rec), (k, role, rec))
+    shared = runner.share(model)
+    bar = tqdm(total=len(firsts), desc="free-run", unit="record", leave=False) if progress else None
+    t0 = time.perf_counter()
+    try:
+        results = runner.run(evaluate_record, [(shared, runner.send(rec), role, n_paths, k, conf, method)
+                                               for k, role, rec in firsts.values()],
+                             on_done=None if bar is None else (lambda i: bar.update(1)))
+    finally:
+        if bar is not None:
+            bar.close()
+    log(f"{len(firsts)} free run(s) on {runner.where} in {time.perf_counter() - t0:.1f} s")
+    return dict(zip(firsts, results))
+
+
+def _train(config, registry, name, version, *, progress, mc_paths, ny, nu, report, lag_surface, baselines, paper,
+           model_overrides, log, max_seconds, extra_evals, method, runner) -> dict:
     cfg = as_config(config)
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
@@ -165,8 +205,12 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     def run_key(role, rec):
         return rec.name, role in ("healthy", "damaged")
 
-    bar = _Progress(progress, sum(r.n for _, r in {run_key(*t): t for t in todo}.values()), "free-run")
-    evals, done = [], {}
+    done = {}
+    if runner is not None:  # the free runs as tasks on the cluster, then reported in the same order
+        done = _evaluate_remote(runner, model, todo, run_key, n_paths, conf, method, progress, log)
+    bar = _Progress(progress and runner is None, sum(r.n for _, r in {run_key(*t): t for t in todo}.values()),
+                    "free-run")
+    evals = []
     for k, (role, rec) in enumerate(todo):
         key = run_key(role, rec)
         if key in done:
@@ -224,7 +268,7 @@ def train(config, registry, name: str | None = None, version: str | None = None,
                 "fit_seconds": model.fit_seconds_, "mc_paths": n_paths, "method": method_used,
                 "novelty": novelty,
             }, evals + list(extra_evals or []), physics=physics, lag_surface=lag_surface, baselines=baselines,
-                paper=paper)
+                paper=paper, runner=runner)
             # the report's richer per-record metrics (PSD peaks, loop areas) go into the manifest too
             rj = json.loads((report_dir / "report.json").read_text())
             for rm in rj.get("records", []):

@@ -27,6 +27,8 @@ import html
 import json
 import math
 import re
+import tempfile
+import threading
 from pathlib import Path
 
 import matplotlib
@@ -71,7 +73,7 @@ def _unpack(rec: dict) -> dict:
         raise ValueError(f"record {rec.get('name')!r} has no model mean")
     n = mean.size
     d = {"fs": fs, "n": n, "mean": mean}
-    for k in ("u", "y", "y_clean", "lower", "upper"):
+    for k in ("u", "y", "y_clean", "lower", "upper", "latent_lower", "latent_upper"):
         v = _arr(rec.get(k))
         if v is not None and v.size != n:
             raise ValueError(f"record {rec.get('name')!r}: {k} has {v.size} samples, mean has {n}")
@@ -189,11 +191,36 @@ def _harmonic_levels(x, fs, f0, n) -> list:
     return out
 
 
+USES = {"training": "a training record (its rows trained the model)",
+        "lag-selection": "a lag-selection record (the lag surface was judged on it)",
+        "calibration": "a novelty-calibration record (healthy; the threshold was set on it)",
+        "held-out": "a held-out record (used for no fit and no choice)"}
+
+
+def record_use(roles) -> str | None:
+    """A record's part in the study from its config roles: 'training' (role train, whatever else it
+    is scored as, e.g. Bouc-Wen's verify 10/80 N sweeps), 'lag-selection' (lags), 'calibration'
+    (healthy: the novelty threshold's records), else 'held-out' (verify, validate, damaged)."""
+    if not roles:
+        return None
+    roles = {str(r) for r in roles}
+    if "train" in roles:
+        return "training"
+    if "lags" in roles:
+        return "lag-selection"
+    if "healthy" in roles:
+        return "calibration"
+    return "held-out"
+
+
 def record_metrics(rec: dict, physics: dict | None = None) -> dict:
     """Scalar metrics of one record (JSON-ready: NaN -> None, no big arrays).
 
-    fit, rmse, nrmse, coverage, band_width against the measured ``y`` (when present);
-    fit_clean, rmse_clean, coverage_clean against ``y_clean``; the 3 strongest PSD peaks [Hz] of
+    fit, rmse, nrmse, coverage (the predictive band, noise sigma_y^2 included), band_width against the
+    measured ``y`` (when present); fit_clean, rmse_clean against ``y_clean`` and coverage_latent, the
+    latent band (``latent_lower``/``latent_upper``, no noise term) against ``y_clean`` (a band holding
+    the noise scored against the noise-free output would over-cover); ``use``, the record's part in the
+    study from its config ``roles`` (:func:`record_use`); the 3 strongest PSD peaks [Hz] of
     measured and predicted output; loop areas [J] when ``physics`` has a mass (measured, predicted and,
     with ``y_clean``, noise-free ``loop_area_clean``); for sine records
     (``drive_freq``) the levels [dB] of harmonics 1..3 of measured and predicted output.
@@ -209,8 +236,11 @@ def record_metrics(rec: dict, physics: dict | None = None) -> dict:
     if d["y_clean"] is not None:
         out["fit_clean"] = _metrics.fit_percent(d["y_clean"], mean)
         out["rmse_clean"] = _metrics.rmse(d["y_clean"], mean)
-        if has_band:
-            out["coverage_clean"] = _metrics.coverage(d["y_clean"], lo, up)
+        if d["latent_lower"] is not None and d["latent_upper"] is not None:
+            out["coverage_latent"] = _metrics.coverage(d["y_clean"], d["latent_lower"], d["latent_upper"])
+    use = record_use(rec.get("roles"))
+    if use:
+        out["use"] = use
 
     nperseg, window = _psd_opts(rec, n)
     fmin, fmax = rec.get("freq_range") or (0.0, None)
@@ -575,22 +605,33 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
     paper_recs = (paper or {}).get("records") or {}
     has_paper = any(e["name"] in paper_recs for e in rec_entries)
     has_clean = any("fit_clean" in e["metrics"] for e in rec_entries)
-    head = ["record", "role", "n", "fit [%]"] + (["paper fit [%]"] if has_paper else []) + \
-        ["RMSE", "NRMSE", "coverage [%]", "band width"] + (["fit clean [%]", "coverage clean [%]"] if has_clean else [])
+    has_use = any(e["metrics"].get("use") for e in rec_entries)
+    head = ["record"] + (["use"] if has_use else []) + ["role", "n", "fit [%]"] + \
+        (["paper fit [%]"] if has_paper else []) + \
+        ["RMSE", "NRMSE", "coverage [%]", "band width"] + \
+        (["fit clean [%]", "coverage latent [%]"] if has_clean else [])
     rows = []
     for e in rec_entries:
         m = e["metrics"]
         unit = esc(e.get("units", {}).get("y", ""))
-        r = [esc(e["name"]), esc(str(e.get("role", ""))), _fmt(m.get("n_samples")), _fmt(m.get("fit"))]
+        r = [esc(e["name"])] + ([esc(str(m.get("use") or ""))] if has_use else []) + \
+            [esc(str(e.get("role", ""))), _fmt(m.get("n_samples")), _fmt(m.get("fit"))]
         if has_paper:
             r.append(_fmt((paper_recs.get(e["name"]) or {}).get("fit")))
         r += [_fmt(m.get("rmse")) + (f" {unit}" if m.get("rmse") is not None and unit else ""),
               _fmt(m.get("nrmse")), _fmt(m.get("coverage")),
               _fmt(m.get("band_width")) + (f" {unit}" if m.get("band_width") is not None and unit else "")]
         if has_clean:
-            r += [_fmt(m.get("fit_clean")), _fmt(m.get("coverage_clean"))]
+            # a report written before the latent band kept the predictive band's coverage_clean
+            r += [_fmt(m.get("fit_clean")), _fmt(m.get("coverage_latent"))]
         rows.append(r)
-    parts.append(_table(head, rows, left_cols=2))
+    parts.append(_table(head, rows, left_cols=3 if has_use else 2))
+    parts.append("<p class='note'>Use: training (the record's rows trained the model; Bouc-Wen's verify 10/80 N "
+                 "sweeps are the training records), lag-selection (the lag surface was judged on it), calibration "
+                 "(healthy records that set the novelty threshold), held-out (used for no fit and no choice). "
+                 "Coverage: % of measured samples inside the predictive band (noise &sigma;<sub>y</sub><sup>2</sup> "
+                 "included). Coverage latent: % of noise-free samples (simulated systems) inside the latent band "
+                 "(the same confidence without the noise term).</p>")
 
     # spectral / physics
     has_clean_loop = any("loop_area_clean" in e["metrics"] for e in rec_entries)
@@ -650,8 +691,22 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
     return "\n".join(parts)
 
 
+_FIGURE_LOCK = threading.Lock()  # pyplot's state is per process: one figure at a time per worker process
+
+
+def render_record(rec: dict, physics: dict | None) -> tuple[dict, bytes]:
+    """One record's computed metrics and its figure as PNG bytes: the report's per-record work as one
+    task (a Dask worker runs it on the record sent to it; the client writes the files)."""
+    computed = record_metrics(rec, physics)
+    merged = {**_jsonable(rec.get("metrics") or {}), **computed}
+    with _FIGURE_LOCK, tempfile.TemporaryDirectory() as tmp:
+        png = record_figure(dict(rec, metrics=merged), physics, Path(tmp) / "record.png")
+        return computed, png.read_bytes()
+
+
 def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], physics: dict | None = None,
-                 lag_surface: dict | None = None, baselines: dict | None = None, paper: dict | None = None) -> dict:
+                 lag_surface: dict | None = None, baselines: dict | None = None, paper: dict | None = None,
+                 runner=None) -> dict:
     """Write report.json, one PNG per record, lag_surface.png (if given) and report.html to ``out_dir``.
 
     ``lag_surface``: {"surface" (or "cells"): [{"ny", "nu", "fit"}...], "chosen": (ny, nu) or {"ny", "nu"},
@@ -660,16 +715,22 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
     ``baselines``: {record_name: {model_name: {"fit": .., "rmse": ..}}}.
     ``paper``: {"lags": {"ny", "nu", "fit"}, "records": {record_name: {"fit": ..}}}.
 
+    ``runner`` (a ``training.distributed.TaskRunner`` on a Dask cluster): each record's metrics and
+    figure are computed as a task (:func:`render_record`); the files are written here all the same.
+
     Returns {"json": Path, "html": Path, "lag_surface": Path | None, "records": {name: Path}}.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths: dict = {"records": {}, "lag_surface": None}
 
+    rendered = None
+    if runner is not None and runner.distributed:
+        rendered = runner.run(render_record, [(runner.send(rec), physics) for rec in records])
     rec_entries, fig_names, used = [], {}, set()
     for i, rec in enumerate(records):
         name = str(rec.get("name", f"record{i}"))
-        computed = record_metrics(rec, physics)
+        computed = record_metrics(rec, physics) if rendered is None else rendered[i][0]
         given = _jsonable(rec.get("metrics") or {})
         merged = {**given, **computed}
         extra = {k: v for k, v in given.items() if k not in computed}
@@ -679,8 +740,11 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
             fn = f"record_{_slug(name)}_{k}.png"
             k += 1
         used.add(fn)
-        rec_for_fig = dict(rec, metrics=merged)
-        paths["records"][name] = record_figure(rec_for_fig, physics, out_dir / fn)
+        if rendered is None:
+            paths["records"][name] = record_figure(dict(rec, metrics=merged), physics, out_dir / fn)
+        else:
+            (out_dir / fn).write_bytes(rendered[i][1])
+            paths["records"][name] = out_dir / fn
         fig_names[name] = fn
         rec_entries.append({"name": name, "role": rec.get("role"), "fs": _finite(rec.get("fs")),
                             "units": dict(rec.get("units") or {}), "figure": fn, "metrics": merged,
