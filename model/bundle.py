@@ -12,6 +12,21 @@ folders). Such a leftover ``NAME/.tmp-VERSION-*`` folder is removed by the next 
 the same model name once it is older than ``STALE_TMP_SECONDS`` (one hour, so a write in progress
 in another process is never touched), or at once with ``remove_stale_temps(registry, 0)``.
 Versions are positive integers, increasing; an existing version is never overwritten.
+
+A registry may also live on object storage behind an fsspec URL (``s3://bucket/prefix``,
+``gs://...``; ``model.storage``). There a version is published by writing its array files (and
+report) first and ``manifest.json`` last, so a version whose manifest is absent (in progress, or a
+killed write) is not listed; ``manifest.sha256`` goes just before it. Readers copy a version's
+objects into a local cache, verify them against the manifest's checksums and load from there; an
+object rewritten in the store is noticed by its listing (size and ETag) and verified again.
+
+Aliases: ``NAME/aliases.json`` (``{"aliases": {"production": "3"}}``), written in one atomic
+write (local: temporary file and rename; object store: one PUT); ``latest`` is implicit (the newest
+listed version). ``NAME:ALIAS`` is accepted wherever ``NAME:VERSION`` is (``parse_model_ref``).
+
+``Registry(root, lazy=True)`` verifies every version when it scans but builds a model in memory
+only on first use, keeping at most ``max_loaded`` built (least recently used dropped first);
+``rescan()`` returns a new registry that reuses what did not change (same files, same listing).
 """
 from __future__ import annotations
 
@@ -22,8 +37,11 @@ import os
 import re
 import shutil
 import tempfile
+import threading
+import uuid
 import warnings
-from dataclasses import dataclass, field
+from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +52,7 @@ from .estimator import GPNARX
 from .gp import ExactPosterior, SparsePosterior
 from .kernels import DEFAULT_CONSTANT_CAP, kernel_from_dict
 from .scaling import Standardizer
+from .storage import RemoteStore, StorageError, as_local, cache_dir_for, write_atomic
 
 SCHEMA_VERSION = 2  # what save_bundle writes; older manifests are migrated on load (MIGRATIONS)
 MANIFEST = "manifest.json"
@@ -43,6 +62,11 @@ VERSION_RE = re.compile(r"^[1-9][0-9]{0,8}$")
 MAX_MANIFEST_BYTES = 4 * 1024 * 1024
 TMP_PREFIX = ".tmp-"  # hidden temporary folder of a bundle being written: NAME/.tmp-VERSION-XXXX
 STALE_TMP_SECONDS = 3600.0  # a temporary folder untouched this long is a killed write's leftover
+ALIASES = "aliases.json"  # NAME/aliases.json: {"aliases": {ALIAS: VERSION}}
+ALIAS_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
+IMPLICIT_ALIASES = ("latest",)  # the newest listed version; never written
+FINGERPRINT = ".listing.json"  # in a cached remote version: the store listing it was copied from
+DEFAULT_MAX_LOADED = 8  # built bundles kept in memory by a lazy registry (the service's GPNARX_MAX_LOADED)
 REQUIRED_KEYS = ("schema_version", "name", "version", "created", "lags", "kernel", "noise_var", "mode",
                  "fs", "units", "files", "estimator")
 
@@ -67,6 +91,33 @@ def check_version(version) -> str:
     if not VERSION_RE.match(v):
         raise BundleError(f"version {version!r} is invalid: use a positive integer")
     return v
+
+
+def check_alias(alias, what: str = "alias") -> str:
+    a = str(alias)
+    if not ALIAS_RE.match(a):
+        raise BundleError(f"{what} {alias!r} is invalid: use 1-32 letters, digits, '_', '-' starting with a letter")
+    return a
+
+
+def check_version_ref(ref) -> str:
+    """A version (positive integer) or an alias (``production``, ``latest``, ...), validated."""
+    v = str(ref)
+    if v[:1].isdigit() or not v:
+        return check_version(v)
+    if not ALIAS_RE.match(v):
+        raise BundleError(f"version {ref!r} is invalid: use a positive integer or an alias (1-32 letters, digits, "
+                          "'_', '-' starting with a letter, e.g. production or latest)")
+    return v
+
+
+class BundleURI(str):
+    """Where a bundle was written on object storage (``s3://bucket/prefix/NAME/VERSION``); like a Path,
+    ``.name`` is its last part (the version)."""
+
+    @property
+    def name(self) -> str:
+        return self.rstrip("/").rsplit("/", 1)[-1]
 
 
 def _sha256(path: Path) -> str:
@@ -172,11 +223,102 @@ def _new_version_target(registry: Path, name: str, version) -> tuple[str, Path]:
     return version, target
 
 
+def _write_manifest(folder: Path, manifest: dict) -> None:
+    with open(folder / MANIFEST, "w") as f:
+        json.dump(manifest, f, indent=1, allow_nan=False, default=_json_default)
+        f.flush()
+        os.fsync(f.fileno())
+    (folder / MANIFEST_SUM).write_text(_sha256(folder / MANIFEST) + "\n")
+
+
+def _write_new_version(registry, name: str, version, fill):
+    """Write a new version with ``fill(folder, version)`` (which writes every file, manifest last)
+    into a temporary folder, then publish it: a local registry renames the folder into place; an
+    object store gets the files uploaded, ``manifest.sha256`` and ``manifest.json`` last."""
+    local = as_local(registry)
+    if local is None:
+        store = registry if isinstance(registry, RemoteStore) else RemoteStore(str(registry))
+        return _publish_remote(store, name, version, fill)
+    version, target = _new_version_target(local, name, version)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=local / name))
+    try:
+        fill(tmp, version)
+        os.rename(tmp, target)  # atomic on one filesystem; fails if target appeared meanwhile
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target
+
+
+def _remote_versions(store: RemoteStore, name: str) -> dict:
+    """{version: {file: info}} of every version prefix of ``name`` in the store, published or not."""
+    out: dict = {}
+    for rel, info in store.listing(name).items():
+        parts = rel.split("/")
+        if len(parts) >= 3 and parts[0] == name and VERSION_RE.match(parts[1]):
+            out.setdefault(parts[1], {})["/".join(parts[2:])] = info
+    return out
+
+
+def remove_stale_remote(store: RemoteStore, name: str, older_than: float = STALE_TMP_SECONDS) -> list[str]:
+    """Remove the objects of unpublished versions (no manifest) whose newest object is at least
+    ``older_than`` seconds old: the leftovers of killed writes. Returns the removed version prefixes."""
+    import time
+
+    removed = []
+    for version, files in _remote_versions(store, name).items():
+        times = [i.get("mtime") for i in files.values()]
+        if MANIFEST in files or not times or any(t is None for t in times) or time.time() - max(times) < older_than:
+            continue
+        store.remove([f"{name}/{version}/{fn}" for fn in files])
+        removed.append(f"{name}/{version}")
+    return removed
+
+
+def _publish_remote(store: RemoteStore, name: str, version, fill) -> BundleURI:
+    remove_stale_remote(store, name)
+    present = _remote_versions(store, name)
+    if version is None:  # after every prefix in use, published or still being written
+        version = str(max((int(v) for v in present), default=0) + 1)
+    else:
+        version = check_version(version)
+        if version in present:
+            raise BundleError(f"bundle {name}:{version} already exists at {store.uri(f'{name}/{version}')}; "
+                              "versions are never overwritten")
+    prefix = f"{name}/{version}"
+    with tempfile.TemporaryDirectory(prefix="gpnarx-publish-") as tmp:
+        tmp = Path(tmp)
+        fill(tmp, version)
+        files = sorted(p for p in tmp.rglob("*") if p.is_file() and p.name not in (MANIFEST, MANIFEST_SUM))
+        uploaded, clash = [], False
+        try:
+            for p in files:
+                rel = f"{prefix}/{p.relative_to(tmp).as_posix()}"
+                store.put_file(p, rel)
+                uploaded.append(rel)
+            if f"{prefix}/{MANIFEST}" in store.listing(prefix):
+                clash = True  # another writer published this version meanwhile: leave its objects alone
+                raise BundleError(f"bundle {name}:{version} was published by another writer meanwhile at "
+                                  f"{store.uri(prefix)}; give concurrent writers distinct versions")
+            store.put_file(tmp / MANIFEST_SUM, f"{prefix}/{MANIFEST_SUM}")
+            uploaded.append(f"{prefix}/{MANIFEST_SUM}")
+            store.put_file(tmp / MANIFEST, f"{prefix}/{MANIFEST}")  # last: the version is listed from now on
+        except BaseException:
+            if not clash:
+                try:
+                    store.remove(uploaded)
+                except StorageError:  # the leftovers stay unlisted and are removed as stale later
+                    pass
+            raise
+    return BundleURI(store.uri(prefix))
+
+
 def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, units: dict,
                 physics: dict | None = None, novelty: dict | None = None, training: dict | None = None,
                 extra: dict | None = None, extra_files: dict | None = None,
                 attach_dir: Path | None = None) -> Path:
-    """Write ``model`` as REGISTRY/NAME/VERSION atomically; returns the bundle folder.
+    """Write ``model`` as REGISTRY/NAME/VERSION atomically; returns the bundle folder (for an
+    object-store registry URL, a ``BundleURI``: the version's URL, whose ``.name`` is the version).
 
     extra_files: optional {filename: bytes} written next to the manifest; they are checksummed too.
     attach_dir: optional folder copied into the bundle as ``report/`` (human-readable report; not
@@ -184,19 +326,18 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
     """
     if not hasattr(model, "posterior_"):
         raise BundleError("cannot save an unfitted model")
-    registry = Path(registry)
     check_name(name)
-    version, target = _new_version_target(registry, name, version)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=registry / name))
-    try:
+    for fn in extra_files or {}:
+        if "/" in fn or fn.startswith(".") or fn in (MANIFEST, MANIFEST_SUM):
+            raise BundleError(f"extra file name {fn!r} is not allowed")
+
+    def fill(tmp: Path, version: str) -> None:
         files = {}
         for stem, arr in model_arrays(model).items():
             fn = f"{stem}.npy"
             np.save(tmp / fn, np.ascontiguousarray(arr, dtype=np.float64), allow_pickle=False)
             files[fn] = _sha256(tmp / fn)
         for fn, data in (extra_files or {}).items():
-            if "/" in fn or fn.startswith(".") or fn == MANIFEST:
-                raise BundleError(f"extra file name {fn!r} is not allowed")
             (tmp / fn).write_bytes(data)
             files[fn] = _sha256(tmp / fn)
         if attach_dir is not None:
@@ -212,7 +353,6 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
             "hyperparameters": {**model.kernel_.params, "noise_var": model.noise_var_},
             "noise_var": model.noise_var_,
             "noise_calibration": getattr(model, "noise_calibration_", None),
-            "band_discrepancy": getattr(model, "band_discrepancy_", None),
             "training_envelope": getattr(model, "envelope_", None),
             "nlml": None if not np.isfinite(model.nlml_) else model.nlml_,
             "n_train": model.n_train_,
@@ -231,16 +371,9 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
         }
         if extra:
             manifest.update({k: v for k, v in extra.items() if k not in manifest})
-        with open(tmp / MANIFEST, "w") as f:
-            json.dump(manifest, f, indent=1, allow_nan=False, default=_json_default)
-            f.flush()
-            os.fsync(f.fileno())
-        (tmp / MANIFEST_SUM).write_text(_sha256(tmp / MANIFEST) + "\n")
-        os.rename(tmp, target)  # atomic on one filesystem; fails if target appeared meanwhile
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return target
+        _write_manifest(tmp, manifest)
+
+    return _write_new_version(registry, name, version, fill)
 
 
 def derive_bundle(bundle: "Bundle", registry, updates: dict, version=None, name: str | None = None) -> Path:
@@ -249,19 +382,18 @@ def derive_bundle(bundle: "Bundle", registry, updates: dict, version=None, name:
     byte after its checksum is verified again, so the GP (lags, scalers, hyperparameters,
     posterior) is the very same. ``created`` is the new write's time and ``derived_from`` names the
     source version. The source's ``report/`` is not copied (it describes the source's training and
-    its novelty figures). Returns the new bundle folder; used by ``gpnarx calibrate``.
+    its novelty figures). Returns the new bundle folder (a ``BundleURI`` on object storage); used by
+    ``gpnarx calibrate``.
     """
-    registry = Path(registry)
     name = check_name(name or bundle.name)
     protected = {"schema_version", "name", "version", "created", "files", "lags", "kernel", "noise_var", "mode",
                  "estimator", "hyperparameters"}
     bad = sorted(set(updates) & protected)
     if bad:
         raise BundleError(f"a derived bundle keeps the source's model: {', '.join(bad)} cannot be changed")
-    version, target = _new_version_target(registry, name, version)
     src = Path(bundle.path)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=registry / name))
-    try:
+
+    def fill(tmp: Path, version: str) -> None:
         for fn, sha in bundle.manifest["files"].items():
             shutil.copyfile(src / fn, tmp / fn)
             if _sha256(tmp / fn) != sha:
@@ -271,16 +403,9 @@ def derive_bundle(bundle: "Bundle", registry, updates: dict, version=None, name:
                     "derived_from": {"name": bundle.name, "version": bundle.version,
                                      "created": bundle.manifest.get("created")}}
         manifest.pop("schema_version_written", None)  # the derived manifest is written in today's schema
-        with open(tmp / MANIFEST, "w") as f:
-            json.dump(manifest, f, indent=1, allow_nan=False, default=_json_default)
-            f.flush()
-            os.fsync(f.fileno())
-        (tmp / MANIFEST_SUM).write_text(_sha256(tmp / MANIFEST) + "\n")
-        os.rename(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return target
+        _write_manifest(tmp, manifest)
+
+    return _write_new_version(registry, name, version, fill)
 
 
 def _json_default(o):
@@ -368,6 +493,38 @@ def _load_array(path: Path, fn: str, expected_sha: str) -> np.ndarray:
     return arr
 
 
+def _check_files(files) -> dict:
+    if not isinstance(files, dict):
+        raise BundleError("files must be an object")
+    for fn in files:
+        if not isinstance(fn, str) or "/" in fn or "\\" in fn or fn.startswith("."):
+            raise BundleError(f"file name {fn!r} is not allowed")
+    return files
+
+
+def verify_bundle(path) -> dict:
+    """Check one bundle folder without building its model: the manifest (its checksum, schema,
+    name and version) and the sha256 of every file it lists. Returns the manifest; a
+    ``BundleError`` naming the file otherwise."""
+    path = Path(path)
+    manifest = _read_manifest(path)
+    try:
+        check_name(manifest["name"])
+        check_version(manifest["version"])
+        for fn, sha in _check_files(manifest["files"]).items():
+            fp = path / fn
+            if not fp.is_file():
+                raise BundleError(f"{fp}: {'array file' if fn.endswith('.npy') else 'file'} missing")
+            if _sha256(fp) != sha:
+                raise BundleError(f"{fp}: sha256 checksum does not match the manifest (file corrupted or changed)")
+    except BundleError as exc:
+        msg = str(exc)
+        raise BundleError(msg if str(path) in msg else f"{path}: {msg}") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise BundleError(f"{path}: manifest is inconsistent ({type(exc).__name__}: {exc})") from None
+    return manifest
+
+
 def load_bundle(path) -> Bundle:
     """Load and verify one bundle folder (manifest schema and every checksum)."""
     path = Path(path)
@@ -439,59 +596,413 @@ def load_bundle(path) -> Bundle:
 
 
 @dataclass
+class BundleRef:
+    """A verified bundle whose model is built on first use (``Registry(lazy=True)``): its manifest
+    and files passed their checksums when the registry was scanned."""
+
+    name: str
+    version: str
+    path: Path
+    manifest: dict
+    fingerprint: tuple
+
+    @property
+    def fs(self) -> float:
+        return float(self.manifest["fs"])
+
+
+class _Loaded:
+    """Built bundles by (name, version, fingerprint), least recently used dropped beyond ``limit``
+    (0: no limit); one build per key at a time, shared by a registry and its rescans."""
+
+    def __init__(self, limit: int):
+        self.limit = int(limit)
+        self.items: OrderedDict = OrderedDict()
+        self.lock = threading.Lock()
+        self.building: dict = {}
+
+    def peek(self, key) -> bool:
+        with self.lock:
+            return key in self.items
+
+    def get(self, key, build):
+        with self.lock:
+            if key in self.items:
+                self.items.move_to_end(key)
+                return self.items[key]
+            key_lock = self.building.setdefault(key, threading.Lock())
+        with key_lock:
+            try:
+                with self.lock:
+                    if key in self.items:
+                        self.items.move_to_end(key)
+                        return self.items[key]
+                bundle = build()
+                with self.lock:
+                    for other in [k for k in self.items if k[:2] == key[:2]]:  # a rewritten version's old build
+                        del self.items[other]
+                    self.items[key] = bundle
+                    while self.limit and len(self.items) > self.limit:
+                        self.items.popitem(last=False)
+                return bundle
+            finally:
+                with self.lock:
+                    self.building.pop(key, None)
+
+    def __len__(self) -> int:
+        with self.lock:
+            return len(self.items)
+
+
+def _parse_aliases(raw: bytes, where: str) -> dict:
+    try:
+        data = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise BundleError(f"{where}: not valid JSON ({exc})") from None
+    aliases = data.get("aliases") if isinstance(data, dict) else None
+    if not isinstance(aliases, dict):
+        raise BundleError(f"{where}: must be a JSON object {{\"aliases\": {{ALIAS: VERSION}}}}")
+    out = {}
+    for alias, version in aliases.items():
+        try:
+            check_alias(alias)
+            if alias in IMPLICIT_ALIASES:
+                raise BundleError(f"alias {alias!r} is implicit and cannot be set")
+            out[alias] = check_version(version)
+        except BundleError as exc:
+            raise BundleError(f"{where}: {exc}") from None
+    return out
+
+
+def _registry_location(registry):
+    """(local folder, None) or (None, RemoteStore) of a registry given as a path, URL or store."""
+    if isinstance(registry, RemoteStore):
+        return None, registry
+    local = as_local(registry)
+    return (local, None) if local is not None else (None, RemoteStore(str(registry)))
+
+
+def read_aliases(registry, name: str) -> dict:
+    """The aliases set for model ``name`` ({} when none), as written in REGISTRY/NAME/aliases.json."""
+    check_name(name)
+    local, store = _registry_location(registry)
+    if local is not None:
+        f = local / name / ALIASES
+        return _parse_aliases(f.read_bytes(), str(f)) if f.is_file() else {}
+    rel = f"{name}/{ALIASES}"
+    if rel not in store.listing(rel):
+        return {}
+    return _parse_aliases(store.read_bytes(rel), store.uri(rel))
+
+
+def write_aliases(registry, name: str, aliases: dict) -> None:
+    """Replace model ``name``'s aliases in one atomic write (local: temporary file and rename;
+    object store: one PUT, so a reader sees the old or the new set, never a mix)."""
+    check_name(name)
+    clean = {}
+    for alias, version in sorted(aliases.items()):
+        check_alias(alias)
+        if alias in IMPLICIT_ALIASES:
+            raise BundleError(f"alias {alias!r} is implicit (the newest version) and cannot be set")
+        clean[alias] = check_version(version)
+    data = json.dumps({"aliases": clean, "updated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")},
+                      indent=1).encode() + b"\n"
+    local, store = _registry_location(registry)
+    if local is not None:
+        if not (local / name).is_dir():
+            raise BundleError(f"model {name!r} not found in {local}")
+        write_atomic(local / name / ALIASES, data)
+    else:
+        store.put_bytes(f"{name}/{ALIASES}", data)
+
+
 class Registry:
-    """A registry folder of bundles. ``scan()`` loads every valid bundle and records refused ones."""
+    """A registry of bundles: a local folder or an fsspec URL (``s3://bucket/prefix``, ...).
 
-    root: Path
-    bundles: dict = field(default_factory=dict)  # name -> {version: Bundle}
-    refused: list = field(default_factory=list)  # [{"path":..., "reason":...}]
+    ``scan()`` verifies every version and records refused ones. By default (``lazy=False``) it also
+    builds every model, as ``bundles[name][version]`` (a ``Bundle``); with ``lazy=True`` the entries
+    are ``BundleRef``s and ``get()`` builds a model on first use, keeping at most ``max_loaded``
+    built. ``aliases[name]`` holds the aliases set for a model. ``rescan()`` is a new registry over
+    the same location that reuses every version whose files (local: names, sizes and modification
+    times; object store: names, sizes and ETags) did not change, and the built models.
+    """
 
-    def __post_init__(self):
-        self.root = Path(self.root)
+    def __init__(self, root, *, lazy: bool = False, max_loaded: int = DEFAULT_MAX_LOADED,
+                 storage_options: dict | None = None):
+        if isinstance(root, RemoteStore):
+            local, self.store = None, root
+        else:
+            local = as_local(root)
+            self.store = None if local is not None else RemoteStore(str(root), storage_options)
+        self.root = local if local is not None else self.store.url
+        self.lazy = bool(lazy)
+        self.bundles: dict = {}  # name -> {version: Bundle | BundleRef}
+        self.refused: list = []  # [{"path":..., "reason":...}]
+        self.aliases: dict = {}  # name -> {alias: version} (set ones; "latest" is implicit)
+        self._seen: dict = {}  # (name, version) -> (fingerprint, entry or None, reason or None)
+        self._alias_seen: dict = {}  # name -> (fingerprint, aliases or None, reason or None)
+        self._loaded = _Loaded(max_loaded)
+        self._only: str | None = None
+        self._lock = threading.Lock()
 
-    def scan(self) -> "Registry":
+    @property
+    def remote(self) -> bool:
+        return self.store is not None
+
+    def _child(self) -> "Registry":
+        new = object.__new__(Registry)
+        new.store, new.root, new.lazy, new._loaded, new._only = self.store, self.root, self.lazy, self._loaded, \
+            self._only
+        new.bundles, new.refused, new.aliases, new._seen, new._alias_seen = {}, [], {}, {}, {}
+        new._lock = threading.Lock()
+        return new
+
+    def scan(self, only: str | None = None) -> "Registry":
+        """Verify every version (of model ``only`` alone when given) and list the valid ones."""
+        self._only = check_name(only) if only is not None else None
+        return self._scan({}, {})
+
+    def rescan(self) -> "Registry":
+        """A new registry over the same location, scanned again; unchanged versions are not re-verified."""
+        return self._child()._scan(self._seen, self._alias_seen)
+
+    # ---------------------------------------------------------------- scanning
+    def _display(self, name: str, version: str | None = None) -> str:
+        parts = [name] + ([version] if version is not None else [])
+        return self.store.uri("/".join(parts)) if self.remote else str(Path(self.root, *parts))
+
+    def _scan(self, seen: dict, alias_seen: dict) -> "Registry":
+        versions, alias_files = self._list_remote() if self.remote else self._list_local()
         bundles: dict = {}
         refused: list = []
-        if self.root.is_dir():
-            for name_dir in sorted(self.root.iterdir()):
-                if not name_dir.is_dir() or name_dir.name.startswith("."):
-                    continue
-                for vdir in sorted(name_dir.iterdir()):
-                    if not vdir.is_dir() or vdir.name.startswith("."):
-                        continue  # hidden temporary folders of in-progress writes
-                    try:
-                        if not NAME_RE.match(name_dir.name) or not VERSION_RE.match(vdir.name):
-                            raise BundleError(f"{vdir}: folder name is not NAME/VERSION")
-                        b = load_bundle(vdir)
-                        if b.name != name_dir.name or b.version != vdir.name:
-                            raise BundleError(f"{vdir}: manifest says {b.name}:{b.version}, folder says "
-                                              f"{name_dir.name}:{vdir.name}")
-                        bundles.setdefault(b.name, {})[b.version] = b
-                    except BundleError as exc:
-                        refused.append({"path": str(vdir), "reason": str(exc)})
-        self.bundles, self.refused = bundles, refused
+        for (name, version), fingerprint in sorted(versions.items()):
+            key = (name, version)
+            old = seen.get(key)
+            if fingerprint is not None and old is not None and old[0] == fingerprint:
+                entry, reason = old[1], old[2]
+            else:
+                entry, reason = self._verify(name, version, fingerprint)
+            self._seen[key] = (fingerprint, entry, reason)
+            if entry is not None:
+                bundles.setdefault(name, {})[version] = entry
+            else:
+                refused.append({"path": self._display(name, version), "reason": reason})
+        aliases: dict = {}
+        for name, fingerprint in sorted(alias_files.items()):
+            old = alias_seen.get(name)
+            if fingerprint is not None and old is not None and old[0] == fingerprint:
+                got, reason = old[1], old[2]
+            else:
+                try:
+                    got, reason = read_aliases(self.store or self.root, name), None
+                except (BundleError, StorageError) as exc:
+                    got, reason = None, str(exc)
+            self._alias_seen[name] = (fingerprint, got, reason)
+            if got:
+                aliases[name] = got
+            elif reason:
+                refused.append({"path": f"{self._display(name)}/{ALIASES}", "reason": reason})
+        self.bundles, self.refused, self.aliases = bundles, refused, aliases
         return self
 
+    def _list_local(self) -> tuple[dict, dict]:
+        """{(name, version): fingerprint} of every version folder, {name: fingerprint} of alias files."""
+        versions, alias_files = {}, {}
+        root = self.root
+        if not root.is_dir():
+            return versions, alias_files
+        name_dirs = [root / self._only] if self._only else sorted(root.iterdir())
+        for name_dir in name_dirs:
+            if not name_dir.is_dir() or name_dir.name.startswith("."):
+                continue
+            if (name_dir / ALIASES).is_file():
+                alias_files[name_dir.name] = None  # small: read at every scan
+            for vdir in sorted(name_dir.iterdir()):
+                if not vdir.is_dir() or vdir.name.startswith("."):
+                    continue  # hidden temporary folders of in-progress writes
+                try:
+                    fingerprint = tuple(sorted((f.name, st.st_size, st.st_mtime_ns) for f in vdir.iterdir()
+                                               if f.is_file() and (st := f.stat())))
+                except OSError:
+                    fingerprint = None  # vanishing meanwhile: verify it now
+                versions[(name_dir.name, vdir.name)] = fingerprint
+        return versions, alias_files
+
+    def _list_remote(self) -> tuple[dict, dict]:
+        groups: dict = {}
+        alias_files: dict = {}
+        for rel, info in self.store.listing(self._only or "").items():
+            parts = rel.split("/")
+            if len(parts) == 2 and parts[1] == ALIASES:
+                alias_files[parts[0]] = (info["size"], info["tag"])
+            if len(parts) < 3 or parts[0].startswith(".") or parts[1].startswith("."):
+                continue
+            groups.setdefault((parts[0], parts[1]), {})["/".join(parts[2:])] = info
+        versions = {}
+        for key, files in groups.items():
+            if MANIFEST not in files:
+                continue  # not published yet (or a killed write): not listed
+            versions[key] = tuple(sorted((fn, i["size"], i["tag"]) for fn, i in files.items()))
+        return versions, alias_files
+
+    def _verify(self, name: str, version: str, fingerprint) -> tuple:
+        """(entry, None) for a valid version, (None, reason) for a refused one."""
+        where = self._display(name, version)
+
+        def check(path: Path):
+            if self.lazy:
+                manifest = verify_bundle(path)
+                entry, got = BundleRef(name, version, path, manifest, fingerprint), (manifest["name"],
+                                                                                      str(manifest["version"]))
+            else:
+                entry = load_bundle(path)
+                got = (entry.name, entry.version)
+            if got != (name, version):
+                raise BundleError(f"{where}: manifest says {got[0]}:{got[1]}, folder says {name}:{version}")
+            return entry
+
+        try:
+            if not NAME_RE.match(name) or not VERSION_RE.match(version):
+                raise BundleError(f"{where}: folder name is not NAME/VERSION")
+            if not self.remote:
+                return check(Path(where)), None
+            path, fresh = self._fetch(name, version, fingerprint)
+            try:
+                return check(path), None
+            except BundleError:
+                if fresh:
+                    raise
+                path, _ = self._fetch(name, version, fingerprint, force=True)  # a damaged cached copy
+                return check(path), None
+        except (BundleError, StorageError) as exc:
+            msg = str(exc)
+            if self.remote:
+                msg = msg.replace(str(cache_dir_for(self.store.url) / name / version), where)
+            return None, msg
+
+    def _fetch(self, name: str, version: str, fingerprint: tuple, force: bool = False) -> tuple[Path, bool]:
+        """(local cache folder of a remote version, whether it was copied now): the cached copy when it
+        was made from the same listing, else a fresh copy of every object. The caller verifies it."""
+        cache = cache_dir_for(self.store.url) / name / version
+        stamp = json.dumps([list(f) for f in fingerprint], default=str)
+        try:
+            if not force and (cache / FINGERPRINT).read_text() == stamp:
+                return cache, False
+        except OSError:
+            pass  # not cached yet
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=cache.parent))
+        try:
+            for fn, size, _tag in fingerprint:
+                if ".." in fn.split("/") or fn.startswith("/") or fn == FINGERPRINT:
+                    continue
+                if fn == MANIFEST and size > MAX_MANIFEST_BYTES:
+                    raise BundleError(f"{self._display(name, version)}/{MANIFEST}: manifest larger than "
+                                      f"{MAX_MANIFEST_BYTES} bytes")
+                dest = tmp / fn
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                self.store.download(f"{name}/{version}/{fn}", dest)
+            (tmp / FINGERPRINT).write_text(stamp)
+            old = None
+            if cache.exists():  # an older copy (or another process's): swap it out
+                old = cache.parent / f"{TMP_PREFIX}old-{uuid.uuid4().hex[:8]}"
+                try:
+                    os.rename(cache, old)
+                except OSError:
+                    old = None
+            os.rename(tmp, cache)
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return cache, True
+
+    # ---------------------------------------------------------------- lookups
     def names(self) -> list[str]:
         return sorted(self.bundles)
 
     def versions(self, name: str) -> list[str]:
         return sorted(self.bundles.get(name, {}), key=int)
 
-    def get(self, name: str, version: str | None = None) -> Bundle:
-        """Bundle by name and version (latest when version is None). Raises KeyError naming what is missing."""
+    def aliases_of(self, name: str) -> dict:
+        """{alias: version} of a listed model: ``latest`` and the set aliases whose version is listed."""
         if name not in self.bundles:
+            return {}
+        out = {"latest": self.versions(name)[-1]}
+        out.update({a: v for a, v in sorted(self.aliases.get(name, {}).items()) if v in self.bundles[name]})
+        return out
+
+    def resolve(self, name: str, version: str | None = None) -> str:
+        """The version a reference names: None or ``latest`` -> the newest, an alias -> its version.
+        Raises KeyError naming what is missing."""
+        if name not in self.bundles:
+            if self._only:
+                raise KeyError(f"model {name!r} not found in {self.root}")
             raise KeyError(f"model {name!r} not found; available: {', '.join(self.names()) or 'none'}")
-        if version is None:
-            version = self.versions(name)[-1]
-        if str(version) not in self.bundles[name]:
-            raise KeyError(f"version {version!r} of model {name!r} not found; "
-                           f"available: {', '.join(self.versions(name))}")
-        return self.bundles[name][str(version)]
+        version = None if version is None else str(version)
+        if version is None or version == "latest":
+            return self.versions(name)[-1]
+        if VERSION_RE.match(version):
+            if version not in self.bundles[name]:
+                raise KeyError(f"version {version!r} of model {name!r} not found"
+                               f"{self._refusal(name, version)}; available: {', '.join(self.versions(name))}")
+            return version
+        target = self.aliases.get(name, {}).get(version)
+        if target is None:
+            raise KeyError(f"alias {version!r} of model {name!r} not found; aliases: "
+                           f"{', '.join(self.aliases_of(name))}")
+        if target not in self.bundles[name]:
+            raise KeyError(f"alias {version!r} of model {name!r} names version {target}, which is not available"
+                           f"{self._refusal(name, target)}; available: {', '.join(self.versions(name))}")
+        return target
+
+    def _refusal(self, name: str, version: str) -> str:
+        where = self._display(name, version)
+        for r in self.refused:
+            if r["path"] == where:
+                return f" (refused: {r['reason']})"
+        return ""
+
+    def entry(self, name: str, version: str | None = None):
+        """The ``Bundle`` or ``BundleRef`` a reference names, without building a model."""
+        return self.bundles[name][self.resolve(name, version)]
+
+    def is_built(self, name: str, version: str | None = None) -> bool:
+        try:
+            e = self.entry(name, version)
+        except KeyError:
+            return True  # nothing to build: the lookup fails at once
+        return isinstance(e, Bundle) or self._loaded.peek((e.name, e.version, e.fingerprint))
+
+    def loaded_count(self) -> int:
+        """Models built in memory (every listed one for a registry that is not lazy)."""
+        return len(self._loaded) if self.lazy else sum(len(v) for v in self.bundles.values())
+
+    def get(self, name: str, version: str | None = None) -> Bundle:
+        """Bundle by name and version or alias (latest when None), built if needed. Raises KeyError
+        naming what is missing; a lazy bundle whose files no longer verify is refused from then on."""
+        e = self.entry(name, version)
+        if isinstance(e, Bundle):
+            return e
+        try:
+            return self._loaded.get((e.name, e.version, e.fingerprint), lambda: load_bundle(e.path))
+        except BundleError as exc:
+            reason = str(exc)
+            if self.remote:
+                reason = reason.replace(str(e.path), self._display(e.name, e.version))
+            with self._lock:
+                if self.bundles.get(e.name, {}).pop(e.version, None) is not None:
+                    if not self.bundles[e.name]:
+                        del self.bundles[e.name]
+                    self.refused.append({"path": self._display(e.name, e.version), "reason": reason})
+                    self._seen[(e.name, e.version)] = (e.fingerprint, None, reason)
+            raise KeyError(f"version {e.version!r} of model {e.name!r} was refused: {reason}") from None
 
 
 def parse_model_ref(ref: str) -> tuple[str, str | None]:
-    """'NAME' or 'NAME:VERSION' -> (name, version or None), validated."""
+    """'NAME', 'NAME:VERSION' or 'NAME:ALIAS' (``production``, ``latest``, ...) -> (name, version or
+    alias or None), validated."""
     name, _, version = ref.partition(":")
     check_name(name)
-    return name, (check_version(version) if version else None)
+    return name, (check_version_ref(version) if version else None)
