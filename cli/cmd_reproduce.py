@@ -41,7 +41,7 @@ def run(args):
                   table_mc=args.table_mc)
     keep = ("system", "quick", "chosen_lags", "paper_lags", "mc_paths", "bundle", "wall_seconds")
     res = {k: s[k] for k in keep}
-    res["records"] = {k: {m: v.get(m) for m in ("role", "fit", "fit_clean", "coverage", "coverage_clean")}
+    res["records"] = {k: {m: v.get(m) for m in ("role", "use", "fit", "fit_clean", "coverage", "coverage_latent")}
                       for k, v in s["records"].items()}
     if "novelty" in s:
         res["novelty_rates"] = s["novelty"]["rates"]

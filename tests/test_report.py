@@ -40,7 +40,8 @@ def test_record_metrics_values():
     assert m["band_width"] == pytest.approx(0.2e-3)
     assert m["psd_peaks_measured"][0] == pytest.approx(18.0, abs=1.0)
     assert m["psd_peaks_predicted"][0] == pytest.approx(18.0, abs=1.0)
-    assert "fit_clean" in m and "coverage_clean" in m
+    assert "fit_clean" in m and "coverage_clean" not in m
+    assert "coverage_latent" not in m  # no latent band given: the noise-free output is not scored for coverage
 
     # coverage computed by hand: half of the samples moved outside the band
     rec2 = _sine_record(noise=0.0)
@@ -194,3 +195,31 @@ def test_json_sanitiser():
                         "e": math.inf})
     assert out == {"a": None, "b": [0, 1, 2], "c": {"omitted_array_shape": [1000]}, "d": [1, 2], "e": None}
     json.dumps(out, allow_nan=False)
+
+
+def test_coverage_two_ways_predictive_vs_measured_and_latent_vs_noise_free(tmp_path):
+    """The predictive band (noise included) is scored against the measured output only, the latent band
+    (no noise term) against the noise-free one: a band wide enough for the noise must not lend the
+    noise-free output its coverage (issue 22)."""
+    rec = _sine_record(noise=0.5, half=1.0)  # predictive half-width 1e-3, noise sd 5e-4
+    clean = rec["y_clean"]
+    rec["latent_lower"], rec["latent_upper"] = rec["mean"] - 1e-5, rec["mean"] + 1e-5
+    rec["latent_lower"][::4] = clean[::4] + 1e-9  # a quarter of the noise-free samples below the latent band
+    m = rp.record_metrics(rec, None)
+    inside = (rec["y"] >= rec["lower"]) & (rec["y"] <= rec["upper"])
+    assert m["coverage"] == pytest.approx(100 * inside.mean()) and m["coverage"] < 100
+    assert m["coverage_latent"] == pytest.approx(75.0)
+    # the pipeline's basic metrics pair the bands the same way
+    from gpnarx.training.pipeline import basic_metrics
+
+    b = basic_metrics(rec)
+    assert b["coverage"] == pytest.approx(m["coverage"]) and b["coverage_latent"] == pytest.approx(75.0)
+    html_text = rp.write_report(tmp_path / "r", "r", {}, [dict(rec, roles=["lags", "verify"])])["html"].read_text()
+    assert "coverage latent [%]" in html_text and ">lag-selection<" in html_text
+
+
+@pytest.mark.parametrize("roles,use", [(["train", "verify"], "training"), (["lags", "verify"], "lag-selection"),
+                                       (["healthy"], "calibration"), (["validate"], "held-out"),
+                                       (["verify"], "held-out"), (["damaged"], "held-out"), (None, None)])
+def test_record_use_from_config_roles(roles, use):
+    assert rp.record_use(roles) == use

@@ -62,7 +62,9 @@ def evaluate_record(model: GPNARX, rec: Record, role: str, n_paths: int, seed: i
         "name": rec.name, "role": role, "fs": rec.fs, "u": rec.u, "y": rec.y,
         "y_clean": rec.meta.get("clean_y"), "mean": run.mean, "lower": run.lower, "upper": run.upper,
         "std": run.std, "units": dict(rec.units), "seconds": run.seconds, "n_paths": run.n_paths,
-        "method": run.method,
+        "method": run.method, "roles": rec.meta.get("roles"),
+        # the latent band (no noise term): what the noise-free y_clean is scored against
+        "latent_lower": run.latent_lower, "latent_upper": run.latent_upper,
     }
     sim = rec.meta.get("simulate") or {}
     if sim.get("excitation") == "sine" and sim.get("freq"):
@@ -76,9 +78,11 @@ def basic_metrics(ev: dict) -> dict:
     res = {}
     if ev["y"] is not None:
         res.update(summary(ev["y"], ev["mean"], ev["lower"], ev["upper"]))
-    if ev.get("y_clean") is not None:
-        clean = summary(ev["y_clean"], ev["mean"], ev["lower"], ev["upper"])
-        res["fit_clean"], res["coverage_clean"] = clean["fit"], clean["coverage"]
+    if ev.get("y_clean") is not None:  # the noise-free output against the latent band (no sigma_y^2)
+        clean = summary(ev["y_clean"], ev["mean"], ev.get("latent_lower"), ev.get("latent_upper"))
+        res["fit_clean"] = clean["fit"]
+        if "coverage" in clean:
+            res["coverage_latent"] = clean["coverage"]
     return res
 
 
