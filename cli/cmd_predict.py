@@ -75,13 +75,37 @@ def resolve_registry(registry):
 
 
 def load(args):
+    from gpnarx.training.records import read_record
+
+    bundle = load_model(args)
+    rec = read_record(args.record, fs_default=bundle.fs)  # files without fs take the model's
+    if args.window:
+        t0, t1 = parse_window(args.window)
+        rec = rec.window(t0, t1)  # a RecordError (ValueError) names the record's span
+    check_fs(rec, bundle)
+    return bundle, rec, check_mc(args.mc)
+
+
+def check_fs(rec, bundle) -> None:
+    if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
+        raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {bundle.fs} Hz")
+
+
+def check_mc(mc) -> int:
+    mc = mc if mc is not None else 1024
+    if not 1 <= mc <= 65536:
+        raise CLIError(f"--mc must be between 1 and 65536, got {mc}")
+    return mc
+
+
+def load_model(args):
+    """The bundle named by ``--registry`` and ``--model`` (after tuning BLAS for free runs)."""
     from gpnarx.model.bundle import BundleError, Registry, load_bundle, parse_model_ref
     from gpnarx.model.runtime import tune_for_free_run
 
     if args.blas_threads is not None and args.blas_threads < 0:
         raise CLIError(f"--blas-threads must be >= 0, got {args.blas_threads}")
     tune_for_free_run(args.blas_threads)  # one BLAS thread and no per-step mmaps (see model/runtime.py)
-    from gpnarx.training.records import read_record
 
     try:
         name, version = parse_model_ref(args.model)
@@ -104,16 +128,7 @@ def load(args):
         if not path.is_dir():
             raise CLIError(f"model {name}:{version} not found in {root}")
         bundle = load_bundle(path)
-    rec = read_record(args.record, fs_default=bundle.fs)  # files without fs take the model's
-    if args.window:
-        t0, t1 = parse_window(args.window)
-        rec = rec.window(t0, t1)  # a RecordError (ValueError) names the record's span
-    if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
-        raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {bundle.fs} Hz")
-    mc = args.mc if args.mc is not None else 1024
-    if not 1 <= mc <= 65536:
-        raise CLIError(f"--mc must be between 1 and 65536, got {mc}")
-    return bundle, rec, mc
+    return bundle
 
 
 def _progress(enabled, n):
@@ -131,37 +146,53 @@ def _progress(enabled, n):
 
 
 def run_predict(args):
+    bundle, rec, mc = load(args)
+    bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
+    try:
+        out = predict_answer(bundle, rec, mc=mc, seed=args.seed, confidence=args.confidence, method=args.method,
+                             start=args.start, progress=cb)
+    finally:
+        if bar is not None:
+            bar.close()
+    if args.out:
+        _write_prediction(args.out, rec, out.pop("_run"))
+        out["out"] = args.out
+    out.pop("_run", None)
+    return out
+
+
+def predict_answer(bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0.99, method: str = "mc",
+                   start: str = "rest", progress=None) -> dict:
+    """The answer of ``gpnarx predict --json`` for one record (``_run``: the free run itself, for --out).
+
+    ``bundle``: anything with ``name``, ``version``, ``model`` and ``manifest`` (a loaded Bundle, or the
+    light copy ``gpnarx predict-many`` sends to Dask workers).
+    """
     from gpnarx.model.metrics import summary
 
-    bundle, rec, mc = load(args)
     y0 = None
-    if args.start == "measured":  # the novelty rule's start, so novelty_score below matches gpnarx novelty
+    if start == "measured":  # the novelty rule's start, so novelty_score below matches gpnarx novelty
         from gpnarx.model.novelty import novelty_start
 
         y0 = None if rec.y is None else novelty_start(rec.y, bundle.model.ny)
         if y0 is None:
             raise CLIError(f"--start measured needs the record's measured output y, longer than ny={bundle.model.ny} "
                            "samples")
-    bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
-    run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, confidence=args.confidence,
-                                method=args.method, progress=cb, y0=y0)
-    if bar is not None:
-        bar.close()
-    out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "start": args.start, "mc_paths": run.n_paths,
+    run = bundle.model.simulate(rec.u, n_paths=mc, seed=seed, confidence=confidence, method=method,
+                                progress=progress, y0=y0)
+    out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "start": start, "mc_paths": run.n_paths,
            "method": run.method, "confidence": run.confidence, "seconds": run.seconds,
            **assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y),
            "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std}
     if rec.y is not None:
         m = summary(rec.y, run.mean, run.lower, run.upper)
         out.update({"fit": m["fit"], "rmse": m["rmse"], "coverage": m["coverage"], "band_width": m["band_width"]})
-        if args.start == "measured":
+        if start == "measured":
             from gpnarx.model.novelty import method_of, novelty_score
 
             out["novelty_score"] = novelty_score(rec.y, run.mean, run.std,
                                                  method_of(bundle.manifest.get("novelty")))["score"]
-    if args.out:
-        _write_prediction(args.out, rec, run)
-        out["out"] = args.out
+    out["_run"] = run
     return out
 
 

@@ -2,7 +2,8 @@
 
 Each subcommand lives in its own module exposing ``add_parser(subparsers)`` which registers the
 subcommand and sets ``func`` to a callable ``run(args) -> dict | None``. A returned dict is printed as
-one JSON object on stdout when ``--json`` is given (else a short human summary). Any
+one JSON object on stdout when ``--json`` is given (else a short human summary); a command may set
+``args.exit_code`` (``predict-many``: 1 when some record failed). Any
 ``CLIError``/``ValueError``/``OSError``/``KeyError`` raised by a command becomes one line on stderr and
 exit code 2.
 """
@@ -24,6 +25,7 @@ COMMAND_MODULES = [
     "gpnarx.cli.cmd_lags",
     "gpnarx.cli.cmd_train",
     "gpnarx.cli.cmd_predict",
+    "gpnarx.cli.cmd_predict_many",
     "gpnarx.cli.cmd_calibrate",
     "gpnarx.cli.cmd_serve",
     "gpnarx.cli.cmd_build",
@@ -91,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             sys.stdout.write("\n")
         else:
             _print_human(result)
-    return 0
+    return int(getattr(args, "exit_code", 0))
 
 
 if __name__ == "__main__":  # pragma: no cover
