@@ -140,9 +140,9 @@ def test_two_second_record_is_fast():
     assert dt < 3.0  # loose for CI; typically ~0.05 s
 
 
-if OFFICIAL.is_dir():  # only collected where the official benchmark files are present
-
-    def test_matches_official_benchmark_files():
-        diffs = compare_to_official(str(OFFICIAL))
-        print("official benchmark RMS differences [m]:", diffs)
-        assert diffs and all(d < 1e-6 for d in diffs.values())
+@pytest.mark.skipif(not OFFICIAL.is_dir(), reason=f"official Bouc-Wen benchmark files not found at {OFFICIAL}: "
+                    "the simulator's agreement with them (< 1e-6 m RMS) is not checked on this machine")
+def test_matches_official_benchmark_files():
+    diffs = compare_to_official(str(OFFICIAL))
+    print("official benchmark RMS differences [m]:", diffs)
+    assert diffs and all(d < 1e-6 for d in diffs.values())
