@@ -6,7 +6,11 @@
                  [--log-level info]
     gpnarx export-openapi [--out openapi/openapi.json]
 
-``serve`` runs the HTTP service (``service.app``) with uvicorn over a registry folder. Without
+``serve`` runs the HTTP service (``service.app``) with uvicorn over a registry: a folder or an
+fsspec URL (``s3://bucket/prefix``, ``gs://...``, ``file://...``; ``$GPNARX_REGISTRY`` as well). It
+rescans the registry every ``$GPNARX_REGISTRY_POLL`` seconds (default 30, 0 = off), so replicas
+on one registry pick up new versions by themselves, and keeps at most ``$GPNARX_MAX_LOADED`` models
+built in memory (``service.settings``). Without
 ``--registry`` the default registry is used (``$GPNARX_REGISTRY`` or ~/.cache/gpnarx/registry):
 the port opens at once and the missing default bundles (``$GPNARX_DEFAULTS`` limits them) are
 built in the background, lightest first, each loaded as soon as it is written
@@ -31,7 +35,8 @@ DEFAULT_OPENAPI = os.path.join("openapi", "openapi.json")
 def add_parser(sub):
     p = sub.add_parser("serve", help="run the HTTP service over a model registry")
     p.add_argument("--registry", default=None,
-                   help="registry folder (default: the default registry, built on first use)")
+                   help="registry folder or fsspec URL such as s3://bucket/prefix (default: $GPNARX_REGISTRY, else "
+                        "the default registry, built on first use)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
     p.add_argument("--workers", type=int, default=None, help="prediction worker threads (GPNARX_WORKERS)")
@@ -44,11 +49,18 @@ def add_parser(sub):
     q.set_defaults(func=run_export)
 
 
-def _registry(arg) -> tuple[Path, dict | None]:
-    """The registry folder and, for the default registry, the default-build plan
-    (``training.defaults.plan_defaults``: present, missing and skipped names)."""
+def _registry(arg) -> tuple[Path | str, dict | None]:
+    """The registry (a folder, or an object-store URL as given) and, for the default registry, the
+    default-build plan (``training.defaults.plan_defaults``: present, missing and skipped names)."""
+    from gpnarx.model.storage import as_local, is_url
+
+    env = os.environ.get("GPNARX_REGISTRY", "")
+    if not arg and is_url(env):  # an object store is served as it is: no default build into it
+        arg = env
     if arg:
-        root = Path(arg).expanduser()
+        root = as_local(arg)
+        if root is None:
+            return arg, None
         if not root.is_dir():
             raise CLIError(f"--registry {arg}: no such folder")
         return root, None
@@ -102,8 +114,14 @@ def run_serve(args):
     except (TypeError, ValueError) as exc:
         raise CLIError(str(exc)) from None
     builder = _builder(root, plan) if plan is not None else None
-    app = create_app(root, settings, startup_status=builder.status if builder is not None else None)
+    try:
+        app = create_app(root, settings, startup_status=builder.status if builder is not None else None)
+    except OSError as exc:  # e.g. an object-store URL whose package is not installed
+        raise CLIError(str(exc)) from None
     state = app.state.service
+    if state.registry_error:
+        print(f"[gpnarx] the registry could not be read (retried every poll): {state.registry_error}",
+              file=sys.stderr)
     n = state.n_bundles()
     print(f"[gpnarx] serving {n} bundle(s) from {root} on http://{args.host}:{args.port}"
           f" ({len(state.registry.refused)} refused; API key {'on' if settings.api_key else 'off'})",

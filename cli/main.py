@@ -28,6 +28,7 @@ COMMAND_MODULES = [
     "gpnarx.cli.cmd_predict_many",
     "gpnarx.cli.cmd_calibrate",
     "gpnarx.cli.cmd_serve",
+    "gpnarx.cli.cmd_alias",
     "gpnarx.cli.cmd_build",
     "gpnarx.cli.cmd_reproduce",
 ]

@@ -10,7 +10,8 @@ Routes (JSON, versioned under /v1; reference in docs/api.md)::
     POST /v1/models/{name}/novelty                    novelty score, threshold, verdict
     POST /v1/models/{name}/versions/{version}/{predict|loops|novelty}
     POST /v1/batch                                    many records, each answered or failed alone
-    POST /v1/admin/reload                             rescan the registry (also on SIGHUP with serve)
+    POST /v1/admin/reload                             rescan the registry (also on SIGHUP with serve, and
+                                                      by itself every GPNARX_REGISTRY_POLL seconds)
     GET  /v1/models/{name}[/versions/{version}]/report training report; POST /v1/records/parse (service.ui)
     GET  /ui, /docs, /redoc, /static/...              page and API docs from vendored assets (service.ui)
     GET  /health/live, /health/ready, /metrics        open even when an API key is set
@@ -44,8 +45,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Match
 
-from gpnarx.model.bundle import BundleError, Registry, check_name, check_version
+from gpnarx.model.bundle import BundleError, Registry, check_name, check_version_ref
 from gpnarx.model.runtime import limit_blas, tune_malloc  # process tuning shared with the CLI
+from gpnarx.model.storage import StorageError
 
 from . import ops, ui
 from .metrics import ServiceMetrics
@@ -151,7 +153,13 @@ def problem_response(p: ProblemError) -> ProblemResponse:
 
 # ------------------------------------------------------------------------------------------ state
 class ServiceState:
-    """Registry (swapped atomically on reload), executor, metrics and settings of one app."""
+    """Registry (swapped atomically on reload), executor, metrics and settings of one app.
+
+    The registry is lazy: every version is verified when first seen, its model built on first use
+    (at most ``settings.max_loaded`` kept). ``reload`` (admin route, SIGHUP) and the poll
+    (``settings.registry_poll``) swap in a rescan; a registry that cannot be read keeps the last
+    good one serving (``registry_error`` says why).
+    """
 
     def __init__(self, registry_dir, settings: Settings, startup_status=None):
         self.settings = settings
@@ -159,14 +167,22 @@ class ServiceState:
         # still building into the registry (``gpnarx serve`` without --registry); shown by /health/ready
         self.startup_status = startup_status
         self.loop: asyncio.AbstractEventLoop | None = None  # the server's loop while the app runs
-        self.registry_dir = Path(registry_dir) if registry_dir else None
-        self.registry = Registry(self.registry_dir or Path("/nonexistent-gpnarx-registry"))
+        self.registry_dir = registry_dir if registry_dir else None  # a folder or an fsspec URL
+        self.registry = Registry(self.registry_dir or Path("/nonexistent-gpnarx-registry"), lazy=True,
+                                 max_loaded=settings.max_loaded)
+        self.registry_error: str | None = None
         if self.registry_dir is not None:
-            self.registry.scan()
+            try:
+                self.registry.scan()
+            except StorageError as exc:  # unreachable store: not ready; the poll and reload try again
+                self.registry_error = str(exc)
+                log.error("the registry could not be read: %s", exc)
         self.executor = BoundedExecutor(settings.workers, settings.queue_size)
         self.metrics = ServiceMetrics(self)
         self.reload_lock = asyncio.Lock()
         self.reloads = 0
+        self.polls = 0
+        self._reported = self._listed(self.registry)  # what the last reload answered against
 
     def refused(self, registry: Registry | None = None) -> list[dict]:
         reg = registry or self.registry
@@ -185,18 +201,39 @@ class ServiceState:
         reg = registry or self.registry
         return sum(len(v) for v in reg.bundles.values())
 
-    async def reload(self) -> dict:
+    @staticmethod
+    def _listed(reg: Registry) -> set:
+        return {f"{n}:{v}" for n, vs in reg.bundles.items() for v in vs}
+
+    async def reload(self, poll: bool = False) -> dict:
+        """Rescan the registry and swap it in. ``added``/``removed`` compare with the previous reload
+        (or the start), so versions a poll picked up meanwhile are still reported; a poll does not
+        move that reference."""
         if self.registry_dir is None:
             raise ProblemError(409, "no registry folder is configured; nothing to reload")
         async with self.reload_lock:
-            new = await asyncio.to_thread(lambda: Registry(self.registry_dir).scan())
             old = self.registry
+            try:
+                new = await asyncio.to_thread(old.rescan)
+            except StorageError as exc:
+                self.registry_error = str(exc)
+                raise ProblemError(503, f"the registry could not be read ({exc}); the versions listed before "
+                                        f"keep serving", headers={"Retry-After": str(self.settings.retry_after)}
+                                   ) from None
             self.registry = new  # atomic swap: in-flight requests keep the bundle they hold
-            self.reloads += 1
-        before = {f"{n}:{v}" for n, vs in old.bundles.items() for v in vs}
-        after = {f"{n}:{v}" for n, vs in new.bundles.items() for v in vs}
+            self.registry_error = None
+            if poll:
+                self.polls += 1
+            else:
+                self.reloads += 1
+            before, after = (self._listed(old), self._listed(new)) if poll else (self._reported, self._listed(new))
+            if not poll:
+                self._reported = after
         self.metrics.update_bundles()
-        log.info("registry reloaded: %d bundles, %d refused", self.n_bundles(new), len(new.refused))
+        if not poll or before != after or len(old.refused) != len(new.refused):
+            log.info("registry %s: %d bundles, %d refused; added %s, removed %s", "polled" if poll else "reloaded",
+                     self.n_bundles(new), len(new.refused), sorted(after - before) or "none",
+                     sorted(before - after) or "none")
         return {"bundles": self.n_bundles(new), "models": self.models(new), "refused": self.refused(new),
                 "added": sorted(after - before), "removed": sorted(before - after)}
 
@@ -221,18 +258,20 @@ class ServiceState:
             log.exception("the start-up status hook failed")
             return None
 
-    def lookup(self, name: str, version: str | None):
+    def lookup(self, name: str, version: str | None, build: bool = True):
+        """The bundle a name and a version or alias (None: latest) name: built (``build``) or the
+        registry's verified entry (manifest and path; no model built). ProblemError otherwise."""
         try:
             check_name(name)
         except BundleError as exc:
             raise ProblemError(422, str(exc), "name") from None
         if version is not None:
             try:
-                check_version(version)
+                check_version_ref(version)
             except BundleError as exc:
                 raise ProblemError(422, str(exc), "version") from None
         try:
-            return self.registry.get(name, version)
+            return self.registry.get(name, version) if build else self.registry.entry(name, version)
         except KeyError as exc:
             startup = self.startup() or {}
             if name not in self.registry.bundles and name in [*startup.get("building", []),
@@ -242,6 +281,12 @@ class ServiceState:
                                    headers={"Retry-After": str(self.settings.retry_after)}) from None
             msg = exc.args[0] if exc.args else "not found"
             raise ProblemError(404, str(msg), "version" if name in self.registry.bundles else "name") from None
+
+    async def alookup(self, name: str, version: str | None):
+        """``lookup`` that builds a model not yet in memory on a thread (the event loop keeps serving)."""
+        if self.registry.is_built(name, version):
+            return self.lookup(name, version)
+        return await asyncio.to_thread(self.lookup, name, version)
 
     async def run(self, fn, *args, request: Request | None = None, token: CancelToken | None = None):
         """Run ``fn(*args)`` on the worker pool under the request deadline; cancel it if the client goes.
@@ -391,7 +436,9 @@ class GuardMiddleware:
 # ------------------------------------------------------------------------------------------ app
 NameP = Annotated[str, PathParam(description="Model name (1-64 of letters, digits, '_', '-', '.').",
                                  pattern=NAME_PATTERN, max_length=64)]
-VersionP = Annotated[str, PathParam(description="Model version (a positive integer).", pattern=VERSION_PATTERN)]
+VersionP = Annotated[str, PathParam(description="Model version (a positive integer) or alias (`latest`, or one an "
+                                                "operator set with `gpnarx alias set`, e.g. `production`).",
+                                    pattern=VERSION_PATTERN)]
 
 _RECORD_PROBLEMS = {400: "Body is not JSON", 401: "API key missing or wrong (when GPNARX_API_KEY is set)",
                     404: "Unknown model or version", 413: "Record, Monte Carlo work or body too large",
@@ -466,11 +513,27 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
                 loop.add_signal_handler(signal.SIGHUP, _on_hup)
             except (RuntimeError, ValueError, NotImplementedError):  # not the main thread
                 log.info("SIGHUP reload not available in this process")
+        poller = None
+        if settings.registry_poll > 0 and state.registry_dir is not None:
+            poller = asyncio.get_running_loop().create_task(_poll(settings.registry_poll))
         try:
             yield
         finally:
+            if poller is not None:
+                poller.cancel()
             state.loop = None
             state.executor.shutdown()
+
+    async def _poll(every: float):
+        """Rescan the registry every ``every`` seconds (new versions, aliases, changed or removed objects)."""
+        while True:
+            await asyncio.sleep(every)
+            try:
+                await state.reload(poll=True)
+            except ProblemError as exc:  # store unreachable: the last good registry keeps serving
+                log.warning("registry poll: %s", exc.detail)
+            except Exception:  # pragma: no cover - a poll must never stop polling
+                log.exception("registry poll failed")
 
     # /docs and /redoc are served by service.ui from vendored assets (no CDN: they work offline)
     app = FastAPI(title=API_TITLE, version="1", description=_api_description(), lifespan=lifespan,
@@ -523,7 +586,8 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
             building = [*(startup or {}).get("building", []), *(startup or {}).get("pending", [])]
             raise ProblemError(503, "no model bundle is loaded" + (
                 f"; {len(state.registry.refused)} refused (see `refused`)" if state.registry.refused else "") + (
-                f"; building {', '.join(building)} (see `startup`)" if building else ""),
+                f"; building {', '.join(building)} (see `startup`)" if building else "") + (
+                f"; the registry could not be read: {state.registry_error}" if state.registry_error else ""),
                 bundles=0, refused=state.refused(), headers={"Retry-After": str(settings.retry_after)}, **extra)
         return JSONBytesResponse({"status": "ready", "bundles": n, "models": state.models(),
                                   "refused": state.refused(), **extra})
@@ -536,17 +600,20 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
         return Response(body, media_type=content_type)
 
     # ---------------------------------------------------------------- models
-    def summary_of(name: str) -> dict:
-        b = state.registry.get(name)
+    def lags_of(m: dict) -> dict:
+        return {"ny": int(m["lags"]["ny"]), "nu": int(m["lags"]["nu"])}
+
+    def summary_of(reg, name: str) -> dict:
+        b = reg.entry(name)  # the manifest: listing models builds none
         m = b.manifest
-        return {"name": name, "versions": state.registry.versions(name), "latest": b.version, "fs": b.fs,
-                "units": m.get("units") or {}, "lags": {"ny": b.model.ny, "nu": b.model.nu},
-                "novelty": isinstance(m.get("novelty"), dict)}
+        return {"name": name, "versions": reg.versions(name), "latest": b.version, "fs": b.fs,
+                "units": m.get("units") or {}, "lags": lags_of(m), "novelty": isinstance(m.get("novelty"), dict)}
 
     def detail_of(b) -> dict:
         m = b.manifest
         return {"name": b.name, "version": b.version, "versions": state.registry.versions(b.name),
-                "created": m.get("created"), "lags": {"ny": b.model.ny, "nu": b.model.nu}, "mode": m.get("mode"),
+                "aliases": state.registry.aliases_of(b.name),
+                "created": m.get("created"), "lags": lags_of(m), "mode": m.get("mode"),
                 "fs": b.fs, "units": m.get("units") or {}, "kernel": m.get("kernel") or {},
                 "hyperparameters": m.get("hyperparameters") or {},
                 "noise_calibration": m.get("noise_calibration"), "n_train": m.get("n_train"),
@@ -560,19 +627,20 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
     @app.get(f"{v1}/models", response_model=ModelList, tags=tags, operation_id="list_models",
              summary="List the loaded models", responses={401: {"description": _RECORD_PROBLEMS[401]}})
     async def list_models():
-        return JSONBytesResponse({"models": [summary_of(n) for n in state.registry.names()]})
+        reg = state.registry
+        return JSONBytesResponse({"models": [summary_of(reg, n) for n in reg.names()]})
 
     @app.get(f"{v1}/models/{{name}}", response_model=ModelDetail, tags=tags, operation_id="get_model",
              summary="Metadata of a model's latest version (lags, fs, units, kernel, training metrics, novelty)",
              responses={k: {"description": _RECORD_PROBLEMS[k]} for k in (401, 404)})
     async def get_model(name: NameP):
-        return JSONBytesResponse(detail_of(state.lookup(name, None)))
+        return JSONBytesResponse(detail_of(state.lookup(name, None, build=False)))
 
     @app.get(f"{v1}/models/{{name}}/versions/{{version}}", response_model=ModelDetail, tags=tags,
              operation_id="get_model_version", summary="Metadata of one version of a model",
              responses={k: {"description": _RECORD_PROBLEMS[k]} for k in (401, 404)})
     async def get_model_version(name: NameP, version: VersionP):
-        return JSONBytesResponse(detail_of(state.lookup(name, version)))
+        return JSONBytesResponse(detail_of(state.lookup(name, version, build=False)))
 
     # ---------------------------------------------------------------- operations
     def timed_compute(plan, body, submitted, token):
@@ -581,7 +649,7 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
         return out, steps, started - submitted, time.perf_counter() - started
 
     async def single(request: Request, operation: str, body: RecordRequest, name: str, version: str | None):
-        bundle = state.lookup(name, version)
+        bundle = await state.alookup(name, version)
         plan = ops.plan(operation, body, bundle, settings)
         token = CancelToken()
         out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter(), token,
@@ -669,7 +737,7 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
                 results[i] = validation_problem(list(exc.errors())).to_dict(prefix)
                 continue
             try:
-                bundle = state.lookup(req.model, req.version)
+                bundle = await state.alookup(req.model, req.version)
                 plan = ops.plan(req.operation, req, bundle, settings, budget=budget)
             except ProblemError as exc:
                 if exc.field in ("name", "version"):

@@ -55,7 +55,10 @@ class ServiceMetrics:
                                 "by model", ["model"], registry=r)
         self.verdicts = Counter("gpnarx_novelty_verdicts", "Novelty verdicts by model and verdict",
                                 ["model", "verdict"], registry=r)
-        self.loaded = Gauge("gpnarx_bundles_loaded", "Model bundles loaded", registry=r)
+        self.loaded = Gauge("gpnarx_bundles_loaded", "Model bundles loaded (verified and served)", registry=r)
+        self.built = Gauge("gpnarx_bundles_in_memory", "Models built in memory (at most GPNARX_MAX_LOADED)",
+                           registry=r)
+        self.built.set_function(lambda: self.state.registry.loaded_count())
         self.refused = Gauge("gpnarx_bundles_refused", "Model bundles refused (corrupt or invalid)", registry=r)
         self.pending = Gauge("gpnarx_work_pending", "Jobs running or waiting on the worker pool", registry=r)
         self.pending.set_function(lambda: self.state.executor.pending)

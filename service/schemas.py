@@ -24,7 +24,7 @@ FiniteFloat = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 StrictInt = Annotated[int, Strict()]
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
-VERSION_PATTERN = r"^[1-9][0-9]{0,8}$"
+VERSION_PATTERN = r"^(?:[1-9][0-9]{0,8}|[A-Za-z][A-Za-z0-9_-]{0,31})$"  # a version or an alias (production)
 
 _U_DESC = (f"Input record (input units of the model, e.g. force in N or shaker voltage in V), one value per "
            f"sample at `fs`. 1 to {B['max_samples']} samples by default (GPNARX_MAX_SAMPLES); a longer "
@@ -88,7 +88,8 @@ class BatchItem(RecordRequest):
         {"model": "bouc-wen", "operation": "predict", "u": [0.0, 1.5, 2.0, -0.5], "fs": 750.0, "mc_paths": 32}]})
 
     model: str = Field(..., pattern=NAME_PATTERN, description="Model name.")
-    version: str | None = Field(None, pattern=VERSION_PATTERN, description="Model version (default: latest).")
+    version: str | None = Field(None, pattern=VERSION_PATTERN, description="Model version or alias (`production`, "
+                                "...; default: latest).")
     operation: Literal["predict", "loops", "novelty"] = Field("predict", description="What to compute; 'novelty' "
                                                                "needs `y`.")
 
@@ -325,6 +326,9 @@ class ModelDetail(BaseModel):
     name: str
     version: str
     versions: list[str]
+    aliases: dict[str, str] = Field({}, description="Alias -> version: `latest` (the newest version) and the "
+                                    "aliases an operator set (`gpnarx alias set`) whose version is served. Any "
+                                    "alias can stand for a version in a path or a batch record.")
     created: str | None = None
     lags: Lags
     mode: str

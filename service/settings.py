@@ -20,7 +20,18 @@ request_timeout         GPNARX_REQUEST_TIMEOUT       120 (s)      504 (running) 
 api_key                 GPNARX_API_KEY               unset (off)  401 on /v1 routes
 blas_threads            GPNARX_BLAS_THREADS          1            - (0: leave BLAS as it is)
 mmap_threshold          GPNARX_MMAP_THRESHOLD        32 MiB       - (0: leave malloc as it is)
+registry                GPNARX_REGISTRY              unset        - (a folder or an fsspec URL)
+registry_poll           GPNARX_REGISTRY_POLL         30 (s)       - (0: no polling)
+max_loaded              GPNARX_MAX_LOADED            8            - (built models kept in memory)
 =====================  ==========================  ===========  =============================
+
+``registry`` is a folder or an fsspec URL (``s3://bucket/prefix``, ``gs://...``, ``file://...``;
+``model.storage`` says where credentials, endpoint and ``GPNARX_STORAGE_OPTIONS`` come from).
+Every ``registry_poll`` seconds the server rescans its registry by itself (like ``POST
+/v1/admin/reload``; unchanged versions are not verified again), so each of several replicas on one
+registry serves a new version within that interval. A version is verified when it is first seen
+and its model built on first use; at most ``max_loaded`` built models are kept (least recently
+used dropped first, built again from the verified local files when asked for).
 
 ``max_mc_work`` bounds Monte Carlo path-steps (mc_paths x samples) per HTTP request; a batch
 shares one budget across its records. ``queue_size`` is the number of jobs allowed to wait for a
@@ -82,6 +93,8 @@ ENV = {
     "registry": "GPNARX_REGISTRY",
     "blas_threads": "GPNARX_BLAS_THREADS",
     "mmap_threshold": "GPNARX_MMAP_THRESHOLD",
+    "registry_poll": "GPNARX_REGISTRY_POLL",
+    "max_loaded": "GPNARX_MAX_LOADED",
 }
 
 
@@ -108,12 +121,16 @@ class Settings:
     registry: str | None = None
     blas_threads: int = 1
     mmap_threshold: int = 32 * MiB
+    #: seconds between rescans of the registry for new, changed or removed versions (0: none)
+    registry_poll: float = 30.0
+    #: built models kept in memory (least recently used dropped first)
+    max_loaded: int = 8
     #: reload the registry on SIGHUP (only where the event loop runs in the main thread)
     sighup_reload: bool = False
 
     def __post_init__(self):
         for name in ("max_samples", "max_batch", "mc_paths_default", "mc_paths_max", "max_mc_work",
-                     "max_body_bytes", "workers", "retry_after"):
+                     "max_body_bytes", "workers", "retry_after", "max_loaded"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"setting {name} must be a positive integer, got {v!r}")
@@ -123,10 +140,11 @@ class Settings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ValueError(f"setting {name} must be a non-negative integer, got {v!r}")
-        t = self.request_timeout
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 <= t < float("inf"):
-            raise ValueError(f"setting request_timeout must be a non-negative number of seconds, got {t!r}")
-        object.__setattr__(self, "request_timeout", float(t))
+        for name in ("request_timeout", "registry_poll"):
+            t = getattr(self, name)
+            if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 <= t < float("inf"):
+                raise ValueError(f"setting {name} must be a non-negative number of seconds, got {t!r}")
+            object.__setattr__(self, name, float(t))
         if self.mc_paths_default > self.mc_paths_max:
             raise ValueError(f"setting mc_paths_default ({self.mc_paths_default}) exceeds mc_paths_max "
                              f"({self.mc_paths_max})")
@@ -144,7 +162,7 @@ class Settings:
                 continue
             if name in ("api_key", "registry"):
                 kw[name] = raw
-            elif name == "request_timeout":
+            elif name in ("request_timeout", "registry_poll"):
                 try:
                     kw[name] = float(raw)
                 except ValueError:

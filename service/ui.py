@@ -62,7 +62,8 @@ MAX_UPLOAD_FILES = 2
 _FS_PROBLEMS = ("fs given as", "fs must be a number", "fs must be a finite", "the file holds no sampling frequency")
 
 NameP = Annotated[str, PathParam(pattern=NAME_PATTERN, description="Model name.")]
-VersionP = Annotated[str, PathParam(pattern=VERSION_PATTERN, description="Model version (1, 2, ...).")]
+VersionP = Annotated[str, PathParam(pattern=VERSION_PATTERN, description="Model version (1, 2, ...) or alias "
+                                                                         "(latest, production, ...).")]
 
 
 # ------------------------------------------------------------------------------------------ reports
@@ -219,7 +220,7 @@ def install(app: FastAPI, state, json_response=JSONResponse) -> None:
 
     # ---------------------------------------------------------------- reports
     async def report_of(name: str, version: str | None) -> HTMLResponse:
-        bundle = state.lookup(name, version)
+        bundle = state.lookup(name, version, build=False)  # the report is a file: no model needed
         html = await asyncio.to_thread(read_report, bundle.path)
         if html is None:
             raise ProblemError(404, f"model {bundle.name} version {bundle.version} has no training report "
