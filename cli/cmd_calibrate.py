@@ -7,7 +7,6 @@ CLI only: the service never writes its registry (see ``gpnarx.training.calibrate
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 from gpnarx.cli.errors import CLIError
 
@@ -36,8 +35,8 @@ def add_parser(sub):
 
 
 def run(args):
-    from gpnarx.cli.cmd_predict import parse_window, resolve_registry
-    from gpnarx.model.bundle import BundleError, Registry, load_bundle, parse_model_ref
+    from gpnarx.cli.cmd_predict import open_model, parse_window, resolve_registry
+    from gpnarx.model.bundle import BundleError, parse_model_ref
     from gpnarx.model.runtime import tune_for_free_run
     from gpnarx.training.calibrate import calibrate
     from gpnarx.training.records import read_record
@@ -53,20 +52,8 @@ def run(args):
         name, version = parse_model_ref(args.model)
     except BundleError as exc:
         raise CLIError(str(exc)) from None
-    root = Path(resolve_registry(args.registry))
-    if not root.is_dir():
-        raise CLIError(f"registry {root} does not exist")
-    if version is None:
-        reg = Registry(root).scan()
-        try:
-            bundle = reg.get(name)
-        except KeyError as exc:
-            raise CLIError(exc.args[0]) from None
-    else:
-        path = root / name / version
-        if not path.is_dir():
-            raise CLIError(f"model {name}:{version} not found in {root}")
-        bundle = load_bundle(path)
+    root = resolve_registry(args.registry)  # a folder or an fsspec URL: the new version is written there
+    bundle = open_model(root, name, version)
     window = parse_window(args.window) if args.window else None
     recs = []
     for r in args.records:

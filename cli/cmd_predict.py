@@ -12,8 +12,10 @@ from gpnarx.model.envelope import assess
 
 def _common(p):
     p.add_argument("--registry", default=None,
-                   help="registry folder (default: $GPNARX_REGISTRY or the default registry, built on first use)")
-    p.add_argument("--model", required=True, help="NAME or NAME:VERSION (latest version when omitted)")
+                   help="registry folder or fsspec URL, e.g. s3://bucket/prefix (default: $GPNARX_REGISTRY or the "
+                        "default registry, built on first use)")
+    p.add_argument("--model", required=True, help="NAME, NAME:VERSION or NAME:ALIAS such as NAME:production (latest "
+                                                  "version when omitted)")
     p.add_argument("record", help="record file (.npz, .npy, .csv, .mat) or LMS Test.Lab folder")
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
@@ -100,7 +102,7 @@ def check_mc(mc) -> int:
 
 def load_model(args):
     """The bundle named by ``--registry`` and ``--model`` (after tuning BLAS for free runs)."""
-    from gpnarx.model.bundle import BundleError, Registry, load_bundle, parse_model_ref
+    from gpnarx.model.bundle import BundleError, parse_model_ref
     from gpnarx.model.runtime import tune_for_free_run
 
     if args.blas_threads is not None and args.blas_threads < 0:
@@ -111,24 +113,23 @@ def load_model(args):
         name, version = parse_model_ref(args.model)
     except BundleError as exc:
         raise CLIError(str(exc)) from None
-    root = resolve_registry(args.registry)
-    from pathlib import Path
+    return open_model(resolve_registry(args.registry), name, version)
 
-    if not Path(root).is_dir():
+
+def open_model(root, name: str, version: str | None):
+    """Model ``name`` at ``version`` (a version, an alias such as production, or None: latest) from
+    the registry ``root`` (a folder or an fsspec URL): that model's versions are verified, only the
+    one asked for is built."""
+    from gpnarx.model.bundle import Registry
+    from gpnarx.model.storage import as_local
+
+    local = as_local(root)
+    if local is not None and not local.is_dir():
         raise CLIError(f"registry {root} does not exist")
-    reg = Registry(root)
-    if version is None:
-        reg.scan()
-        try:
-            bundle = reg.get(name)
-        except KeyError as exc:
-            raise CLIError(exc.args[0]) from None
-    else:
-        path = Path(root) / name / version
-        if not path.is_dir():
-            raise CLIError(f"model {name}:{version} not found in {root}")
-        bundle = load_bundle(path)
-    return bundle
+    try:
+        return Registry(root, lazy=True).scan(only=name).get(name, version)
+    except KeyError as exc:
+        raise CLIError(exc.args[0]) from None
 
 
 def _progress(enabled, n):
