@@ -1,14 +1,27 @@
-"""Paper protocols end to end (issue 8). Quick modes run in the default suite; the full
-protocols are marked slow (python -m pytest -m slow)."""
+"""Paper protocols end to end (issues 8 and 22). Quick modes run in the default suite and check the
+same code (lag choice, roles, both coverages, novelty thresholds and rates) on tiny runs; the full
+protocols are marked slow (python -m pytest -m slow): each target of issue 8 is one test, and a
+target still missed is a strict xfail whose reason quotes the figure the full run reached.
+
+GPNARX_SLOW_OUT=DIR keeps the full runs' folders under DIR/SYSTEM (summary.json, lag_surface.json,
+the bundle and its report), e.g. to render docs/results-*.md from them with ``gpnarx reproduce
+SYSTEM --out DIR/SYSTEM --from-run --docs ...``.
+"""
+import contextlib
+import io
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.special import ndtri
 
 from gpnarx.cli.main import main
+from gpnarx.training.lagchoice import DEFAULT_TOLERANCE
 
 BERT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bert-t5nm"
+STANDIN_FULL_MC = 1024  # the slow suite's Monte Carlo paths for the stand-in (the protocol's 4096: --mc 4096)
 
 
 def _run(system, out, quick, capsys):
@@ -17,10 +30,55 @@ def _run(system, out, quick, capsys):
     return json.loads(capsys.readouterr().out)
 
 
+def _check_lag_choice(out: Path, res: dict, tolerance: float = DEFAULT_TOLERANCE):
+    """The chosen cell is the one the documented rule picks on the surface this run produced (the
+    smallest ny + nu within ``tolerance`` points of the best fit; cells scored by their mean over the
+    'lags' records), and the bundle was trained at it."""
+    surf = json.loads((out / "lag_surface.json").read_text())
+    cells = [c for c in surf["cells"] if c["fit"] is not None and np.isfinite(c["fit"])]
+    assert len(cells) == len(surf["ny"]) * len(surf["nu"])
+    for c in cells:  # each cell's score is the mean of its per-record fits
+        assert c["fit"] == pytest.approx(np.mean(list(c["fits"].values())))
+    best = max(c["fit"] for c in cells)
+    near = [c for c in cells if c["fit"] >= best - tolerance]
+    rank = min(c["ny"] + c["nu"] for c in near)
+    expect = max((c for c in near if c["ny"] + c["nu"] == rank), key=lambda c: c["fit"])
+    chosen = surf["chosen"]
+    assert (chosen["ny"], chosen["nu"]) == (expect["ny"], expect["nu"]) and chosen["fit"] == expect["fit"]
+    assert res["chosen_lags"] == {"ny": chosen["ny"], "nu": chosen["nu"], "fit": pytest.approx(chosen["fit"])}
+    manifest = json.loads((Path(res["bundle"]) / "manifest.json").read_text())
+    assert manifest["lags"] == {"ny": chosen["ny"], "nu": chosen["nu"]}
+    return surf
+
+
+def _check_uses(records: dict, training: set, lag_selection: set):
+    for name, rec in records.items():
+        want = "training" if name in training else "lag-selection" if name in lag_selection else "held-out"
+        assert rec["use"] == want, (name, rec["use"], want)
+
+
+def _check_novelty_study(nov: dict):
+    """Thresholds are the configured quantile of the log-normal fit to the calibration scores (never
+    below their largest when there are fewer than 1/rate of them), and each rate is the share of that
+    class's scores above it."""
+    calib = np.asarray(nov["calibration_scores"], float)
+    logs = np.log(calib)
+    for far, thr in nov["thresholds"].items():
+        expect = float(np.exp(logs.mean() + ndtri(1 - float(far)) * logs.std(ddof=1)))
+        if calib.size < 1 / float(far):
+            expect = max(expect, float(calib.max()))
+        assert thr == pytest.approx(expect, rel=1e-9), far
+        for cls, rate in nov["rates"][far].items():
+            assert rate == pytest.approx(np.mean(np.asarray(nov["scores"][cls]) > thr)), (far, cls)
+
+
 def test_reproduce_bouc_wen_quick(tmp_path, capsys):
     res = _run("bouc-wen", tmp_path, True, capsys)
     assert res["quick"] is True and res["paper_lags"] == {"ny": 20, "nu": 17, "fit": 92.4}
-    assert res["chosen_lags"]["ny"] in (2, 4) and res["chosen_lags"]["nu"] in (2, 4)
+    _check_lag_choice(tmp_path, res)
+    _check_uses(res["records"], {"sweep-10N", "sweep-80N"}, {"sweep-50N"})
+    for name, rec in res["records"].items():  # both coverages on every simulated record
+        assert 0 <= rec["coverage"] <= 100 and 0 <= rec["coverage_latent"] <= 100, name
     expected = {"sweep-10N", "sweep-50N", "sweep-80N", "sine-10N", "sine-50N", "sine-80N",
                 "multisine-10N", "multisine-50N", "multisine-80N"}
     assert set(res["records"]) == expected
@@ -37,6 +95,11 @@ def test_reproduce_bouc_wen_quick(tmp_path, capsys):
     assert summary["lag_grid_edge"] == grid_edge(surf["best"], surf["ny"], surf["nu"]) == rj["lag_surface"]["edge"]
     html = (report / "report.html").read_text()
     assert "linear ARX" in html and "sine-50N" in html
+    assert "coverage latent [%]" in html and ">lag-selection<" in html and ">held-out<" in html
+    m = next(r["metrics"] for r in rj["records"] if r["name"] == "sine-10N")
+    assert "coverage_clean" not in m and m["use"] == "held-out"
+    assert (m["coverage"], m["coverage_latent"]) == (res["records"]["sine-10N"]["coverage"],
+                                                   res["records"]["sine-10N"]["coverage_latent"])
     assert (tmp_path / "lag_surface.png").is_file()
     assert res["wall_seconds"] < 120
 
@@ -75,29 +138,42 @@ def test_reproduce_bert_real_quick(tmp_path, capsys):
     assert (tmp_path / "again.md").read_text() == page
 
 
-@pytest.fixture(scope="module")
-def bouc_wen_full(tmp_path_factory):
-    out = tmp_path_factory.mktemp("bw-full")
-    argv = ["reproduce", "bouc-wen", "--out", str(out), "--json"]
-    import contextlib
-    import io
-
+def _full(tmp_path_factory, system, *extra):
+    """One full protocol run (CLI, --json); returns its answer, summary and folder."""
+    keep = os.environ.get("GPNARX_SLOW_OUT")
+    out = Path(keep) / system if keep else tmp_path_factory.mktemp(system)
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        assert main(argv) == 0
-    return json.loads(buf.getvalue())
+        assert main(["reproduce", system, "--out", str(out), "--json", *extra]) == 0
+    res = json.loads(buf.getvalue())
+    return {"res": res, "summary": json.loads((out / "summary.json").read_text()), "out": out,
+            "report": json.loads((Path(res["bundle"]) / "report" / "report.json").read_text())}
+
+
+def _report_metrics(run, name):
+    return next(r["metrics"] for r in run["report"]["records"] if r["name"] == name)
+
+
+# ---------------------------------------------------------------------------------------- Bouc-Wen, full
+@pytest.fixture(scope="module")
+def bouc_wen_full(tmp_path_factory):
+    return _full(tmp_path_factory, "bouc-wen")
 
 
 @pytest.mark.slow
-def test_reproduce_bouc_wen_full_meets_targets(bouc_wen_full):
-    res = bouc_wen_full
+def test_bouc_wen_full_lags_within_3_points_of_the_paper_and_under_15_minutes(bouc_wen_full):
+    res = bouc_wen_full["res"]
+    _check_lag_choice(bouc_wen_full["out"], res)
+    _check_uses(res["records"], {"sweep-10N", "sweep-80N"}, {"sweep-50N"})
     assert res["chosen_lags"]["fit"] >= 92.4 - 3
-    for name in ("sweep-50N", "sweep-80N"):
-        assert res["records"][name]["fit_clean"] >= 90, name
-    for name, rec in res["records"].items():
-        if rec["role"] == "validate":
-            assert rec["coverage_clean"] >= 95, name
     assert res["wall_seconds"] < 15 * 60
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["sweep-50N", "sweep-80N"])
+def test_bouc_wen_full_verification_fit_at_least_90(bouc_wen_full, name):
+    # 80 N is a training record (use 'training'), 50 N the lag-selection record: neither is held out
+    assert bouc_wen_full["res"]["records"][name]["fit_clean"] >= 90
 
 
 @pytest.mark.slow
@@ -105,7 +181,107 @@ def test_reproduce_bouc_wen_full_meets_targets(bouc_wen_full):
                    "(target 90 %; 88.1-90.4 % at the paper's 20/17 over 11 training-noise draws), see "
                    "docs/results-bouc-wen.md")
 def test_reproduce_bouc_wen_full_10n_sweep_fit(bouc_wen_full):
-    assert bouc_wen_full["records"]["sweep-10N"]["fit_clean"] >= 90
+    assert bouc_wen_full["res"]["records"]["sweep-10N"]["fit_clean"] >= 90
+
+
+BW_VALIDATE = ["sine-10N", "sine-50N", "sine-80N", "multisine-10N", "multisine-50N", "multisine-80N"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", BW_VALIDATE)
+def test_bouc_wen_full_predictive_band_covers_95_percent_of_the_measured_output(bouc_wen_full, name):
+    rec = bouc_wen_full["res"]["records"][name]
+    assert rec["use"] == "held-out" and rec["coverage"] >= 95
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", BW_VALIDATE)
+def test_bouc_wen_full_latent_band_covers_95_percent_of_the_noise_free_output(bouc_wen_full, name):
+    assert bouc_wen_full["res"]["records"][name]["coverage_latent"] >= 95
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["sweep-10N", "sweep-50N", "sweep-80N"])
+def test_bouc_wen_full_predicted_psd_peak_within_1_hz(bouc_wen_full, name):
+    m = _report_metrics(bouc_wen_full, name)
+    assert abs(m["psd_peaks_predicted"][0] - m["psd_peaks_measured"][0]) <= 1.0
+
+
+# ------------------------------------------------------------------------------------- stand-in, full
+@pytest.fixture(scope="module")
+def standin_full(tmp_path_factory):
+    return _full(tmp_path_factory, "bert-standin", "--mc", str(STANDIN_FULL_MC))
+
+
+@pytest.mark.slow
+def test_standin_full_chosen_lags_fit_at_least_90_on_the_010V_sweep(standin_full):
+    res = standin_full["res"]
+    _check_lag_choice(standin_full["out"], res)
+    _check_uses(res["records"], set(), {"sweep-0.10V"})
+    assert res["mc_paths"] == STANDIN_FULL_MC
+    assert res["chosen_lags"]["fit"] >= 90 and res["records"]["sweep-0.10V"]["fit"] >= 90
+
+
+@pytest.mark.slow
+def test_standin_full_predictive_band_covers_95_percent_of_the_unseen_015V_sweep(standin_full):
+    rec = standin_full["res"]["records"]["sweep-0.15V"]
+    assert rec["use"] == "held-out" and rec["coverage"] >= 95
+
+
+@pytest.mark.slow
+def test_standin_full_latent_band_covers_95_percent_of_the_unseen_015V_sweep_noise_free(standin_full):
+    assert standin_full["res"]["records"]["sweep-0.15V"]["coverage_latent"] >= 95
+
+
+@pytest.mark.slow
+def test_standin_full_detects_9Nm_at_least_95_percent_at_1_percent_false_alarms(standin_full):
+    nov = standin_full["summary"]["novelty"]
+    assert nov["n_per_class"] == 20 and nov["mc_paths"] == 0
+    _check_novelty_study(nov)
+    assert nov["rates"]["0.01"]["9 N m"] >= 0.95
+
+
+# ------------------------------------------------------------------------------------ real BERT, full
+@pytest.fixture(scope="module")
+def bert_real_full(tmp_path_factory):
+    if not (BERT_DATA / "Sine").is_dir():
+        pytest.skip(f"real BERT records not found at {BERT_DATA}")
+    return _full(tmp_path_factory, "bert-real", "--table-mc", "0")
+
+
+REAL_HELDOUT = ["heldout-05Hz", "heldout-06p75Hz", "heldout-08p5Hz", "heldout-09p75Hz", "heldout-20Hz"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", REAL_HELDOUT)
+def test_bert_real_full_heldout_fit_at_least_the_linear_arx(bert_real_full, name):
+    rec = bert_real_full["res"]["records"][name]
+    arx = bert_real_full["summary"]["baselines"][name]["linear ARX"]["fit"]
+    assert rec["use"] == "held-out" and rec["fit"] >= arx
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", REAL_HELDOUT)
+def test_bert_real_full_heldout_coverage_at_least_90(bert_real_full, name):
+    assert bert_real_full["res"]["records"][name]["coverage"] >= 90
+
+
+@pytest.mark.slow
+def test_bert_real_full_two_superharmonic_records_20_points_above_arx_with_the_2x_harmonic(bert_real_full):
+    good = []
+    for name in ("heldout-06p75Hz", "heldout-08p5Hz", "heldout-09p75Hz"):
+        m = _report_metrics(bert_real_full, name)
+        gain = m["fit"] - bert_real_full["summary"]["baselines"][name]["linear ARX"]["fit"]
+        h2 = abs(m["harmonics_db_predicted"][1] - m["harmonics_db_measured"][1])
+        if gain >= 20 and h2 <= 6:
+            good.append(name)
+    assert len(good) >= 2, good
+
+
+@pytest.mark.slow
+def test_bert_real_full_every_record_whole_from_rest_without_divergence(bert_real_full):
+    checks = bert_real_full["summary"]["real_table"]["checks"]
+    assert checks["diverged"] == [] and checks["n_records"] >= 14
 
 
 def test_reproduce_bert_standin_quick_runs_the_monitor_and_novelty_study(tmp_path, capsys):
@@ -115,17 +291,25 @@ def test_reproduce_bert_standin_quick_runs_the_monitor_and_novelty_study(tmp_pat
     oracle = summary["oracle"]  # nominal stand-in vs each seeded realization: the scatter-only ceiling
     assert set(oracle) == set(res["records"]) and all(np.isfinite(v["fit_clean"]) for v in oracle.values())
     assert oracle["sine-18Hz-0.15V"]["fit_clean"] > oracle["noise-0.30V"]["fit_clean"]
+    _check_lag_choice(tmp_path, res)
+    _check_uses(res["records"], set(), {"sweep-0.10V"})
     mon = summary["monitor"]
     assert Path(mon["bundle"]).name == "1" and Path(mon["bundle"]).parent.name == "bert-standin-monitor"
     roles = {v["role"] for v in mon["records"].values()}
     assert {"healthy", "damaged", "validate"} <= roles
-    assert mon["novelty"]["threshold"] > 0 and mon["novelty"]["n_healthy"] == 6
+    assert {v["use"] for v in mon["records"].values() if v["role"] == "healthy"} == {"calibration"}
+    # the monitor's threshold: the configured quantile of the log-normal fit to its healthy records' scores
+    nv = mon["novelty"]
+    healthy = [v["novelty_score"] for v in mon["records"].values() if v["role"] == "healthy"]
+    assert nv["n_healthy"] == 6 and sorted(nv["healthy_scores"]) == pytest.approx(sorted(healthy))
+    _check_novelty_study({"calibration_scores": healthy, "thresholds": {str(nv["false_alarm_rate"]): nv["threshold"]},
+                          "rates": {str(nv["false_alarm_rate"]): {}}, "scores": {}})
     nov = summary["novelty"]
     assert nov["probe"] == {"excitation": "sine", "amplitude": 0.15, "freq": 9.0}
+    assert set(nov["thresholds"]) == set(nov["rates"]) == {"0.01", "0.05"}
     for far in ("0.01", "0.05"):
-        rates = nov["rates"][far]
-        assert set(rates) == {"healthy 5 N m (unseen)", "7 N m", "9 N m", "4 N m (partly loosened)"}
-        assert all(0.0 <= r <= 1.0 for r in rates.values())
+        assert set(nov["rates"][far]) == {"healthy 5 N m (unseen)", "7 N m", "9 N m", "4 N m (partly loosened)"}
+    _check_novelty_study(nov)
     assert (tmp_path / "novelty_roc.png").stat().st_size > 1000
 
 
