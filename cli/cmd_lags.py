@@ -14,7 +14,7 @@ def add_parser(sub):
     p.add_argument("--nu", default=None, help="input-lag range LO:HI[:STEP] (default: the config's [lags] nu)")
     p.add_argument("--jobs", type=int, default=-1, help="local parallel jobs (joblib; -1 = all cores)")
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler, e.g. tcp://host:8786 "
-                                                       "(needs the 'distributed' extra)")
+                                                       "(needs the 'dask' extra)")
     p.add_argument("--max-train-points", type=int, default=None, help="training-point cap per cell (default: config)")
     p.add_argument("--tolerance", type=float, default=0.5, help="choice rule: fit within this many points of the best")
     p.add_argument("--cache-dir", default=None, help="cache of finished cells (default: CONFIG_DIR/.lagcache)")
@@ -28,7 +28,7 @@ def run(args):
     from gpnarx.training.lags import edge_message, lag_surface, write_surface
 
     if args.scheduler and importlib.util.find_spec("distributed") is None:
-        raise CLIError("--scheduler needs dask.distributed: pip install 'gpnarx[distributed]'")
+        raise CLIError("--scheduler needs dask.distributed: pip install 'gpnarx[dask]'")
     cfg = load_config(args.config)
     ny_spec = args.ny or cfg.lags.get("ny")
     nu_spec = args.nu or cfg.lags.get("nu")
