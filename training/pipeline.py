@@ -91,16 +91,17 @@ def score_records(evals: list[dict], method: str = RMS_METHOD) -> list[float]:
     return [novelty_score(ev["y"], ev["mean"], ev["std"], method)["score"] for ev in evals]
 
 
-def _calibrate_band(model: GPNARX, cfg: DatasetConfig, held: list, log) -> None:
+def calibrate_band_from_config(model: GPNARX, cfg: DatasetConfig, held: list, log=None) -> dict:
     """The band's model-discrepancy term (model.discrepancy) from the held-out 'lags' records, each
     predicted (linearised) with its own start rule, as the report predicts it."""
     window = max(1, int(round(float(cfg.model.get("band_window", 0.25)) * cfg.fs)))
     starts = [(r.name, r.u, r.y, "measured" if r.meta.get("initial") == "measured" else "rest") for r in held]
     d = model.calibrate_band(starts, window, confidence=float(cfg.predict.get("confidence", 0.99)))
     worst = min(d["coverage_before"].values()), min(d["coverage_after"].values())
-    log(f"band calibrated on {len(held)} held-out 'lags' record(s): discrepancy scale {d['scale']:.4g} of the "
+    (log or (lambda msg: None))(f"band calibrated on {len(held)} held-out 'lags' record(s): discrepancy scale {d['scale']:.4g} of the "
         f"local amplitude ({window} samples); worst coverage {100 * worst[0]:.1f} % -> {100 * worst[1]:.1f} %"
         + ("" if d["reached"] else f" (target {100 * d['target']:.0f} % not reached)"))
+    return d
 
 
 class _Progress:
@@ -193,7 +194,7 @@ def _train(config, registry, name, version, *, progress, mc_paths, ny, nu, repor
         log(f"noise calibrated on {nc['n_records']} held-out 'lags' record(s), {nc['n_residuals']} one-step "
             f"residuals: sigma_y^2 {nc['noise_var_ml2']:.3g} (ML-II) -> {nc['noise_var']:.3g} (standardised)")
     if cfg.model.get("band_calibration", "none") == "lags":
-        _calibrate_band(model, cfg, records("lags"), log)
+        calibrate_band_from_config(model, cfg, records("lags"), log)
     n_paths = int(mc_paths or cfg.predict.get("mc_paths", 1024))
     conf = float(cfg.predict.get("confidence", 0.99))
     method = method or cfg.predict.get("method", "mc")
