@@ -98,7 +98,8 @@ def calibrate_band_from_config(model: GPNARX, cfg: DatasetConfig, held: list, lo
     starts = [(r.name, r.u, r.y, "measured" if r.meta.get("initial") == "measured" else "rest") for r in held]
     d = model.calibrate_band(starts, window, confidence=float(cfg.predict.get("confidence", 0.99)))
     worst = min(d["coverage_before"].values()), min(d["coverage_after"].values())
-    (log or (lambda msg: None))(f"band calibrated on {len(held)} held-out 'lags' record(s): discrepancy scale {d['scale']:.4g} of the "
+    log = log or (lambda msg: None)
+    log(f"band calibrated on {len(held)} held-out 'lags' record(s): discrepancy scale {d['scale']:.4g} of the "
         f"local amplitude ({window} samples); worst coverage {100 * worst[0]:.1f} % -> {100 * worst[1]:.1f} %"
         + ("" if d["reached"] else f" (target {100 * d['target']:.0f} % not reached)"))
     return d
