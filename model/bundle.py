@@ -966,7 +966,8 @@ class Registry:
 
     def entry(self, name: str, version: str | None = None):
         """The ``Bundle`` or ``BundleRef`` a reference names, without building a model."""
-        return self.bundles[name][self.resolve(name, version)]
+        version = self.resolve(name, version)  # first: it names what is missing
+        return self.bundles[name][version]
 
     def is_built(self, name: str, version: str | None = None) -> bool:
         try:
