@@ -4,11 +4,30 @@
 #   docker run -p 8000:8000 gpnarx                       # serves the default registry
 #   docker run -p 8000:8000 -e GPNARX_API_KEY=... -v /srv/registry:/registry gpnarx \
 #       gpnarx serve --registry /registry --host 0.0.0.0 --port 8000
+#   docker run -p 8000:8000 -e GPNARX_REGISTRY=s3://bucket/models -e AWS_ACCESS_KEY_ID=... \
+#       -e AWS_SECRET_ACCESS_KEY=... gpnarx               # a registry on object storage
 #
+# Two stages: the first builds the gpnarx wheel and the wheels of everything it needs (with the s3
+# and dask extras), the second installs them from that folder alone, so the image holds an installed
+# package (shipped configs as package data), not a checkout. The same image runs `gpnarx serve`,
+# the offline commands (`gpnarx train ... --scheduler`) and Dask workers (`dask worker ADDRESS`).
 # The default registry (Bouc-Wen and BERT stand-in bundles) is built at image build time by
 # `gpnarx build-defaults` (a few minutes on 2 cores), so the container is ready at first start.
-FROM python:3.11-slim
+# deploy/compose.yaml and deploy/k8s/ run it as replicas; docs/deploy.md describes both.
 
+FROM python:3.11-slim AS build
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
+WORKDIR /src
+COPY pyproject.toml README.md LICENSE ./
+COPY gpnarx ./gpnarx
+COPY model ./model
+COPY training ./training
+COPY service ./service
+COPY cli ./cli
+COPY configs ./configs
+RUN pip wheel ".[s3,dask]" -w /wheels
+
+FROM python:3.11-slim
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
@@ -22,21 +41,13 @@ RUN groupadd --system --gid 10001 gpnarx \
     && mkdir -p /var/lib/gpnarx/registry \
     && chown -R gpnarx:gpnarx /var/lib/gpnarx
 
-WORKDIR /app
-COPY pyproject.toml README.md LICENSE ./
-COPY model ./model
-COPY training ./training
-COPY service ./service
-COPY configs ./configs
-COPY gpnarx ./gpnarx
-COPY cli ./cli
-COPY openapi ./openapi
-# Editable install: the shipped dataset configs are read from /app/configs next to the packages.
-# orjson renders the long float arrays of predictions (the service falls back to json without it).
-RUN pip install -e . orjson \
+COPY --from=build /wheels /tmp/wheels
+RUN pip install --no-index --find-links /tmp/wheels "gpnarx[s3,dask]" \
+    && rm -rf /tmp/wheels \
     && python -c "import gpnarx.service.app, gpnarx.model.bundle, gpnarx.cli.main"
 
 USER gpnarx
+WORKDIR /home/gpnarx
 # Default registry at image build (training runs as the unprivileged user into its own folder).
 RUN gpnarx build-defaults --registry "$GPNARX_REGISTRY"
 
