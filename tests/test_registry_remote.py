@@ -411,3 +411,35 @@ def test_cli_on_a_registry_url(mem, tmp_path, capsys):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert needle in err and err.count("\n") == 1, err
+
+
+def test_unreadable_store_starts_unready_then_keeps_the_last_good_registry(mem, monkeypatch):
+    from fastapi.testclient import TestClient
+
+    from gpnarx.model import storage
+    from gpnarx.service.app import create_app
+    from gpnarx.service.settings import Settings
+
+    url, fs = mem
+    save_bundle(_tiny_model(1), url, "m", fs=FS, units={"u": "N", "y": "m"})
+    real, down = storage.RemoteStore.listing, {"on": True}
+
+    def listing(self, under=""):
+        if down["on"]:
+            raise storage.StorageError(f"{self.uri(under)}: listing failed (ConnectTimeoutError)")
+        return real(self, under)
+
+    monkeypatch.setattr(storage.RemoteStore, "listing", listing)
+    c = TestClient(create_app(url, Settings(workers=1, queue_size=1, registry_poll=0)), raise_server_exceptions=False)
+    r = c.get("/health/ready")
+    assert r.status_code == 503 and "could not be read" in r.json()["detail"] and "ConnectTimeout" in r.json()["detail"]
+    assert c.get("/health/live").status_code == 200
+    down["on"] = False
+    assert c.post("/v1/admin/reload").json()["added"] == ["m:1"]
+    assert c.get("/health/ready").status_code == 200
+    down["on"] = True
+    r = c.post("/v1/admin/reload")
+    assert r.status_code == 503 and "keep serving" in r.json()["detail"]
+    body = {"u": (np.sin(np.linspace(0, 20, 64)) * 10).tolist(), "fs": FS, "mc_paths": 8}
+    assert c.post("/v1/models/m/predict", json=body).json()["version"] == "1"
+    assert c.get("/health/ready").status_code == 200
