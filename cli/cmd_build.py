@@ -21,8 +21,17 @@ def add_parser(sub):
 
 def run(args):
     # start-up: imported when the command runs (see gpnarx.cli)
+    import os
+
+    from gpnarx.cli.errors import CLIError
     from gpnarx.model.bundle import Registry
+    from gpnarx.model.storage import as_local
     from gpnarx.training.defaults import default_names, ensure_default_registry
+
+    target = args.registry or os.environ.get("GPNARX_REGISTRY")
+    if target and as_local(target) is None:
+        raise CLIError(f"build-defaults builds a local folder; to put the defaults on {target}, run "
+                       f"'gpnarx train NAME --registry {target}' for each (bouc-wen, bert-standin, ...)")
 
     names = default_names(args.only) if args.only is not None else None
     root = ensure_default_registry(args.registry, progress=not args.json, names=names, mc_paths=args.mc,
