@@ -992,11 +992,12 @@ class Registry:
             reason = str(exc)
             if self.remote:
                 reason = reason.replace(str(e.path), self._display(e.name, e.version))
-            with self._lock:
-                if self.bundles.get(e.name, {}).pop(e.version, None) is not None:
-                    if not self.bundles[e.name]:
-                        del self.bundles[e.name]
-                    self.refused.append({"path": self._display(e.name, e.version), "reason": reason})
+            with self._lock:  # new containers swapped in: readers iterating the old ones are not disturbed
+                if e.version in self.bundles.get(e.name, {}):
+                    left = {v: b for v, b in self.bundles[e.name].items() if v != e.version}
+                    self.bundles = {n: (left if n == e.name else vs) for n, vs in self.bundles.items()
+                                    if n != e.name or left}
+                    self.refused = [*self.refused, {"path": self._display(e.name, e.version), "reason": reason}]
                     self._seen[(e.name, e.version)] = (e.fingerprint, None, reason)
             raise KeyError(f"version {e.version!r} of model {e.name!r} was refused: {reason}") from None
 

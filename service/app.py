@@ -279,8 +279,9 @@ class ServiceState:
                 raise ProblemError(503, f"model {name!r} is still being built at start-up (see /health/ready); "
                                         f"retry after {self.settings.retry_after} s", "name",
                                    headers={"Retry-After": str(self.settings.retry_after)}) from None
-            msg = exc.args[0] if exc.args else "not found"
-            raise ProblemError(404, str(msg), "version" if name in self.registry.bundles else "name") from None
+            msg = str(exc.args[0] if exc.args else "not found")
+            msg = msg.replace(str(self.registry.root).rstrip("/") + "/", "")  # paths inside the registry only
+            raise ProblemError(404, msg, "version" if name in self.registry.bundles else "name") from None
 
     async def alookup(self, name: str, version: str | None):
         """``lookup`` that builds a model not yet in memory on a thread (the event loop keeps serving)."""
