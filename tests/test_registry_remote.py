@@ -274,6 +274,7 @@ def test_two_replicas_on_s3_identical_answers_pick_up_new_versions_and_refuse_a_
             assert "checksum" in ready["refused"][0]["reason"] and Path(key).name in ready["refused"][0]["reason"]
             r = rep.post(f"/v1/models/{NAME}/versions/1/predict", body)
             assert r.status_code == 404 and r.json()["field"] == "version" and "checksum" in r.json()["detail"]
+            assert URL not in r.json()["detail"] and f"{NAME}/1/" in r.json()["detail"]
             r = rep.post(f"/v1/models/{NAME}/versions/production/predict", body)
             assert r.status_code == 404 and "names version 1" in r.json()["detail"]
             assert _answer(rep.post(f"/v1/models/{NAME}/predict", body)) == second[0]
@@ -443,3 +444,27 @@ def test_unreadable_store_starts_unready_then_keeps_the_last_good_registry(mem, 
     body = {"u": (np.sin(np.linspace(0, 20, 64)) * 10).tolist(), "fs": FS, "mc_paths": 8}
     assert c.post("/v1/models/m/predict", json=body).json()["version"] == "1"
     assert c.get("/health/ready").status_code == 200
+
+
+def test_a_file_changed_after_the_scan_is_refused_when_first_built(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from gpnarx.service.app import create_app
+    from gpnarx.service.settings import Settings
+
+    for seed in (1, 2):
+        save_bundle(_tiny_model(seed), tmp_path, "m", fs=FS, units={"u": "N", "y": "m"})
+    c = TestClient(create_app(tmp_path, Settings(workers=1, queue_size=1, registry_poll=0)),
+                   raise_server_exceptions=False)
+    assert c.get("/health/ready").json()["models"] == {"m": ["1", "2"]}  # verified, none built yet
+    npy = tmp_path / "m" / "2" / "theta.npy"
+    raw = bytearray(npy.read_bytes())
+    raw[-2] ^= 0xFF
+    npy.write_bytes(bytes(raw))
+    body = {"u": (np.sin(np.linspace(0, 20, 64)) * 10).tolist(), "fs": FS, "mc_paths": 8}
+    r = c.post("/v1/models/m/versions/2/predict", json=body)
+    assert r.status_code == 404 and "m/2/theta.npy: sha256 checksum" in r.json()["detail"]
+    assert str(tmp_path) not in r.json()["detail"]
+    ready = c.get("/health/ready").json()
+    assert ready["models"] == {"m": ["1"]} and [x["path"] for x in ready["refused"]] == ["m/2"]
+    assert c.post("/v1/models/m/predict", json=body).json()["version"] == "1"
