@@ -885,11 +885,8 @@ class Registry:
         was made from the same listing, else a fresh copy of every object. The caller verifies it."""
         cache = cache_dir_for(self.store.url) / name / version
         stamp = json.dumps([list(f) for f in fingerprint], default=str)
-        try:
-            if not force and (cache / FINGERPRINT).read_text() == stamp:
-                return cache, False
-        except OSError:
-            pass  # not cached yet
+        if not force and self._stamp(cache) == stamp:
+            return cache, False
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=cache.parent))
         try:
@@ -903,20 +900,36 @@ class Registry:
                 dest.parent.mkdir(parents=True, exist_ok=True)
                 self.store.download(f"{name}/{version}/{fn}", dest)
             (tmp / FINGERPRINT).write_text(stamp)
-            old = None
-            if cache.exists():  # an older copy (or another process's): swap it out
-                old = cache.parent / f"{TMP_PREFIX}old-{uuid.uuid4().hex[:8]}"
+            for _attempt in range(3):
+                if not force and self._stamp(cache) == stamp:  # another process sharing the cache placed it
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    return cache, True
+                old = None
+                if cache.exists():  # a copy of an older listing: swap it out
+                    old = cache.parent / f"{TMP_PREFIX}old-{uuid.uuid4().hex[:8]}"
+                    try:
+                        os.rename(cache, old)
+                    except OSError:
+                        old = None
                 try:
-                    os.rename(cache, old)
-                except OSError:
-                    old = None
-            os.rename(tmp, cache)
-            if old is not None:
-                shutil.rmtree(old, ignore_errors=True)
+                    os.rename(tmp, cache)
+                except OSError:  # another process renamed its fresh copy in meanwhile: look again
+                    force = False
+                    continue
+                if old is not None:
+                    shutil.rmtree(old, ignore_errors=True)
+                return cache, True
+            raise StorageError(f"{cache}: the cache folder keeps changing under this process")
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        return cache, True
+
+    @staticmethod
+    def _stamp(cache: Path) -> str | None:
+        try:
+            return (cache / FINGERPRINT).read_text()
+        except OSError:
+            return None
 
     # ---------------------------------------------------------------- lookups
     def names(self) -> list[str]:

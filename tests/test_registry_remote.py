@@ -468,3 +468,31 @@ def test_a_file_changed_after_the_scan_is_refused_when_first_built(tmp_path):
     ready = c.get("/health/ready").json()
     assert ready["models"] == {"m": ["1"]} and [x["path"] for x in ready["refused"]] == ["m/2"]
     assert c.post("/v1/models/m/predict", json=body).json()["version"] == "1"
+
+
+def test_readers_sharing_one_cache_folder_never_refuse_each_others_copies(mem):
+    import threading
+
+    url, fs = mem
+    for seed in (1, 2, 3):
+        save_bundle(_tiny_model(seed), url, "m", fs=FS, units={"u": "N", "y": "m"})
+    results, errors = [], []
+
+    def read():
+        try:
+            reg = Registry(url, lazy=True).scan()
+            results.append((reg.versions("m"), reg.refused, reg.get("m", "2").version))
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    for _round in range(3):
+        threads = [threading.Thread(target=read) for _ in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        # the store changes: every reader copies version 1 again, into the one shared folder
+        key = f"/{url.split('://')[1]}/m/1/report.txt"
+        fs.pipe(key, f"round {_round}".encode())
+    assert not errors, errors
+    assert len(results) == 12 and all(r == (["1", "2", "3"], [], "2") for r in results), results
