@@ -358,3 +358,92 @@ def test_sparse_bundle_with_the_single_matrix_variance_loads_and_warns(sdof_data
     want = np.maximum(m.posterior_.kernel.diag(Xs) - np.einsum("ij,ij->i", Ks @ A, Ks), 1e-300)
     assert np.allclose(b.model.posterior_.predict(Xs)[1], want, rtol=1e-12, atol=0)
     assert b.model.posterior_.predict(Xs[:5], float32=True)[1].shape == (5,)
+
+
+def _default_path_fit(sdof_data, monkeypatch):
+    """GPNARX.fit on 2000 ML-II rows (ny = nu = 2), recording what it passed to fit_ml2."""
+    import gpnarx.model.estimator as est
+    from gpnarx.model.gp import fit_ml2
+
+    calls = []
+
+    def spy(kernel, X, y, **kw):
+        res = fit_ml2(kernel, X, y, **kw)
+        calls.append((X.copy(), y.copy(), kw, res))
+        return res
+
+    monkeypatch.setattr(est, "fit_ml2", spy)
+    m = GPNARX(ny=2, nu=2, max_train_points=2000, n_restarts=0).fit([(sdof_data["u"], sdof_data["yn"])])
+    (X, Y, kw, warm), = calls
+    return m, X, Y, kw, warm
+
+
+def test_default_warm_start_ml2_reaches_the_cold_optimum(sdof_data, monkeypatch):
+    """From 2000 ML-II rows GPNARX.fit warm-starts ML-II (model.gp.default_warm_start_subset: N/4 rows
+    first, with the cubic part's redundant scale held); on this small problem it lands within a
+    tolerance of the cold ML-II optimum of the same problem (same rows, the same scale held): NLML
+    within 0.01 %, sigma_y^2 within 5 %, one-step means within 1 % of the output RMS, in fewer full-N
+    evaluations."""
+    from gpnarx.model.gp import ExactPosterior, default_warm_start_subset, fit_ml2
+    from gpnarx.model.kernels import make_kernel
+
+    m, X, Y, kw, warm = _default_path_fit(sdof_data, monkeypatch)
+    assert X.shape[0] == 2000 and kw["warm_start_subset"] == default_warm_start_subset(2000) == 500
+    assert kw["hold_redundant"] and warm.subset_rows == 500 and warm.subset_evals > 0
+    assert default_warm_start_subset(1999) is None
+    cold = fit_ml2(make_kernel(m.kernel), X, Y, n_restarts=0, hold_redundant=True)
+    print(f"\nwarm NLML {warm.nlml:.3f} ({warm.n_evals} full + {warm.subset_evals} subset evals), "
+          f"cold NLML {cold.nlml:.3f} ({cold.n_evals} evals)")
+    assert abs(warm.nlml - cold.nlml) <= 1e-4 * abs(cold.nlml)
+    assert abs(np.exp(warm.theta[-1]) / np.exp(cold.theta[-1]) - 1) < 0.05
+    assert warm.n_evals < cold.n_evals
+    kc = make_kernel(m.kernel)
+    kc.set_theta(cold.theta[:-1])
+    mu_cold, _ = ExactPosterior.fit(kc, float(np.exp(cold.theta[-1])), X, Y).predict(X[::7])
+    mu_warm, _ = m.posterior_.predict(X[::7])
+    assert np.sqrt(np.mean((mu_warm - mu_cold) ** 2)) < 0.01 * np.sqrt(np.mean(Y**2))
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known miss: holding the cubic part's scale (hold_redundant, set with the "
+                   "warm start from 2000 rows) ends 13.2 nats above the free cold ML-II optimum on this problem "
+                   "(NLML -1393.74 vs -1406.99; the warm start without the hold reaches -1406.99): the free optimum "
+                   "has log s = -8.27, log sigma_p^2 = -4.27, log b = 5.53; with log s held at -1.39 the same kernel "
+                   "needs log sigma_p^2 = -24.9 and log b = 12.4, outside the +/-12 bounds, so ML-II stops with the "
+                   "cubic variance at its bound (model.gp.fit_ml2's 'inside the bounds' does not hold here)")
+def test_default_warm_start_ml2_reaches_the_free_cold_optimum(sdof_data, monkeypatch):
+    from gpnarx.model.gp import fit_ml2
+    from gpnarx.model.kernels import make_kernel
+
+    m, X, Y, kw, warm = _default_path_fit(sdof_data, monkeypatch)
+    cold = fit_ml2(make_kernel(m.kernel), X, Y, n_restarts=0)
+    print(f"\nwarm (held scale) NLML {warm.nlml:.3f}, free cold NLML {cold.nlml:.3f}")
+    assert warm.nlml <= cold.nlml + 1e-4 * abs(cold.nlml)
+
+
+@pytest.mark.parametrize("method", ["mc", "linear"])
+def test_latent_band_leaves_out_the_noise_term(sdof_data, method):
+    """FreeRun's latent band (latent_lower/latent_upper) is the band of the noise-free output: narrower
+    than the predictive band by the noise term (linearised: inside it at every step, with var(y) = latent
+    variance + sigma_y^2; Monte Carlo: quantiles of each path's latent draw, its fed-back paths unchanged),
+    the same for both methods within Monte Carlo error, and the one a noise-free output is scored on."""
+    m = GPNARX(ny=4, nu=4, max_train_points=500, n_restarts=0).fit([(sdof_data["u"], sdof_data["yn"])])
+    u2, y2 = sdof_data["u2"][:400], sdof_data["y2"][:400]
+    run = m.simulate(u2, n_paths=512, seed=1, method=method)
+    lo, up, llo, lup = run.lower[4:], run.upper[4:], run.latent_lower[4:], run.latent_upper[4:]
+    assert np.all(lup > llo) and np.mean(lup - llo) < np.mean(up - lo)
+    if method == "linear":  # the same mean, a smaller variance: inside at every step
+        assert np.all(llo >= lo - 1e-12) and np.all(lup <= up + 1e-12)
+    noise_sd = np.sqrt(m.noise_var_) * m.y_scaler_.scale_[0]
+    if method == "linear":  # exactly: var(y_i) = latent variance + sigma_y^2 at each step
+        z = (run.upper - run.mean) / run.std
+        lat_sd = (run.latent_upper - run.mean) / z
+        assert np.allclose(run.std[4:] ** 2, lat_sd[4:] ** 2 + noise_sd**2, rtol=1e-9)
+    else:  # the paths fed back are unchanged: the predictive band equals a run without the latent band
+        plain = m.simulate(u2, n_paths=512, seed=1, method=method)
+        assert np.array_equal(plain.lower, run.lower) and np.array_equal(plain.mean, run.mean)
+    # the two bands of the same run agree between the methods to within Monte Carlo error
+    other = m.simulate(u2, n_paths=512, seed=1, method="linear" if method == "mc" else "mc")
+    w = np.median(run.latent_upper - run.latent_lower)
+    assert abs(w / np.median(other.latent_upper - other.latent_lower) - 1) < 0.15
+    assert coverage(y2, run.latent_lower, run.latent_upper) > 90
