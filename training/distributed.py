@@ -12,6 +12,8 @@ Tasks are plain module-level functions (pickled by reference, so the workers nee
 """
 from __future__ import annotations
 
+import os
+import uuid
 from collections.abc import Callable, Iterable, Iterator
 
 __all__ = ["DASK_HINT", "TaskRunner", "check_dask"]
@@ -168,7 +170,8 @@ class TaskRunner:
                     if isinstance(args, Failed):
                         yield i, None, args.exc
                         continue
-                    fut = self.client.submit(fn, *args, pure=False)
+                    # keyed by the function's name, as the scheduler's dashboard and task counts show it
+                    fut = self.client.submit(on_worker, fn, *args, key=f"{fn.__name__}-{uuid.uuid4().hex}")
                     live[fut.key] = (i, fut)
                     done.add(fut)
                 if not live:
@@ -186,6 +189,37 @@ class TaskRunner:
         finally:
             if live:
                 self.client.cancel([f for _, f in live.values()])
+
+
+_TUNED = []
+
+
+def on_worker(fn: Callable, *args):
+    """Run ``fn(*args)`` in a worker process tuned for free runs as a local run is (``model.runtime``):
+    glibc's mmap/trim thresholds set once per process (a Dask nanny starts workers with
+    MALLOC_TRIM_THRESHOLD_=65536, which returns every step's temporaries to the kernel: free runs
+    measured 3-4x slower), and BLAS held to ``GPNARX_BLAS_THREADS`` (default 1) threads during the task,
+    so a worker computes what a local run computes, as fast."""
+    from threadpoolctl import threadpool_limits
+
+    from gpnarx.model.runtime import MiB, tune_malloc
+
+    if not _TUNED:
+        tune_malloc(_env_int("GPNARX_MMAP_THRESHOLD", 32 * MiB))
+        _TUNED.append(True)
+    blas = _env_int("GPNARX_BLAS_THREADS", 1)
+    if not blas:
+        return fn(*args)
+    with threadpool_limits(limits=blas, user_api="blas"):
+        return fn(*args)
+
+
+def _env_int(name: str, default: int) -> int:
+    raw = os.environ.get(name, "").strip()
+    try:
+        return int(raw) if raw else default
+    except ValueError:
+        return default
 
 
 def _capture(i, fn, args):
