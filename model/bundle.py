@@ -861,6 +861,7 @@ class Registry:
                 raise BundleError(f"{where}: manifest says {got[0]}:{got[1]}, folder says {name}:{version}")
             return entry
 
+        path = None
         try:
             if not NAME_RE.match(name) or not VERSION_RE.match(version):
                 raise BundleError(f"{where}: folder name is not NAME/VERSION")
@@ -876,19 +877,23 @@ class Registry:
                 return check(path), None
         except (BundleError, StorageError) as exc:
             msg = str(exc)
-            if self.remote:
-                msg = msg.replace(str(cache_dir_for(self.store.url) / name / version), where)
+            if path is not None:
+                msg = msg.replace(str(path), where)
             return None, msg
 
     def _fetch(self, name: str, version: str, fingerprint: tuple, force: bool = False) -> tuple[Path, bool]:
-        """(local cache folder of a remote version, whether it was copied now): the cached copy when it
-        was made from the same listing, else a fresh copy of every object. The caller verifies it."""
-        cache = cache_dir_for(self.store.url) / name / version
+        """(local copy of a remote version, whether it was copied now). Copies are immutable, one
+        folder per store listing (``CACHE/NAME/VERSION/KEY``, KEY a hash of the listing), so readers
+        sharing a cache folder never see one change under them: a copy another process placed for
+        the same listing is used as it is. Copies of older listings are removed once an hour old.
+        The caller verifies the copy; ``force`` replaces a damaged one."""
+        base = cache_dir_for(self.store.url) / name / version
         stamp = json.dumps([list(f) for f in fingerprint], default=str)
-        if not force and self._stamp(cache) == stamp:
-            return cache, False
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=cache.parent))
+        target = base / hashlib.sha256(stamp.encode()).hexdigest()[:16]
+        if not force and self._stamp(target) == stamp:
+            return target, False
+        base.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=TMP_PREFIX, dir=base))
         try:
             for fn, size, _tag in fingerprint:
                 if ".." in fn.split("/") or fn.startswith("/") or fn == FINGERPRINT:
@@ -900,34 +905,41 @@ class Registry:
                 dest.parent.mkdir(parents=True, exist_ok=True)
                 self.store.download(f"{name}/{version}/{fn}", dest)
             (tmp / FINGERPRINT).write_text(stamp)
-            for _attempt in range(3):
-                if not force and self._stamp(cache) == stamp:  # another process sharing the cache placed it
-                    shutil.rmtree(tmp, ignore_errors=True)
-                    return cache, True
-                old = None
-                if cache.exists():  # a copy of an older listing: swap it out
-                    old = cache.parent / f"{TMP_PREFIX}old-{uuid.uuid4().hex[:8]}"
-                    try:
-                        os.rename(cache, old)
-                    except OSError:
-                        old = None
+            if force and target.exists():  # a damaged copy: moved aside, replaced
+                aside = base / f"{TMP_PREFIX}damaged-{uuid.uuid4().hex[:8]}"
                 try:
-                    os.rename(tmp, cache)
-                except OSError:  # another process renamed its fresh copy in meanwhile: look again
-                    force = False
-                    continue
-                if old is not None:
-                    shutil.rmtree(old, ignore_errors=True)
-                return cache, True
-            raise StorageError(f"{cache}: the cache folder keeps changing under this process")
+                    os.rename(target, aside)
+                    shutil.rmtree(aside, ignore_errors=True)
+                except OSError:
+                    pass
+            try:
+                os.rename(tmp, target)
+            except OSError:
+                if self._stamp(target) != stamp:
+                    raise StorageError(f"{target}: cannot place the copy of {self._display(name, version)}") from None
+                shutil.rmtree(tmp, ignore_errors=True)  # another process placed the same copy meanwhile
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
+        self._remove_old_copies(base, keep=target)
+        return target, True
 
     @staticmethod
-    def _stamp(cache: Path) -> str | None:
+    def _remove_old_copies(base: Path, keep: Path) -> None:
+        import time
+
+        now = time.time()
+        for d in base.iterdir():
+            try:
+                if d != keep and d.is_dir() and now - d.stat().st_mtime >= STALE_TMP_SECONDS:
+                    shutil.rmtree(d, ignore_errors=True)
+            except OSError:
+                continue
+
+    @staticmethod
+    def _stamp(copy: Path) -> str | None:
         try:
-            return (cache / FINGERPRINT).read_text()
+            return (copy / FINGERPRINT).read_text()
         except OSError:
             return None
 

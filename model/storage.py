@@ -177,8 +177,8 @@ class RemoteStore:
             self.fs.invalidate_cache()
             try:
                 return self.fs.find(key, detail=True)
-            except FileNotFoundError:
-                return {}
+            except FileNotFoundError as exc:  # an empty prefix lists as {}; this is a missing bucket
+                raise StorageError(f"{self.uri(under)}: listing failed ({exc})") from None
 
         found = self._call("listing", under, find)
         out = {}

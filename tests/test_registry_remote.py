@@ -350,7 +350,7 @@ def test_lazy_registry_builds_on_first_use_keeps_at_most_max_loaded_and_reuses_u
     assert again.get("m", "3") is reg.get("m", "3")
     assert {p: p.stat().st_mtime_ns for p in cache.rglob("*.npy")} == stamps
     # a damaged cached copy is copied again from the store, not refused
-    victim = next(p for p in cache.rglob("theta.npy") if p.parent.name == "2")
+    victim = next(p for p in cache.rglob("theta.npy") if p.parent.parent.name == "2")  # NAME/VERSION/KEY/
     victim.write_bytes(b"damaged")
     fresh = Registry(url, lazy=True).scan()
     assert fresh.refused == [] and fresh.versions("m") == ["1", "2", "3"]
@@ -470,10 +470,12 @@ def test_a_file_changed_after_the_scan_is_refused_when_first_built(tmp_path):
     assert c.post("/v1/models/m/predict", json=body).json()["version"] == "1"
 
 
-def test_readers_sharing_one_cache_folder_never_refuse_each_others_copies(mem):
+def test_readers_sharing_one_cache_folder_never_refuse_each_others_copies(s3, tmp_path, monkeypatch):
     import threading
 
-    url, fs = mem
+    fs, _env = s3
+    url = f"s3://{BUCKET}/shared-cache"
+    monkeypatch.setenv("GPNARX_CACHE", str(tmp_path / "one-cache"))
     for seed in (1, 2, 3):
         save_bundle(_tiny_model(seed), url, "m", fs=FS, units={"u": "N", "y": "m"})
     results, errors = [], []
@@ -492,7 +494,8 @@ def test_readers_sharing_one_cache_folder_never_refuse_each_others_copies(mem):
         for t in threads:
             t.join()
         # the store changes: every reader copies version 1 again, into the one shared folder
-        key = f"/{url.split('://')[1]}/m/1/report.txt"
-        fs.pipe(key, f"round {_round}".encode())
+        fs.pipe(f"{BUCKET}/shared-cache/m/1/notes.txt", f"round {_round}".encode())
     assert not errors, errors
     assert len(results) == 12 and all(r == (["1", "2", "3"], [], "2") for r in results), results
+    copies = [p for p in (tmp_path / "one-cache").rglob("manifest.json")]
+    assert len(copies) == 3 + 2  # one copy per version and listing (version 1 was listed three ways)
