@@ -138,9 +138,10 @@ class Replica:
         for k in ("GPNARX_API_KEY", "GPNARX_REGISTRY"):
             penv.pop(k, None)
         self.log = log
+        self.log_file = open(log, "w")
         self.proc = subprocess.Popen([sys.executable, "-m", "gpnarx", "serve", "--registry", URL, "--port",
                                       str(self.port), "--log-level", "warning"], cwd=str(ROOT), env=penv,
-                                     stdout=subprocess.DEVNULL, stderr=open(log, "w"))
+                                     stdout=subprocess.DEVNULL, stderr=self.log_file)
         self.client = httpx.Client(base_url=self.url, timeout=60)
 
     def ready(self) -> bool:
@@ -163,6 +164,7 @@ class Replica:
             self.proc.wait(timeout=30)
         except subprocess.TimeoutExpired:  # pragma: no cover
             self.proc.kill()
+        self.log_file.close()
 
 
 def _metric(text: str, name: str) -> float:
