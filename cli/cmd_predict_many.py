@@ -140,10 +140,8 @@ def _first_line(exc: BaseException) -> str:
 
 
 def run(args):
-    from gpnarx.cli.cmd_predict import check_fs, check_mc, load_model
-    from gpnarx.training.distributed import Failed, TaskRunner
-    from gpnarx.training.jsonsafe import to_json_safe
-    from gpnarx.training.records import read_record
+    from gpnarx.cli.cmd_predict import check_mc
+    from gpnarx.training.distributed import TaskRunner
 
     if args.scheduler is not None and not args.scheduler.strip():
         raise CLIError("--scheduler must be a Dask scheduler address such as tcp://host:8786")
@@ -154,6 +152,17 @@ def run(args):
     if not 0 < args.confidence < 1:
         raise CLIError(f"--confidence must be between 0 and 1 (exclusive), got {args.confidence}")
     mc = check_mc(args.mc)
+    # the cluster first: an unreachable scheduler fails before any folder is made or model loaded
+    with TaskRunner(args.scheduler, jobs=1 if args.scheduler else args.jobs) as runner:
+        return _run(args, runner, mc)
+
+
+def _run(args, runner, mc: int) -> dict:
+    from gpnarx.cli.cmd_predict import check_fs, load_model
+    from gpnarx.training.distributed import Failed
+    from gpnarx.training.jsonsafe import to_json_safe
+    from gpnarx.training.records import read_record
+
     out = _Results(args.out)
     bundle = load_model(args)
     # load_model has checked GPNARX_BLAS_THREADS; the same limit applies to every free run, on a worker too
@@ -163,49 +172,47 @@ def run(args):
                "start": args.start, "blas_threads": blas}
     files = _file_names(args.records)
     entries = [{"record": str(p), "file": None, "status": "failed", "error": None} for p in args.records]
-    quiet = args.json
     bar = None
-    if not quiet:
+    if not args.json:
         from tqdm import tqdm
 
         bar = tqdm(total=len(args.records), desc="predict-many", unit="record")
     t0 = time.perf_counter()
-    with TaskRunner(args.scheduler, jobs=1 if args.scheduler else args.jobs) as runner:
-        shared = runner.share(ModelCopy(bundle.name, bundle.version, bundle.model, bundle.manifest))
+    shared = runner.share(ModelCopy(bundle.name, bundle.version, bundle.model, bundle.manifest))
 
-        def calls():
-            for path in args.records:
-                try:  # read here: a worker gets the arrays, never the path
-                    rec = read_record(path, fs_default=bundle.fs)
-                    check_fs(rec, bundle)
-                except (CLIError, ValueError, OSError, KeyError, LookupError) as exc:
-                    yield Failed(exc)
-                    continue
-                yield shared, runner.send(rec), options
+    def calls():
+        for path in args.records:
+            try:  # read here: a worker gets the arrays, never the path
+                rec = read_record(path, fs_default=bundle.fs)
+                check_fs(rec, bundle)
+            except (CLIError, ValueError, OSError, KeyError, LookupError) as exc:
+                yield Failed(exc)
+                continue
+            yield shared, runner.send(rec), options
 
-        for i, res, exc in runner.imap(predict_record, calls()):
-            e = entries[i]
-            if exc is None:
-                try:
-                    answer = to_json_safe(res)
-                    e["file"] = Path(out.write(files[i], json.dumps(answer, allow_nan=False))).name
-                except (OSError, ValueError) as werr:
-                    exc = werr
-                else:
-                    e.update(status="ok", **{k: answer.get(k) for k in ("n", "fit", "rmse", "coverage",
-                                                                        "diverged_paths", "out_of_range", "seconds")})
-            if exc is not None:
-                e["error"] = _first_line(exc)
-                # read errors already name the record
-                msg = "gpnarx predict-many: " + (e["error"] if e["record"] in e["error"]
-                                                 else f"{e['record']}: {e['error']}")
-                if bar is not None:
-                    bar.write(msg, file=sys.stderr)
-                else:
-                    print(msg, file=sys.stderr)
+    for i, res, exc in runner.imap(predict_record, calls()):
+        e = entries[i]
+        if exc is None:
+            try:
+                answer = to_json_safe(res)
+                e["file"] = Path(out.write(files[i], json.dumps(answer, allow_nan=False))).name
+            except (OSError, ValueError) as werr:
+                exc = werr
+            else:
+                e.update(status="ok", **{k: answer.get(k) for k in ("n", "fit", "rmse", "coverage",
+                                                                    "diverged_paths", "out_of_range", "seconds")})
+        if exc is not None:
+            e["error"] = _first_line(exc)
+            # read errors already name the record
+            msg = "gpnarx predict-many: " + (e["error"] if e["record"] in e["error"]
+                                             else f"{e['record']}: {e['error']}")
             if bar is not None:
-                bar.update(1)
-        where = runner.where
+                bar.write(msg, file=sys.stderr)
+            else:
+                print(msg, file=sys.stderr)
+        if bar is not None:
+            bar.update(1)
+    where = runner.where
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - t0
