@@ -298,6 +298,14 @@ def test_predict_many_on_cluster_matches_local_and_predict(trained, cluster, tmp
     many = json.loads((runs["dask"]["dir"] / f"{recs[2].stem}.json").read_text())
     assert set(single) == set(many)
     _assert_same(_strip_timings(single), _strip_timings(many), "predict vs predict-many")
+    # local cores (joblib) and an fsspec URL for --out: the same files
+    url = (tmp_path / "out-jobs").as_uri()
+    assert main(["predict-many", *map(str, recs), "--registry", str(reg), "--model", "bw-dask", "--mc", "48", "--seed",
+                 "7", "--out", url, "--jobs", "2", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["where"] == "local (2 jobs)"
+    for rec in recs:
+        _assert_same(_strip_timings(json.loads((tmp_path / "out-jobs" / f"{rec.stem}.json").read_text())),
+                     _strip_timings(json.loads((runs["local"]["dir"] / f"{rec.stem}.json").read_text())), rec.stem)
     # a different seed gives different paths: the comparison above can fail
     assert main(["predict", "--registry", str(reg), "--model", "bw-dask", str(recs[2]), "--mc", "48", "--seed", "8",
                  "--json"]) == 0
