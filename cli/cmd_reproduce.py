@@ -14,7 +14,8 @@ def add_parser(sub):
     p.add_argument("--scheduler", default=None, help="Dask scheduler address for the lag surface")
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024 Bouc-Wen, 4096 BERT)")
     p.add_argument("--docs", default=None, metavar="FILE",
-                   help="also write the results page there (bert-real: docs/results-bert-real.md)")
+                   help="also write the results page there (docs/results-SYSTEM.md); the run folder always "
+                        "holds it as results-SYSTEM.md")
     p.add_argument("--table-mc", type=int, default=None, metavar="N",
                    help="bert-real: Monte Carlo paths of the every-record table (default: --mc; 0: linearised only)")
     p.add_argument("--from-run", action="store_true",
@@ -31,8 +32,17 @@ def run(args):
         from gpnarx.cli.errors import CLIError
         from gpnarx.training.reproduce import render_from_run
 
-        if args.system != "bert-real" or not args.docs:
-            raise CLIError("--from-run re-renders the bert-real results page: give --docs FILE")
+        if not args.docs:
+            raise CLIError("--from-run re-renders the results page from the run folder --out: give --docs FILE")
+        import json
+        from pathlib import Path
+
+        summary = Path(out) / "summary.json"
+        if not summary.is_file():
+            raise CLIError(f"--from-run: no summary.json in {out} (run gpnarx reproduce {args.system} --out {out})")
+        ran = json.loads(summary.read_text()).get("system")
+        if ran != args.system:
+            raise CLIError(f"--from-run: {out} holds a {ran} run, not {args.system}")
         render_from_run(out, args.docs)
         return {"system": args.system, "out": out, "docs": args.docs}
     log = None if args.json else (lambda m: print(m, file=sys.stderr, flush=True))

@@ -103,7 +103,7 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
         "paper_lags": PAPER[system]["lags"], "lag_grid_edge": surface["edge"], "mc_paths": n_paths,
         "bundle": res["path"],
         "records": {k: v for k, v in res["metrics"]["records"].items()},
-        "baselines": res["metrics"].get("baselines"),
+        "baselines": res["metrics"].get("baselines"), "units": dict(cfg.units),
     }
     if system == "bert-standin":
         summary["oracle"] = standin_oracle(cfg, summary["records"])
@@ -135,18 +135,25 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
         log(f"[{system}] diverged: {c['diverged'] or 'none'}; GP-NARX at least the better ARX on {c['at_least_arx']} "
             f"of {c['n_records']}; lowest sine coverage {c['min_sine_coverage']:.1f} %")
     summary["wall_seconds"] = time.perf_counter() - t0
-    if system == "bert-real":
-        page = results_page(_clean(summary), surface)
-        (out / "results-bert-real.md").write_text(page)
-        if docs_page:
-            Path(docs_page).write_text(page)
     (out / "summary.json").write_text(json.dumps(_clean(summary), indent=1))
+    # the results page from the JSON just written (as --from-run renders it): no figure of its own
+    render_from_run(out, docs_page)
     log(f"[{system}] done in {summary['wall_seconds']:.1f} s; report in {res['path']}/report, "
         f"summary {out / 'summary.json'}")
     return summary
 
 
 def results_page(summary: dict, surface: dict | None = None) -> str:
+    """The system's results page (docs/results-SYSTEM.md) from one run's figures only (``summary.json``
+    and ``lag_surface.json``): Bouc-Wen and the stand-in by ``training.results_pages``, real BERT here."""
+    from gpnarx.training.results_pages import PAGES
+
+    if summary.get("system") in PAGES:
+        return PAGES[summary["system"]](summary, surface)
+    return real_page(summary, surface)
+
+
+def real_page(summary: dict, surface: dict | None = None) -> str:
     """docs/results-bert-real.md from one run's figures only (``summary.json`` and ``lag_surface.json``)."""
     from gpnarx.training.real_table import markdown
 
@@ -188,14 +195,17 @@ def results_page(summary: dict, surface: dict | None = None) -> str:
     return page
 
 
-def render_from_run(out_dir, docs_page) -> str:
-    """Re-render the results page from a finished run folder (no computation)."""
+def render_from_run(out_dir, docs_page=None) -> str:
+    """Render the results page from a finished run folder's JSON (no computation): written to
+    OUT/results-SYSTEM.md and, when given, to ``docs_page``."""
     out = Path(out_dir)
     summary = json.loads((out / "summary.json").read_text())
     surf_path = out / "lag_surface.json"
     surface = json.loads(surf_path.read_text()) if surf_path.is_file() else None
     page = results_page(summary, surface)
-    Path(docs_page).write_text(page)
+    (out / f"results-{summary['system']}.md").write_text(page)
+    if docs_page:
+        Path(docs_page).write_text(page)
     return page
 
 

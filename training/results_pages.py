@@ -1,0 +1,223 @@
+"""The simulated systems' results pages (docs/results-bouc-wen.md, docs/results-bert-standin.md),
+rendered from one ``gpnarx reproduce`` run's own JSON (``summary.json`` and ``lag_surface.json``) and
+nothing else: every figure on the page is a value of that run, so the page cannot drift from it.
+``gpnarx reproduce SYSTEM --docs FILE`` writes it at the end of the run, ``gpnarx reproduce SYSTEM
+--out RUN --from-run --docs FILE`` re-renders it from a finished run folder.
+
+The prose around the tables holds no figures; studies that are not part of the protocol run (the
+Bouc-Wen 10 N investigation, the stand-in's calibration and scatter) live on their own pages.
+"""
+from __future__ import annotations
+
+from gpnarx.training.report import USES
+
+# the order records are listed in: what trained the model, what chose the lags, then held-out records
+USE_ORDER = ("training", "lag-selection", "calibration", "held-out")
+USE_LABEL = {"training": "training", "lag-selection": "lag selection", "calibration": "novelty calibration",
+             "held-out": "held out"}
+
+
+def pct(v) -> str:
+    """A percentage (or fit %) as the pages print it: one decimal, 'n/a' when missing."""
+    return "n/a" if v is None else f"{float(v):.1f}"
+
+
+def sig(v, digits: int = 3) -> str:
+    return "n/a" if v is None else f"{float(v):.{digits}g}"
+
+
+def hz(v) -> str:
+    return "n/a" if v is None else f"{float(v):.2f}"
+
+
+def _ordered(records: dict) -> list[tuple[str, dict]]:
+    rank = {u: i for i, u in enumerate(USE_ORDER)}
+    return sorted(records.items(), key=lambda kv: rank.get(kv[1].get("use"), len(rank)))
+
+
+def _baseline_names(baselines: dict | None) -> list[str]:
+    names = []
+    for per in (baselines or {}).values():
+        for k in per:
+            if k not in names:
+                names.append(k)
+    return names
+
+
+def _baseline_fit(baselines: dict | None, rec: str, model: str, key: str):
+    b = ((baselines or {}).get(rec) or {}).get(model) or {}
+    return b.get(key)
+
+
+def _run_line(summary: dict) -> str:
+    ch = summary["chosen_lags"]
+    return (f"Run: chosen lags ny={ch['ny']}, nu={ch['nu']} (lag-surface fit {pct(ch['fit'])} %); "
+            f"{summary['mc_paths']} Monte Carlo paths, 99 % bands; wall time "
+            f"{summary.get('wall_seconds', float('nan')):.0f} s"
+            + (" (quick mode: tiny grid, short records, few paths; not the protocol's figures)"
+               if summary.get("quick") else "") + ".\n\n")
+
+
+def _columns_note(clean: bool) -> str:
+    uses = "; ".join(f"**{USE_LABEL[u]}**: {USES[u]}" for u in USE_ORDER)
+    s = (f"Use: {uses}. Role: the record's scoring role in the config (`lags`, `verify`, `validate`, ...). "
+         "Fit: eq. (14) of the free-run Monte Carlo mean against the measured (noisy) output. ")
+    if clean:
+        s += ("Fit clean: the same mean against the simulator's noise-free output. **Coverage**: % of measured "
+              "samples inside the 99 % *predictive* band (the band of y, noise variance sigma_y^2 included). "
+              "**Coverage latent**: % of noise-free samples inside the 99 % *latent* band (the band of the "
+              "noise-free output f, the same propagation without the noise term). Each band is scored against "
+              "the output it is a band of; the predictive band scored against the noise-free output would "
+              "over-cover (older reports' `coverage_clean`). ")
+    else:
+        s += "Coverage: % of measured samples inside the 99 % predictive band (noise included). "
+    s += "Band width: mean width of the predictive band. Baselines are fitted on the same training records."
+    return s + "\n\n"
+
+
+def records_table(summary: dict, clean: bool, baseline_key: str, oracle: dict | None = None) -> str:
+    """The per-record table, grouped by use; baselines scored by ``baseline_key`` ('fit' or 'fit_clean')."""
+    unit = summary.get("units", {}).get("y", "")
+    bnames = _baseline_names(summary.get("baselines"))
+    bl = "fit clean" if baseline_key == "fit_clean" else "fit"
+    head = ["record", "use", "role", "fit %"] + (["fit clean %"] if clean else []) + ["coverage %"] + \
+        (["coverage latent %"] if clean else []) + [f"band width{f' [{unit}]' if unit else ''}"] + \
+        (["nominal stand-in (oracle) fit clean %"] if oracle else []) + [f"{b} {bl} %" for b in bnames] + \
+        ["PSD peak measured / predicted [Hz]"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, r in _ordered(summary["records"]):
+        peaks = (r.get("psd_peaks_measured") or [None])[0], (r.get("psd_peaks_predicted") or [None])[0]
+        row = [name, USE_LABEL.get(r.get("use"), str(r.get("use"))), str(r.get("role")), pct(r.get("fit"))]
+        if clean:
+            row.append(pct(r.get("fit_clean")))
+        row.append(pct(r.get("coverage")))
+        if clean:
+            row.append(pct(r.get("coverage_latent")))
+        row.append(sig(r.get("band_width")))
+        if oracle:
+            row.append(pct((oracle.get(name) or {}).get("fit_clean")))
+        for b in bnames:
+            v = _baseline_fit(summary.get("baselines"), name, b, baseline_key)
+            row.append("unstable" if v is not None and v < -1e4 else pct(v))
+        row.append(f"{hz(peaks[0])} / {hz(peaks[1])}")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n\n"
+
+
+def lags_table(summary: dict, surface: dict | None) -> str:
+    ch, paper = summary["chosen_lags"], summary["paper_lags"]
+    s = ("| | this run | paper |\n|---|---|---|\n"
+         f"| chosen lags | ny={ch['ny']}, nu={ch['nu']} | ny={paper['ny']}, nu={paper['nu']} |\n"
+         f"| lag-surface fit of the chosen cell % | {pct(ch['fit'])} | {pct(paper['fit'])} |\n")
+    if surface and surface.get("best"):
+        b = surface["best"]
+        s += f"| best cell | ny={b['ny']}, nu={b['nu']}: {pct(b['fit'])} | |\n"
+    s += "\n"
+    if summary.get("lag_grid_edge"):
+        s += (f"The best cell sits on the grid's largest {' and '.join(summary['lag_grid_edge'])} "
+              "(`lag_grid_edge` in the summary).\n\n")
+    if surface and surface.get("cells"):
+        names = sorted({k for c in surface["cells"] for k in (c.get("fits") or {})})
+        rule = ("the smallest ny + nu within "
+                f"{surface.get('tolerance', 0.5)} points of the best" if surface.get("criterion") != "worst"
+                else "the highest worst-record fit")
+        s += (f"Lag surface: free-run fit % of a model trained at each (ny, nu) on the `train` records, scored on "
+              f"the `lags` record(s) ({', '.join(names)}); chosen by {rule}.\n\n"
+              "| ny \\ nu | " + " | ".join(str(v) for v in surface["nu"]) + " |\n|" + "---|" * (1 + len(surface["nu"]))
+              + "\n")
+        fits = {(c["ny"], c["nu"]): c.get("fit") for c in surface["cells"]}
+        for ny in surface["ny"]:
+            s += f"| {ny} | " + " | ".join(pct(fits.get((ny, nu))) for nu in surface["nu"]) + " |\n"
+        s += "\n"
+    return s
+
+
+def loops_table(summary: dict) -> str:
+    rows = [(n, r) for n, r in _ordered(summary["records"]) if r.get("loop_area_predicted") is not None]
+    if not rows:
+        return ""
+    s = ("Loop areas (restoring force R = u - m y'' against y, J): the noise-free, measured and predicted loops "
+         "of each record.\n\n| record | use | noise-free | measured | predicted |\n|---|---|---|---|---|\n")
+    for n, r in rows:
+        s += (f"| {n} | {USE_LABEL.get(r.get('use'), '')} | {sig(r.get('loop_area_clean'), 4)} | "
+              f"{sig(r.get('loop_area_measured'), 4)} | {sig(r.get('loop_area_predicted'), 4)} |\n")
+    return s + "\n"
+
+
+def _header(title: str, system: str, summary: dict) -> str:
+    return (f"# {title}\n\n"
+            f"Regenerated by `gpnarx reproduce {system} --docs docs/results-{system}.md` (or, from an existing run "
+            f"folder, `gpnarx reproduce {system} --out RUN --from-run --docs docs/results-{system}.md`) from the "
+            "run's own figures (`summary.json`, `lag_surface.json`); do not edit by hand. The run's bundle report "
+            "(`report.html`) holds the same records with figures.\n\n" + _run_line(summary))
+
+
+def bouc_wen_page(summary: dict, surface: dict | None = None) -> str:
+    page = _header("Results: Bouc-Wen benchmark (section 3)", "bouc-wen", summary)
+    page += ("Protocol (`configs/bouc-wen.toml`): train on the 10 N and 80 N sweeps (5-150 Hz, 53 Hz/s) with output "
+             "noise of 10 % of the energy of the 10 N response; lag surface judged on the 50 N sweep; the "
+             "verification rows of the 10 and 80 N sweeps are therefore the training records, and the 50 N row "
+             "is the lag-selection record; only the 35.59 Hz sines and the multisines at 10/50/80 N are held out. "
+             "Baselines are scored against the noise-free output. The investigation of the 10 N sweep's miss "
+             "and of remedies is in [study-bouc-wen-10n.md](study-bouc-wen-10n.md).\n\n")
+    page += "## Lags\n\n" + lags_table(summary, surface)
+    page += "## Records\n\n" + _columns_note(True) + records_table(summary, True, "fit_clean")
+    page += loops_table(summary)
+    return page
+
+
+def standin_page(summary: dict, surface: dict | None = None) -> str:
+    page = _header("Results: BERT stand-in (section 4 protocol)", "bert-standin", summary)
+    page += ("**These are stand-in numbers, never the rig's.** The real records are in "
+             "[results-bert-real.md](results-bert-real.md); the stand-in itself (its calibration against the real "
+             "records, realization scatter, torque law) is described in [standin.md](standin.md).\n\n"
+             "Protocol (`configs/bert-standin.toml`): train on 0.05 V and 0.20 V sweeps (0-40 Hz, 5 Hz/s, 16384 "
+             "samples at 1024 Hz) of several realizations; lag surface judged on a 0.10 V sweep realization; "
+             "held out: a 0.15 V sweep, an 18 Hz sine at 0.15 V and 0-110 Hz noise at 0.30 V, each a new "
+             "realization. The paper uses 4096 Monte Carlo paths. \"Nominal stand-in (oracle)\": the stand-in's "
+             "own nominal equations predicting the realization, what realization scatter alone costs.\n\n")
+    page += "## Lags\n\n" + lags_table(summary, surface)
+    page += ("## Records\n\n" + _columns_note(True)
+             + records_table(summary, True, "fit", oracle=summary.get("oracle")))
+    mon = summary.get("monitor")
+    if mon:
+        page += ("## The bolt-loosening monitor\n\n`configs/bert-standin-monitor.toml`, trained by the same run: "
+                 "its probe is a steady 0.15 V sine at 9 Hz; its healthy records set the novelty threshold "
+                 "(use: novelty calibration), its damaged and validate records are held out.\n\n")
+        nv = mon.get("novelty") or {}
+        if nv:
+            page += (f"Threshold {sig(nv.get('threshold'), 4)} at a {pct(100 * nv['false_alarm_rate'])} % "
+                     f"false-alarm rate from {nv.get('n_healthy')} healthy records.\n\n")
+        page += ("| record | use | role | fit % | fit clean % | coverage % | coverage latent % | novelty score | "
+                 "verdict |\n|---|---|---|---|---|---|---|---|---|\n")
+        for name, r in _ordered(mon["records"]):
+            page += (f"| {name} | {USE_LABEL.get(r.get('use'), '')} | {r.get('role')} | {pct(r.get('fit'))} | "
+                     f"{pct(r.get('fit_clean'))} | {pct(r.get('coverage'))} | {pct(r.get('coverage_latent'))} | "
+                     f"{sig(r.get('novelty_score'), 4)} | {r.get('verdict', '')} |\n")
+        page += "\n"
+    nov = summary.get("novelty")
+    if nov:
+        classes = list(nov["scores"])
+        page += ("## Bolt loosening (novelty study)\n\n"
+                 f"Each record: {nov['record_seconds']:.0f} s of the probe, a new seeded realization, "
+                 f"{'linearised' if not nov.get('mc_paths') else str(nov['mc_paths']) + '-path Monte Carlo'} "
+                 f"free run from its first ny measured outputs, score method `{nov.get('method')}`. Thresholds: the "
+                 f"quantile of a log-normal fit to {len(nov['calibration_scores'])} healthy 5 N m calibration "
+                 f"realizations; {nov['n_per_class']} records per class below, none used for calibration. "
+                 f"Direction: {nov.get('direction')}. ROC curve: `novelty_roc.png` in the run folder.\n\n"
+                 "| false-alarm rate | threshold | " + " | ".join(f"{c} flagged" for c in classes) + " |\n|"
+                 + "---|" * (2 + len(classes)) + "\n")
+        for far, thr in nov["thresholds"].items():
+            rates = nov["rates"][far]
+            page += (f"| {pct(100 * float(far))} % | {sig(thr, 4)} | "
+                     + " | ".join(f"{round(rates[c] * nov['n_per_class'])} / {nov['n_per_class']} "
+                                  f"({pct(100 * rates[c])} %)" for c in classes) + " |\n")
+        page += ("\nScores (min-max): " + "; ".join(
+            f"{c} {sig(min(v), 4)}-{sig(max(v), 4)}" for c, v in nov["scores"].items())
+            + f"; calibration {sig(min(nov['calibration_scores']), 4)}-{sig(max(nov['calibration_scores']), 4)}.\n")
+    return page
+
+
+PAGES = {"bouc-wen": bouc_wen_page, "bert-standin": standin_page}
+
+__all__ = ["PAGES", "bouc_wen_page", "hz", "lags_table", "pct", "records_table", "sig", "standin_page"]
