@@ -20,11 +20,14 @@ All arrays are in the record's output units (e.g. m or m/s).
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import ndtri
+
+from .kernels import SQRT3
 
 LAG_CLIP = 1e3  # standardised lagged outputs are clipped to +/- this (diverging paths stay finite)
 VAR_CAP = LAG_CLIP**2  # linearised variance cap (standardised units)
@@ -44,6 +47,7 @@ class FreeRun:
     paths: np.ndarray | None = field(default=None, repr=False)
     diverged_paths: int = 0  # Monte Carlo paths whose |y| passed ``diverge_limit`` (see model.envelope)
     cov_band: np.ndarray | None = field(default=None, repr=False)  # linearised cov(y_i, y_{i-k}), (n, L)
+    local_steps: int = 0  # Monte Carlo steps evaluated by the checked local model (``simulate_mc``)
     # the latent band: the same confidence for the noise-free output f (no sigma_y^2 term at the step
     # reported; fed-back outputs keep their noise), to score against a noise-free output y_clean
     latent_lower: np.ndarray | None = field(default=None, repr=False)
@@ -86,6 +90,19 @@ def _start(n: int, ny: int, y0) -> tuple[int, np.ndarray]:
     return ny, y0
 
 
+# Tolerances of the local model's check (``simulate_mc``), at the checked paths (the farthest from the
+# mean regressor: the model's error grows as |d|^3, so these bound it for all paths). The 0.5 % and
+# 99.5 % quantiles of P paths carry a Monte Carlo standard error of sqrt(q (1 - q) / P) / phi(z_q),
+# 0.15 predictive std at P = 1024 and 0.075 at 4096: a mean error of 5e-3 std at the band's own
+# paths is 15-30x below it; a latent-variance error of 1 % moves a std by 0.5 %.
+LOCAL_TOL_MEAN = 5e-3  # largest mean error allowed, in predictive std
+LOCAL_TOL_VAR = 1e-2  # largest latent-variance error, relative to the predictive variance
+LOCAL_CHECKS = 12  # paths checked against eq. 8-9 per step: the farthest from the mean regressor, and random ones
+LOCAL_MIN_PATHS = 64  # fewer paths: every step exact
+LOCAL_BACKOFF = 16  # steps that start at the next level after a failed check
+LOCAL_EXACT_SHARE = (0, 4)  # levels: exact at none, then at the farthest 1/4 of the paths; then all exact
+
+
 def simulate_mc(
     posterior,
     x_scaler,
@@ -103,8 +120,585 @@ def simulate_mc(
     progress=None,
     diverge_limit: float | None = None,
     latent: bool = True,
+    local: bool = True,
 ) -> FreeRun:
     """Monte Carlo free-run over ``n_paths`` paths advanced together (see module docstring).
+
+    u: input record (input units, e.g. N or V). y0: optional first ny measured outputs (output
+    units) taken as known; otherwise the system starts from rest. ``progress``: optional callable
+    ``progress(done_steps, total_steps)``. ``diverge_limit``: peak |y| [output units] beyond which a
+    path counts in ``FreeRun.diverged_paths`` (``model.envelope.divergence_limit``); None: not counted.
+
+    Evaluation of eq. 8 (mean) and eq. 9 (latent variance) at the paths' regressors. All paths share
+    the input lags, and their output lags lie close together (their spread is the band, a small
+    fraction of the kernel's lengthscale), so with ``local`` (default) each step uses a second-order
+    model of the mean and of the variance around the paths' mean regressor in the ny output-lag
+    coordinates (``gp.local_model``: analytic gradient and Hessian, O(M^2 ny) per step instead of
+    O(P M^2)), and checks it against eq. 8-9 evaluated exactly at ``LOCAL_CHECKS`` paths (the
+    farthest from the mean regressor, where the model's error is largest, and random ones). When the
+    check fails (mean error above ``LOCAL_TOL_MEAN`` predictive std or latent-variance error above
+    ``LOCAL_TOL_VAR`` of the predictive variance), the farthest quarter of the paths is evaluated
+    exactly and the model, checked again on the others, serves the rest; failing that, the step is
+    exact at every path. A failed level is skipped for the next ``LOCAL_BACKOFF`` steps. Steps with a
+    clipped lag, runs with fewer than ``LOCAL_MIN_PATHS`` paths and kernels without ``local_terms``
+    are exact. ``FreeRun.local_steps`` counts the steps served (wholly or partly) by the local model.
+    The random draws are the same as the exact evaluation's (same seed, same paths up to the model's
+    error). ``local=False``: every step exact (``_simulate_mc_reference``'s arithmetic).
+    ``latent``: also the latent band (``FreeRun.latent_lower``/``latent_upper``; see module docstring).
+    """
+    t_start = time.perf_counter()
+    confidence = _check_confidence(confidence)
+    if int(n_paths) < 1:
+        raise ValueError(f"n_paths must be at least 1, got {n_paths}")
+    P = int(n_paths)
+    n = u.size
+    i0, y0v = _start(n, ny, y0)
+    rng = np.random.default_rng(seed)
+    q_lo, q_hi = (1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0
+    mean = np.zeros(n)
+    std = np.zeros(n)
+    lower = np.zeros(n)
+    upper = np.zeros(n)
+    if i0:
+        mean[:i0] = lower[:i0] = upper[:i0] = y0v
+    paths = np.zeros((n, P)) if keep_paths else None
+    if keep_paths and i0:
+        paths[:i0] = y0v[:, None]
+
+    xm, xs = x_scaler.mean_, x_scaler.scale_
+    ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
+    Ulag = (_lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]  # standardised input part, shared by paths
+    ylag_raw = np.zeros((P, ny))
+    if i0:
+        ylag_raw[:] = y0v[::-1][None, :]  # [y_{i0-1}, ..., y_{i0-ny}]
+    Xs = np.empty((P, ny + nu))
+    noise = posterior.noise_var if include_noise else 0.0
+    block = max(1, min(256, (1 << 22) // P))
+    buf = np.empty((block, P))
+    lat = latent and noise > 0.0  # without the noise term the latent band is the predictive band
+    lbuf = np.empty((block, P)) if lat else None
+    lat_lo = lower.copy() if lat else None
+    lat_hi = upper.copy() if lat else None
+    path_peak = np.zeros(P)
+    b0 = i0
+    use_local = bool(local) and P >= LOCAL_MIN_PATHS and _has_local_model(posterior, ny + nu, ny)
+    n_check = min(LOCAL_CHECKS, P)
+    check_rng = np.random.default_rng(None if seed is None else [int(seed), 0x10CA1])
+    floor, retry_at = 0, -1  # after a failed check, start at level ``floor`` until step retry_at
+    local_steps = 0
+    # a lag value inside (lo, hi) needs no clipping in any column; outside: clip the next ny steps
+    lo = float(np.max(xm[:ny] - LAG_CLIP * xs[:ny]))
+    hi = float(np.min(xm[:ny] + LAG_CLIP * xs[:ny]))
+    clip_until = -1
+    if i0 and not (lo < float(y0v.min()) and float(y0v.max()) < hi):
+        clip_until = i0 + ny
+    mu = np.empty(P)
+    var = np.empty(P)
+    tmp = np.empty((P, 2 * ny))
+    for i in range(i0, n):
+        Y = Xs[:, :ny]
+        np.subtract(ylag_raw, xm[:ny], out=Y)
+        Y /= xs[:ny]
+        Xs[:, ny:] = Ulag[i]
+        clipped = i <= clip_until
+        if clipped:
+            np.clip(Y, -LAG_CLIP, LAG_CLIP, out=Y)  # a diverging path cannot overflow
+        done = False
+        if use_local and not clipped:
+            start = floor if i < retry_at else 0
+            for level in range(start, len(LOCAL_EXACT_SHARE)):
+                share = LOCAL_EXACT_SHARE[level]
+                done = _local_step(posterior, Xs, ny, noise, n_check, check_rng, mu, var, tmp,
+                                   P // share if share else 0)
+                if done:
+                    break
+                floor, retry_at = level + 1, i + LOCAL_BACKOFF
+            local_steps += done
+        if not done:
+            mu[:], var[:] = posterior.predict(Xs, float32=float32)
+        sd = np.sqrt(var + noise)
+        ysamp = buf[i - b0]
+        np.multiply(sd, rng.standard_normal(P), out=ysamp)
+        if lat:  # latent draw mu + sigma_f eps with the output draw's eps: f = mu + (y - mu) sigma_f / sd
+            fsamp = lbuf[i - b0]
+            np.multiply(ysamp, np.sqrt(var) / sd, out=fsamp)
+            fsamp += mu
+        ysamp += mu
+        ysamp *= ys
+        ysamp += ym  # back to output units
+        mean[i] = float(np.mean(mu)) * ys + ym
+        if keep_paths:
+            paths[i] = ysamp
+        ylag_raw[:, 1:] = ylag_raw[:, :-1]
+        ylag_raw[:, 0] = ysamp
+        if not (lo < float(ysamp.min()) and float(ysamp.max()) < hi):  # also for non-finite samples
+            clip_until = i + ny  # some lag of the next ny steps may need clipping
+        if i - b0 + 1 == block or i == n - 1:
+            chunk = buf[: i - b0 + 1]
+            np.maximum(path_peak, np.max(np.abs(chunk), axis=0), out=path_peak)
+            std[b0 : i + 1] = np.std(chunk, axis=1)
+            lower[b0 : i + 1], upper[b0 : i + 1] = np.quantile(chunk, [q_lo, q_hi], axis=1)
+            if lat:
+                lat_lo[b0 : i + 1], lat_hi[b0 : i + 1] = np.quantile(lbuf[: i - b0 + 1], [q_lo, q_hi], axis=1)
+                lat_lo[b0 : i + 1] *= ys
+                lat_lo[b0 : i + 1] += ym
+                lat_hi[b0 : i + 1] *= ys
+                lat_hi[b0 : i + 1] += ym
+            b0 = i + 1
+        if progress is not None and (i % 256 == 0 or i == n - 1):
+            progress(i + 1, n)
+    diverged = 0 if diverge_limit is None else int(np.count_nonzero(~(path_peak <= diverge_limit)))
+    if latent and not lat:
+        lat_lo, lat_hi = lower.copy(), upper.copy()
+    return FreeRun(mean, std, lower, upper, confidence, P, "mc", time.perf_counter() - t_start,
+                   (n - i0) * P, paths, diverged, local_steps=local_steps, latent_lower=lat_lo,
+                   latent_upper=lat_hi)
+
+
+def _has_local_model(posterior, D: int, ny: int) -> bool:
+    """Whether ``gp.local_model`` covers this posterior (its kernel has ``local_terms``)."""
+    from .gp import local_model
+
+    if getattr(posterior, "kind", None) not in ("sparse", "exact") or not hasattr(posterior, "mean_weights"):
+        return False
+    try:
+        local_model(posterior, np.zeros(D), ny)
+    except NotImplementedError:
+        return False
+    return True
+
+
+def _local_step(posterior, Xs, ny, noise, n_check, rng, mu, var, tmp, n_exact: int = 0) -> bool:
+    """Mean and latent variance of every path from ``gp.local_model`` around the paths' mean
+    regressor, into mu and var; False (mu, var undefined) when the check against eq. 8-9 fails.
+
+    n_exact: the n_exact paths farthest from the mean regressor are evaluated exactly (eq. 8-9) and
+    the model serves the others, checked at the farthest of those and at random ones.
+    """
+    from .gp import local_model
+
+    P = Xs.shape[0]
+    xbar = Xs.mean(axis=0)
+    d = Xs[:, :ny] - xbar[:ny]
+    half = n_check // 2
+    r2 = np.einsum("ij,ij->i", d, d)
+    order = np.argpartition(r2, [P - n_exact - half, P - n_exact] if n_exact else P - half)
+    ex = order[P - n_exact:] if n_exact else order[:0]
+    far = order[P - n_exact - half: P - n_exact]
+    rand = order[rng.integers(0, P - n_exact, n_check - half)]
+    idx = np.concatenate([ex, far, rand])
+    m0, gm, Hm, v0, gv, Hv, m_ex, v_ex = local_model(posterior, xbar, ny, Xs[idx])
+    np.dot(d, np.hstack([Hm, Hv]), out=tmp)
+    np.einsum("ij,ij->i", tmp[:, :ny], d, out=mu)
+    np.einsum("ij,ij->i", tmp[:, ny:], d, out=var)
+    mu *= 0.5
+    var *= 0.5
+    g = d @ np.column_stack([gm, gv])
+    mu += g[:, 0]
+    var += g[:, 1]
+    mu += m0
+    var += v0
+    c = slice(n_exact, None)  # the checked paths among idx
+    pv = v_ex[c] + noise  # predictive variance: what the draws use
+    if not (np.all(np.abs(mu[idx[c]] - m_ex[c]) <= LOCAL_TOL_MEAN * np.sqrt(pv))
+            and np.all(np.abs(var[idx[c]] - v_ex[c]) <= LOCAL_TOL_VAR * pv)):
+        return False
+    np.maximum(var, 1e-300, out=var)
+    if n_exact:
+        mu[ex] = m_ex[:n_exact]
+        var[ex] = v_ex[:n_exact]
+    return True
+
+
+def simulate_linear(
+    posterior,
+    x_scaler,
+    y_scaler,
+    ny: int,
+    nu: int,
+    u: np.ndarray,
+    y0=None,
+    confidence: float = 0.99,
+    include_noise: bool = True,
+    progress=None,
+    cov_window: int = 0,
+) -> FreeRun:
+    """First-order (linearised) propagation of mean and covariance through the lagged outputs.
+
+    State: mean m and covariance S (ny x ny) of [y_{i-1}, ..., y_{i-ny}] (output units). With
+    J = d mu / d y_lags at the mean regressor (chain rule through the standardisation):
+    var(y_i) = sigma_f^2 + sigma_y^2 + J S J^T, cov(y_i, y_{i-k}) = (S J^T)_k; the state shifts.
+
+    cov_window: when L = cov_window > ny, the covariance state covers the last L outputs (J is
+    zero beyond the ny lags, so mean and std are unchanged) and ``FreeRun.cov_band`` holds
+    cov(y_i, y_{i-k}) for k < L, shape (n, L): what a linear functional of a window of outputs
+    (e.g. a cycle's energy, ``model.cycles``) needs for its variance.
+
+    Three passes, the same numbers as one ``mean_grad`` call per step (``_simulate_linear_reference``):
+    1. the mean recursion alone (eq. 8 at the mean regressor): it does not depend on the variances,
+       and one step is a few numpy calls on (M,) vectors (``_MeanRecursion``);
+    2. sigma_f^2 (eq. 9) and J at every mean regressor of the record in row blocks (BLAS-3, the
+       posterior's ``mean_var_grad``);
+    3. the covariance recursion (ny x ny per step).
+    Posteriors without ``mean_var_grad`` take the reference loop.
+    """
+    fast = _MeanRecursion.build(posterior, x_scaler, ny, nu)
+    if fast is None or not hasattr(posterior, "mean_var_grad"):
+        return _simulate_linear_reference(posterior, x_scaler, y_scaler, ny, nu, u, y0=y0, confidence=confidence,
+                                          include_noise=include_noise, progress=progress, cov_window=cov_window)
+    t_start = time.perf_counter()
+    confidence = _check_confidence(confidence)
+    z = float(ndtri(1.0 - (1.0 - confidence) / 2.0))
+    u = np.asarray(u, dtype=float)
+    n = u.size
+    i0, y0v = _start(n, ny, y0)
+    xm, xs = x_scaler.mean_, x_scaler.scale_
+    ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
+    Ulag = (_lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
+    # pass 1: hist[t + ny] = mean output at time t (output units); hist[:ny] = 0 (at rest)
+    hist = np.zeros(n + ny)
+    if i0:
+        hist[ny: 2 * ny] = y0v
+    fast.run(hist, Ulag, i0, n, ym, ys, progress)
+    mean = hist[ny:].copy()
+    std = np.zeros(n)
+    lstd = np.zeros(n)  # latent std: var(y_i) without the reporting step's sigma_y^2
+    L = max(ny, int(cov_window or 0))
+    band = np.zeros((n, L)) if L > ny else None
+    if n > i0:
+        # pass 2: the mean regressors of every step (standardised, clipped as in pass 1)
+        win = np.lib.stride_tricks.sliding_window_view(hist, ny)[i0:n, ::-1]  # [y_{i-1}, ..., y_{i-ny}]
+        X = np.empty((n - i0, ny + nu))
+        np.subtract(win, xm[:ny], out=X[:, :ny])
+        X[:, :ny] /= xs[:ny]
+        np.clip(X[:, :ny], -LAG_CLIP, LAG_CLIP, out=X[:, :ny])
+        X[:, ny:] = Ulag[i0:]
+        _, var_f, grad = posterior.mean_var_grad(X)
+        noise = posterior.noise_var if include_noise else 0.0
+        q = (var_f + noise) * (ys * ys)  # sigma_f^2 + sigma_y^2 in output units
+        Jall = grad[:, :ny] * (ys / xs[:ny])  # d mu_out / d y_lag (output units)
+        # pass 3: covariance recursion
+        var_y, prop = _covariance_recursion(q, Jall, L, ys, band, i0)
+        std[i0:] = np.sqrt(np.maximum(var_y, 0.0))
+        # latent: var(y_i) without the reporting step's sigma_y^2 (as the reference loop)
+        var_lat = var_f * (ys * ys) + prop
+        ok = np.isfinite(var_lat)
+        lstd[i0:] = np.where(ok, np.sqrt(np.maximum(np.minimum(np.where(ok, var_lat, 0.0), var_y), 0.0)),
+                             std[i0:])
+    if progress is not None:
+        progress(n, n)
+    return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
+                   time.perf_counter() - t_start, n - i0, cov_band=band,
+                   latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)
+
+
+def _covariance_recursion(q: np.ndarray, Jall: np.ndarray, L: int, ys: float, band, i0: int):
+    """var(y_i) for every step of the linearised propagation and its propagated part J S J^T (two
+    arrays), and cov(y_i, y_{i-k}) into ``band``.
+
+    S (L x L, output units) is the covariance of [y_{i-1}, ..., y_{i-L}]; one step is
+    SJ = S[:, :ny] J, var_y = q_i + J . SJ[:ny], then S shifts down the diagonal with [var_y, SJ]
+    as its new first row and column. The shift costs nothing: S is a moving diagonal window of a
+    larger buffer (rebased every ``block`` steps). Same caps as the reference loop.
+    """
+    ny = Jall.shape[1]
+    steps = q.size
+    cap = VAR_CAP * ys * ys
+    out = np.empty(steps)
+    prop = np.empty(steps)
+    block = 512
+    B = np.zeros((L + block, L + block))
+    o = block  # S = B[o:o+L, o:o+L]
+    isfinite = math.isfinite
+    dot = np.dot
+    safe = 0.25 * cap
+    for k in range(steps):
+        if o == 0:  # rebase: move S to the bottom-right corner
+            B[block:, block:] = B[:L, :L]
+            o = block
+        S = B[o: o + L, o: o + L]
+        J = Jall[k]
+        SJ = dot(S[:, :ny], J)
+        t = float(dot(J, SJ[:ny]))  # J S J^T
+        if not (isfinite(t) and -safe < t < safe):
+            # the reference loop's guards. Otherwise they change nothing: S is a covariance with
+            # diagonal <= cap, so |(S J)_a| <= sqrt(S_aa J S J^T) < cap / 2 (Cauchy-Schwarz)
+            if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
+                SJ = np.nan_to_num(SJ, nan=cap, posinf=cap, neginf=-cap)
+            np.clip(SJ, -cap, cap, out=SJ)
+            t = float(dot(J, SJ[:ny]))
+        prop[k] = t
+        v = q[k] + t
+        v = min(v, cap) if isfinite(v) else cap
+        out[k] = v
+        o -= 1
+        B[o, o] = v
+        B[o, o + 1: o + L] = SJ[:-1]
+        B[o + 1: o + L, o] = SJ[:-1]
+        if band is not None:
+            band[i0 + k, 0] = v
+            band[i0 + k, 1:] = SJ[:-1]
+    return out, prop
+
+
+class _MeanRecursion:
+    """Pass 1 of ``simulate_linear``: the free-run mean y_i = mu(x_i) (eq. 8) fed back as a lag.
+
+    For posteriors whose kernel is a sum of Matern32, RBF, CubicPolynomial and White parts, one step
+    is about twenty numpy calls on (M,) vectors instead of a general kernel evaluation:
+    g = Z x (the input part Z_u x_u of every step of a block is one BLAS-3 product before the block),
+    r^2 = |x|^2 + |z|^2 - 2 g, then every part's row from g or r^2 into one (rows x M) buffer F, and
+    one product F w. A cubic part (eq. 11) enters through the moments sum_m w_m g_m^p, p = 1..3:
+    sum_m w_m sigma_p^2 (s g_m + b)^3 = sigma_p^2 (b^3 sum w + 3 b^2 s S1 + 3 b s^2 S2 + s^3 S3),
+    which is the capped kernel's K w plus the posterior's ``mean_shift`` (kernels.CubicPolynomial).
+    """
+
+    def __init__(self, Z, parts, ny, nu, xm, xs):
+        self.Z = Z
+        self.ny, self.nu = ny, nu
+        self.xm, self.xs = xm, xs
+        self.Zy_rev = np.ascontiguousarray(Z[:, :ny][:, ::-1])  # columns in time order y_{i-ny}..y_{i-1}
+        self.Zu = np.ascontiguousarray(Z[:, ny:])
+        self.sqZ = np.einsum("ij,ij->i", Z, Z)
+        self.xm_rev = np.ascontiguousarray(xm[:ny][::-1])
+        self.inv_rev = np.ascontiguousarray(1.0 / xs[:ny][::-1])
+        self.parts = parts  # list of (kind, row index in F or None, coefficients)
+        self.n_rows = 1 + max([r for _, r, _ in parts if r is not None] + [0])
+        self.const = 0.0
+        self.cubic = [0.0, 0.0, 0.0]  # coefficients of S1, S2, S3
+        self.stationary = []  # (kind, F row, scale)
+        for kind, row, c in parts:
+            if kind == "cubic":
+                for j in range(3):
+                    self.cubic[j] += c[j]
+                self.const += c[3]
+            elif kind in ("matern", "rbf"):
+                self.stationary.append((kind, row, c))
+        # F rows: 0 = g, 1 = g^2, 2 = g^3 (when a cubic part is present), then one row per stationary part
+        self.wF = None
+
+    @classmethod
+    def build(cls, posterior, x_scaler, ny, nu):
+        """A recursion for ``posterior``, or None when its kernel or type is not covered."""
+        from .kernels import RBF, CubicPolynomial, Matern32, Sum, White
+
+        kernel = getattr(posterior, "kernel", None)
+        Z = getattr(posterior, "X", None)
+        try:
+            w = posterior.mean_weights
+        except AttributeError:
+            return None
+        if kernel is None or Z is None or getattr(x_scaler, "mean_", None) is None:
+            return None
+        plist = kernel.parts if isinstance(kernel, Sum) else [kernel]
+        parts = []
+        row = 3
+        sw = float(np.sum(w))
+        for p in plist:
+            if isinstance(p, Matern32):
+                var, ls = np.exp(p.theta)
+                parts.append(("matern", row, (float(var), float(SQRT3 / ls))))
+                row += 1
+            elif isinstance(p, RBF):
+                var, ls = np.exp(p.theta)
+                parts.append(("rbf", row, (float(var), float(-0.5 / ls**2))))
+                row += 1
+            elif isinstance(p, CubicPolynomial):
+                var, s_, b = (float(v) for v in np.exp(p.theta))
+                parts.append(("cubic", None, (3.0 * var * b * b * s_, 3.0 * var * b * s_ * s_, var * s_**3,
+                                              var * b**3 * sw)))
+            elif isinstance(p, White):
+                continue  # zero between distinct sets: no mean contribution
+            else:
+                return None
+        obj = cls(np.ascontiguousarray(Z, dtype=float), parts, ny, nu, np.asarray(x_scaler.mean_, float),
+                  np.asarray(x_scaler.scale_, float))
+        obj.n_rows = row
+        obj.w = np.asarray(w, dtype=float)
+        return obj
+
+    def run(self, hist, Ulag, i0, n, ym, ys, progress=None, chunk=1024):
+        """Fill hist[ny + i] with the mean output of every step i0 <= i < n (output units)."""
+        ny = self.ny
+        M = self.Z.shape[0]
+        F = np.zeros((self.n_rows, M))
+        g, g2, g3 = F[0], F[1], F[2]
+        GG = np.empty(2 * M)  # [Z_y x_y; -2 Z_y x_y] from one product
+        gy, gy2 = GG[:M], GG[M:]
+        Zy2 = np.vstack([self.Zy_rev, -2.0 * self.Zy_rev])
+        r = np.empty(M)
+        xy = np.empty(ny)
+        wv = self.w
+        c1, c2, c3 = self.cubic
+        const = self.const
+        has_cubic = any(k == "cubic" for k, _, _ in self.parts)
+        stationary = self.stationary
+        single = len(stationary) == 1
+        xm_r, inv_r = self.xm_rev, self.inv_rev
+        # conservative range of a lag value whose standardised value needs no clipping (any column)
+        lo = float(np.max(self.xm[:ny] - LAG_CLIP * self.xs[:ny]))
+        hi = float(np.min(self.xm[:ny] + LAG_CLIP * self.xs[:ny]))
+        clip_until = -1
+        for k in range(ny):  # initial lags (y0) outside that range
+            v = hist[i0 + k]
+            if not lo <= v <= hi:
+                clip_until = i0 + ny
+        dot, multiply, subtract, add = np.dot, np.multiply, np.subtract, np.add
+        maximum, sqrt, exp = np.maximum, np.sqrt, np.exp
+        for c0 in range(i0, n, chunk):
+            c1_ = min(n, c0 + chunk)
+            Uc = Ulag[c0:c1_]
+            GU = Uc @ self.Zu.T  # input part of g = Z x for every step of the chunk
+            # |z|^2 + |x_u|^2 - 2 Z_u x_u: r^2 = that + |x_y|^2 - 2 Z_y x_y
+            R0 = GU * -2.0
+            R0 += self.sqZ
+            R0 += np.einsum("ij,ij->i", Uc, Uc)[:, None]
+            for i in range(c0, c1_):
+                j = i - c0
+                subtract(hist[i: i + ny], xm_r, out=xy)
+                xy *= inv_r
+                if i <= clip_until:
+                    np.clip(xy, -LAG_CLIP, LAG_CLIP, out=xy)
+                dot(Zy2, xy, out=GG)
+                add(gy, GU[j], out=g)
+                if stationary:
+                    add(gy2, R0[j], out=r)
+                    r += float(dot(xy, xy))
+                    maximum(r, 0.0, out=r)
+                    for kind, row, (_, c) in stationary:
+                        f = F[row]
+                        a = r if single else r.copy()
+                        if kind == "matern":  # (1 + a) exp(-a), a = sqrt(3) r / l (eq. 10); var below
+                            sqrt(a, out=a)
+                            a *= -c
+                            exp(a, out=f)
+                            subtract(1.0, a, out=a)
+                            f *= a
+                        else:  # rbf: exp(-r^2 / (2 l^2))
+                            multiply(a, c, out=f)
+                            exp(f, out=f)
+                if has_cubic:
+                    multiply(g, g, out=g2)
+                    multiply(g2, g, out=g3)
+                vals = dot(F, wv)
+                mu = const + c1 * vals[0] + c2 * vals[1] + c3 * vals[2]
+                for _, row, (var, _) in stationary:
+                    mu += var * vals[row]
+                y = mu * ys + ym
+                hist[ny + i] = y
+                if not lo <= y <= hi:
+                    clip_until = i + ny
+                if progress is not None and (i % 4096 == 0):
+                    progress(i + 1, n)
+
+
+def _simulate_linear_reference(
+    posterior,
+    x_scaler,
+    y_scaler,
+    ny: int,
+    nu: int,
+    u: np.ndarray,
+    y0=None,
+    confidence: float = 0.99,
+    include_noise: bool = True,
+    progress=None,
+    cov_window: int = 0,
+) -> FreeRun:
+    """Reference implementation of ``simulate_linear`` (one ``posterior.mean_grad`` call per step),
+    kept for posteriors without ``mean_var_grad``, for the equivalence tests and for
+    bench/bench_realtime.py. Same arguments and result.
+
+    First-order (linearised) propagation of mean and covariance through the lagged outputs.
+
+    State: mean m and covariance S (ny x ny) of [y_{i-1}, ..., y_{i-ny}] (output units). With
+    J = d mu / d y_lags at the mean regressor (chain rule through the standardisation):
+    var(y_i) = sigma_f^2 + sigma_y^2 + J S J^T, cov(y_i, y_{i-k}) = (S J^T)_k; the state shifts.
+
+    cov_window: when L = cov_window > ny, the covariance state covers the last L outputs (J is
+    zero beyond the ny lags, so mean and std are unchanged) and ``FreeRun.cov_band`` holds
+    cov(y_i, y_{i-k}) for k < L, shape (n, L): what a linear functional of a window of outputs
+    (e.g. a cycle's energy, ``model.cycles``) needs for its variance.
+    """
+    t_start = time.perf_counter()
+    confidence = _check_confidence(confidence)
+    z = float(ndtri(1.0 - (1.0 - confidence) / 2.0))
+    n = u.size
+    i0, y0v = _start(n, ny, y0)
+    mean = np.zeros(n)
+    std = np.zeros(n)
+    lstd = np.zeros(n)  # latent std: var(y_i) without the reporting step's sigma_y^2
+    if i0:
+        mean[:i0] = y0v
+    xm, xs = x_scaler.mean_, x_scaler.scale_
+    ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
+    Ulag = (_lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
+    m = np.zeros(ny)
+    if i0:
+        m[:] = y0v[::-1]
+    L = max(ny, int(cov_window or 0))
+    S = np.zeros((L, L))
+    band = np.zeros((n, L)) if L > ny else None
+    noise = posterior.noise_var if include_noise else 0.0
+    x = np.empty(ny + nu)
+    dscale = ys / xs[:ny]  # d y_out / d x_std for the lag columns
+    cap = VAR_CAP * ys * ys  # variance cap in output units
+    for i in range(i0, n):
+        x[:ny] = np.clip((m - xm[:ny]) / xs[:ny], -LAG_CLIP, LAG_CLIP)  # a diverging mean stays finite
+        x[ny:] = Ulag[i]
+        mu, var_f, grad = posterior.mean_grad(x)
+        J = grad[:ny] / xs[:ny] * ys  # d mu_out / d y_lag (output units)
+        SJ = S[:, :ny] @ J
+        if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
+            SJ = np.nan_to_num(SJ, nan=cap, posinf=cap, neginf=-cap)
+        np.clip(SJ, -cap, cap, out=SJ)
+        var_y = (var_f + noise) * ys * ys + float(J @ SJ[:ny])
+        var_y = min(var_y, cap) if np.isfinite(var_y) else cap
+        y_mean = mu * ys + ym
+        mean[i] = y_mean
+        std[i] = np.sqrt(max(var_y, 0.0))
+        var_f_out = var_f * ys * ys + float(J @ SJ[:ny])
+        lstd[i] = np.sqrt(max(min(var_f_out, var_y), 0.0)) if np.isfinite(var_f_out) else std[i]
+        # shift the state: new first element is y_i
+        S[1:, 1:] = S[:-1, :-1]
+        S[0, 1:] = SJ[:-1]
+        S[1:, 0] = SJ[:-1]
+        S[0, 0] = var_y
+        if band is not None:
+            band[i, 0] = var_y
+            band[i, 1:] = SJ[:-1]
+        m[1:] = m[:-1]
+        m[0] = y_mean
+        if progress is not None and (i % 256 == 0 or i == n - 1):
+            progress(i + 1, n)
+    del dscale
+    return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
+                   time.perf_counter() - t_start, n - i0, cov_band=band,
+                   latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)
+
+
+def _simulate_mc_reference(
+    posterior,
+    x_scaler,
+    y_scaler,
+    ny: int,
+    nu: int,
+    u: np.ndarray,
+    n_paths: int = 1024,
+    seed: int | None = 0,
+    y0=None,
+    confidence: float = 0.99,
+    include_noise: bool = True,
+    float32: bool = False,
+    keep_paths: bool = False,
+    progress=None,
+    diverge_limit: float | None = None,
+    latent: bool = True,
+) -> FreeRun:
+    """Reference implementation of ``simulate_mc``: every step evaluates eq. 8 and eq. 9 at every
+    path (``posterior.predict``). Kept for the equivalence tests and bench/bench_mc_speed.py.
+
+    Monte Carlo free-run over ``n_paths`` paths advanced together (see module docstring).
 
     u: input record (input units, e.g. N or V). y0: optional first ny measured outputs (output
     units) taken as known; otherwise the system starts from rest. ``progress``: optional callable
@@ -190,84 +784,3 @@ def simulate_mc(
         lat_lo, lat_hi = lower.copy(), upper.copy()
     return FreeRun(mean, std, lower, upper, confidence, P, "mc", time.perf_counter() - t_start,
                    (n - i0) * P, paths, diverged, latent_lower=lat_lo, latent_upper=lat_hi)
-
-
-def simulate_linear(
-    posterior,
-    x_scaler,
-    y_scaler,
-    ny: int,
-    nu: int,
-    u: np.ndarray,
-    y0=None,
-    confidence: float = 0.99,
-    include_noise: bool = True,
-    progress=None,
-    cov_window: int = 0,
-) -> FreeRun:
-    """First-order (linearised) propagation of mean and covariance through the lagged outputs.
-
-    State: mean m and covariance S (ny x ny) of [y_{i-1}, ..., y_{i-ny}] (output units). With
-    J = d mu / d y_lags at the mean regressor (chain rule through the standardisation):
-    var(y_i) = sigma_f^2 + sigma_y^2 + J S J^T, cov(y_i, y_{i-k}) = (S J^T)_k; the state shifts.
-
-    cov_window: when L = cov_window > ny, the covariance state covers the last L outputs (J is
-    zero beyond the ny lags, so mean and std are unchanged) and ``FreeRun.cov_band`` holds
-    cov(y_i, y_{i-k}) for k < L, shape (n, L): what a linear functional of a window of outputs
-    (e.g. a cycle's energy, ``model.cycles``) needs for its variance.
-    """
-    t_start = time.perf_counter()
-    confidence = _check_confidence(confidence)
-    z = float(ndtri(1.0 - (1.0 - confidence) / 2.0))
-    n = u.size
-    i0, y0v = _start(n, ny, y0)
-    mean = np.zeros(n)
-    std = np.zeros(n)
-    lstd = np.zeros(n)  # latent std: var(y_i) without the reporting step's sigma_y^2
-    if i0:
-        mean[:i0] = y0v
-    xm, xs = x_scaler.mean_, x_scaler.scale_
-    ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (_lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
-    m = np.zeros(ny)
-    if i0:
-        m[:] = y0v[::-1]
-    L = max(ny, int(cov_window or 0))
-    S = np.zeros((L, L))
-    band = np.zeros((n, L)) if L > ny else None
-    noise = posterior.noise_var if include_noise else 0.0
-    x = np.empty(ny + nu)
-    dscale = ys / xs[:ny]  # d y_out / d x_std for the lag columns
-    cap = VAR_CAP * ys * ys  # variance cap in output units
-    for i in range(i0, n):
-        x[:ny] = np.clip((m - xm[:ny]) / xs[:ny], -LAG_CLIP, LAG_CLIP)  # a diverging mean stays finite
-        x[ny:] = Ulag[i]
-        mu, var_f, grad = posterior.mean_grad(x)
-        J = grad[:ny] / xs[:ny] * ys  # d mu_out / d y_lag (output units)
-        SJ = S[:, :ny] @ J
-        if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
-            SJ = np.nan_to_num(SJ, nan=cap, posinf=cap, neginf=-cap)
-        np.clip(SJ, -cap, cap, out=SJ)
-        var_y = (var_f + noise) * ys * ys + float(J @ SJ[:ny])
-        var_y = min(var_y, cap) if np.isfinite(var_y) else cap
-        y_mean = mu * ys + ym
-        mean[i] = y_mean
-        std[i] = np.sqrt(max(var_y, 0.0))
-        var_f_out = var_f * ys * ys + float(J @ SJ[:ny])
-        lstd[i] = np.sqrt(max(min(var_f_out, var_y), 0.0)) if np.isfinite(var_f_out) else std[i]
-        # shift the state: new first element is y_i
-        S[1:, 1:] = S[:-1, :-1]
-        S[0, 1:] = SJ[:-1]
-        S[1:, 0] = SJ[:-1]
-        S[0, 0] = var_y
-        if band is not None:
-            band[i, 0] = var_y
-            band[i, 1:] = SJ[:-1]
-        m[1:] = m[:-1]
-        m[0] = y_mean
-        if progress is not None and (i % 256 == 0 or i == n - 1):
-            progress(i + 1, n)
-    del dscale
-    return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
-                   time.perf_counter() - t_start, n - i0, cov_band=band,
-                   latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)

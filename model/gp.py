@@ -553,15 +553,19 @@ class ExactPosterior:
                                   overwrite_b=1).T
             red = np.einsum("ij,ij->i", V, V, dtype=np.float64)
         else:
-            # |Linv k|^2 per row (eq. 9) with a triangular product: dtrmm computes Linv Ks^T in place
-            # in P N^2 flops (half the dense Ks @ Linv.T). Ks.T and Linv.T are F-ordered views of the
-            # C-ordered arrays, so BLAS needs no copy; Linv = (Linv.T)^T, hence trans_a=1, lower=0.
-            V = linalg.blas.dtrmm(1.0, self.Linv.T, np.ascontiguousarray(Ks).T, side=0, lower=0, trans_a=1,
-                                  overwrite_b=1).T
-            red = np.einsum("ij,ij->i", V, V)
+            red = self._reduction_rows(Ks)
         var = self.kernel.diag(Xs) - red
         np.maximum(var, 1e-300, out=var)
         return mean, var
+
+    def _reduction_rows(self, Ks: np.ndarray) -> np.ndarray:
+        """|Linv k|^2 per row of Ks (eq. 9), float64; Ks is overwritten."""
+        # a triangular product: dtrmm computes Linv Ks^T in place in P N^2 flops (half the dense
+        # Ks @ Linv.T). Ks.T and Linv.T are F-ordered views of the C-ordered arrays, so BLAS needs no
+        # copy; Linv = (Linv.T)^T, hence trans_a=1, lower=0.
+        V = linalg.blas.dtrmm(1.0, self.Linv.T, np.ascontiguousarray(Ks).T, side=0, lower=0, trans_a=1,
+                              overwrite_b=1).T
+        return np.einsum("ij,ij->i", V, V)
 
     def mean_grad(self, xs: np.ndarray) -> tuple[float, float, np.ndarray]:
         """Mean, latent variance and d mean / d xs at one point xs (D,)."""
@@ -572,12 +576,83 @@ class ExactPosterior:
         grad = self.kernel.grad_x(xs, self.X).T @ self.alpha
         return mean, var, grad
 
+    @property
+    def mean_weights(self) -> np.ndarray:
+        """w of the mean K(xs, X) w + mean_shift (eq. 8): alpha."""
+        return self.alpha
+
+    def mean_var_grad(self, Xs: np.ndarray, block: int = 256):
+        """``mean_grad`` for many points at once: mean (eq. 8), latent variance (eq. 9) and
+        d mean / d xs for every row of Xs, (rows,), (rows,), (rows, D); one kernel block per row block."""
+        return _mean_var_grad(self, Xs, block)
+
     def arrays(self) -> dict:
         return {"X": self.X, "alpha": self.alpha, "Linv": self.Linv}
 
     @classmethod
     def from_arrays(cls, kernel, noise_var, arrays) -> "ExactPosterior":
         return cls(kernel, noise_var, arrays["X"], arrays["alpha"], arrays["Linv"])
+
+
+def _mean_var_grad(post, Xs: np.ndarray, block: int):
+    """Mean (eq. 8), latent variance (eq. 9, the posterior's own ``predict``) and the mean's gradient
+    (``Kernel.grad_dot``) at every row of Xs, in row blocks sharing one Gram product per block."""
+    Xs = np.ascontiguousarray(Xs, dtype=float)
+    n = Xs.shape[0]
+    mean, var = np.empty(n), np.empty(n)
+    grad = np.empty(Xs.shape)
+    X, w = post.X, post.mean_weights
+    sqX = np.einsum("ij,ij->i", X, X)
+    for r0 in range(0, n, block):
+        r1 = min(n, r0 + block)
+        xb = Xs[r0:r1]
+        Ks, grad[r0:r1] = post.kernel.value_and_grad_dot(xb, X, w, xb @ X.T, np.einsum("ij,ij->i", xb, xb), sqX)
+        np.dot(Ks, w, out=mean[r0:r1])
+        mean[r0:r1] += post.mean_shift
+        var[r0:r1] = post.kernel.diag(xb) - post._reduction_rows(Ks)
+    np.maximum(var, 1e-300, out=var)
+    return mean, var, grad
+
+
+def local_model(post, x: np.ndarray, ny: int, Xc: np.ndarray | None = None):
+    """Second-order model of the predictive mean (eq. 8) and latent variance (eq. 9) around one
+    regressor x in its first ``ny`` coordinates (the lagged outputs).
+
+    mean(x + d) ~ m0 + gm . d + d^T Hm d / 2 and var(x + d) ~ v0 + gv . d + d^T Hv d / 2 for d zero
+    beyond ny. The variance is expanded as a whole, k(x, x) - |F k(x)|^2 with F the posterior's
+    factor (G, or Linv for the exact posterior): q = |F k|^2 has gradient 2 (F J)^T F k and Hessian
+    2 (F J)^T (F J) + 2 sum_n (F^T F k)_n d^2 k_n, J = d k / d x[:ny] (``Kernel.local_terms``).
+    Costs O(M^2 ny) for one point (no per-path work). With ``Xc`` (rows x D), also eq. 8-9 exactly
+    at those rows, sharing the one product with F. Returns (m0, gm, Hm, v0, gv, Hv, mean_c, var_c);
+    raises NotImplementedError for kernels without ``local_terms`` and for legacy bundles.
+    """
+    F = getattr(post, "G", None) if post.kind == "sparse" else post.Linv
+    if F is None:
+        raise NotImplementedError("legacy sparse bundle (no variance factor G)")
+    k, J, hess = post.kernel.local_terms(x, post.X, ny)
+    kxx, gk, Hk = post.kernel.diag_local(x, ny)
+    w = post.mean_weights
+    nc = 0 if Xc is None else Xc.shape[0]
+    B = np.empty((k.size, 1 + ny + nc))
+    B[:, 0] = k
+    B[:, 1: 1 + ny] = J
+    if nc:
+        B[:, 1 + ny:] = post.cross(Xc).T
+    mw = w @ B  # k.w, J^T w, Kc w
+    FB = F @ B
+    Fk, FJ = FB[:, 0], FB[:, 1: 1 + ny]
+    m0 = float(mw[0]) + post.mean_shift
+    gm = mw[1: 1 + ny]
+    Hm = hess(w)
+    v0 = kxx - float(Fk @ Fk)
+    gv = gk - 2.0 * (FJ.T @ Fk)
+    Hv = Hk - 2.0 * (FJ.T @ FJ) - 2.0 * hess(F.T @ Fk)
+    mean_c = var_c = None
+    if nc:
+        mean_c = mw[1 + ny:] + post.mean_shift
+        FK = FB[:, 1 + ny:]
+        var_c = np.maximum(post.kernel.diag(Xc) - np.einsum("ij,ij->j", FK, FK), 1e-300)
+    return m0, gm, Hm, v0, gv, Hv, mean_c, var_c
 
 
 def kmm_cholesky(kernel: Kernel, Z: np.ndarray) -> np.ndarray:
@@ -735,12 +810,25 @@ class SparsePosterior:
         np.maximum(var, 1e-300, out=var)
         return mean, var
 
+    def _reduction_rows(self, Ks: np.ndarray) -> np.ndarray:
+        """k^T A k per row of Ks (eq. 9), float64."""
+        return self._reduction(Ks, False)
+
     def mean_grad(self, xs):
         k = self.cross(xs[None, :])
         mean = float(k[0] @ self.w) + self.mean_shift
         var = max(float(self.kernel.diag(xs[None, :])[0] - self._reduction(k, False)[0]), 1e-300)
         grad = self.kernel.grad_x(xs, self.X).T @ self.w
         return mean, var, grad
+
+    @property
+    def mean_weights(self) -> np.ndarray:
+        """w of the mean K(xs, Z) w + mean_shift (eq. 8)."""
+        return self.w
+
+    def mean_var_grad(self, Xs, block: int = 256):
+        """``mean_grad`` for many points at once (see ``ExactPosterior.mean_var_grad``)."""
+        return _mean_var_grad(self, Xs, block)
 
     def arrays(self) -> dict:
         if self.legacy_A is not None:

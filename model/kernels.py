@@ -50,6 +50,17 @@ def _r2_from_gram(G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> np.ndarray
     return r2
 
 
+def _gram_parts(X1, X2, G=None, sq1=None, sq2=None):
+    """(X1 X2^T, |x1|^2, |x2|^2), computing whichever was not given."""
+    if G is None:
+        G = X1 @ X2.T
+    if sq1 is None:
+        sq1 = np.einsum("ij,ij->i", X1, X1)
+    if sq2 is None:
+        sq2 = np.einsum("ij,ij->i", X2, X2)
+    return G, sq1, sq2
+
+
 class Kernel:
     """Base class. Subclasses define ``param_names``, ``theta`` (log-parameters) and the methods."""
 
@@ -105,6 +116,30 @@ class Kernel:
 
     def grad_x(self, xs: np.ndarray, X: np.ndarray) -> np.ndarray:
         """d k(xs, X_n) / d xs for one test point xs (D,), returned as (N, D)."""
+        raise NotImplementedError
+
+    def grad_dot(self, Xs: np.ndarray, X: np.ndarray, w: np.ndarray, G: np.ndarray | None = None,
+                 sq1: np.ndarray | None = None, sq2: np.ndarray | None = None) -> np.ndarray:
+        """sum_n w_n d k(xs_r, X_n) / d xs_r for every row xs_r of Xs, as (rows, D): the gradient of a
+        posterior mean K(xs, X) w (eq. 8) at many points at once. G = Xs X^T and the squared norms may
+        be passed when already computed. This generic version loops over rows (``grad_x``)."""
+        return np.stack([self.grad_x(x, X).T @ w for x in Xs]) if len(Xs) else np.zeros((0, X.shape[1]))
+
+    def value_and_grad_dot(self, Xs, X, w, G, sq1, sq2):
+        """(K(Xs, X), ``grad_dot``) from one Gram product; kernels that share work override it."""
+        return self.from_gram(G, sq1, sq2), self.grad_dot(Xs, X, w, G, sq1, sq2)
+
+    def local_terms(self, x: np.ndarray, X: np.ndarray, ny: int):
+        """Second-order terms of k(x, X_n) in the first ``ny`` coordinates of one point x (D,).
+
+        Returns (k, J, hess): k = K(x, X) (N,), J = d k / d x[:ny] (N, ny), and hess(beta), the
+        (ny, ny) matrix sum_n beta_n d^2 k(x, X_n) / d x[:ny]^2. Used by the Monte Carlo free run's
+        local model (``gp.local_model``). Kernels without it raise NotImplementedError.
+        """
+        raise NotImplementedError
+
+    def diag_local(self, x: np.ndarray, ny: int):
+        """k(x, x), its gradient and Hessian in x[:ny] (float, (ny,), (ny, ny))."""
         raise NotImplementedError
 
     def __add__(self, other: "Kernel") -> "Sum":
@@ -178,6 +213,61 @@ class Matern32(Kernel):
         # dk/dxs = -sigma^2 (3 / l^2) exp(-a) (xs - x)
         return (-var * 3.0 / ls**2 * np.exp(-a))[:, None] * diff
 
+    def grad_dot(self, Xs, X, w, G=None, sq1=None, sq2=None):
+        # sum_n w_n dk/dxs = -sigma^2 (3 / l^2) [(E w) xs - E (w * X)], E = exp(-a) (rows x N)
+        var, ls = np.exp(self.theta)
+        G, sq1, sq2 = _gram_parts(Xs, X, G, sq1, sq2)
+        E = _r2_from_gram(G, sq1, sq2)
+        np.sqrt(E, out=E)
+        E *= -SQRT3 / ls
+        np.exp(E, out=E)
+        E *= w
+        out = E @ X
+        out -= E.sum(axis=1)[:, None] * Xs
+        out *= var * 3.0 / ls**2
+        return out
+
+    def value_and_grad_dot(self, Xs, X, w, G, sq1, sq2):
+        # one sqrt and one exp for both: K = var (1 + a) e, e = exp(-a); the gradient as grad_dot
+        var, ls = np.exp(self.theta)
+        a = _r2_from_gram(G, sq1, sq2)
+        np.sqrt(a, out=a)
+        a *= SQRT3 / ls
+        E = np.negative(a)
+        np.exp(E, out=E)
+        a += 1.0
+        a *= E
+        a *= var  # K
+        E *= w
+        out = E @ X
+        out -= E.sum(axis=1)[:, None] * Xs
+        out *= var * 3.0 / ls**2
+        return a, out
+
+    def local_terms(self, x, X, ny):
+        # with d = x - x_n, r = |d|, c = sqrt(3) / l, e = exp(-c r) (eq. 10):
+        # grad = -var c^2 e d, Hessian = -var c^2 e (I - c d d^T / r)
+        var, ls = np.exp(self.theta)
+        c = SQRT3 / ls
+        k = self.cross(x[None, :], X)[0]
+        Dy = x[None, :ny] - X[:, :ny]
+        d = x[None, :] - X
+        r = np.sqrt(np.einsum("ij,ij->i", d, d))
+        e = np.exp(-c * r)
+        J = (-var * c * c * e)[:, None] * Dy
+        rs = np.where(r > 0.0, r, 1.0)
+
+        def hess(beta):
+            be = beta * e
+            H = Dy.T @ ((be * (c / rs))[:, None] * Dy)
+            H[np.diag_indices(ny)] -= be.sum()
+            return (var * c * c) * H
+
+        return k, J, hess
+
+    def diag_local(self, x, ny):
+        return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
+
 
 class RBF(Kernel):
     """Squared-exponential kernel: sigma^2 exp(-r^2 / (2 l^2))."""
@@ -217,6 +307,34 @@ class RBF(Kernel):
         diff = xs[None, :] - X
         k = var * np.exp(-0.5 * np.einsum("ij,ij->i", diff, diff) / ls**2)
         return (-k / ls**2)[:, None] * diff
+
+    def grad_dot(self, Xs, X, w, G=None, sq1=None, sq2=None):
+        # sum_n w_n dk/dxs = -(1 / l^2) [(K w) xs - K (w * X)]
+        G, sq1, sq2 = _gram_parts(Xs, X, G, sq1, sq2)
+        K = self.from_gram(G, sq1, sq2)
+        K *= w
+        out = K @ X
+        out -= K.sum(axis=1)[:, None] * Xs
+        out *= 1.0 / np.exp(self.theta[1]) ** 2
+        return out
+
+    def local_terms(self, x, X, ny):
+        # grad = -k d / l^2, Hessian = k (d d^T / l^4 - I / l^2), d = x - x_n
+        ls2 = np.exp(self.theta[1]) ** 2
+        k = self.cross(x[None, :], X)[0]
+        Dy = x[None, :ny] - X[:, :ny]
+        J = (-k / ls2)[:, None] * Dy
+
+        def hess(beta):
+            bk = beta * k
+            H = Dy.T @ (bk[:, None] * Dy) / (ls2 * ls2)
+            H[np.diag_indices(ny)] -= bk.sum() / ls2
+            return H
+
+        return k, J, hess
+
+    def diag_local(self, x, ny):
+        return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
 
 
 DEFAULT_CONSTANT_CAP = 1.0  # variance of the standardised output; GPNARX(constant_cap=...) default
@@ -325,6 +443,41 @@ class CubicPolynomial(Kernel):
         G = s * (X @ xs) + b
         return (3.0 * var * s * G * G)[:, None] * X
 
+    def grad_dot(self, Xs, X, w, G=None, sq1=None, sq2=None):
+        # sum_n w_n 3 sigma_p^2 s (s xs.x_n + b)^2 x_n (the capped constant has no gradient)
+        var, s, b = np.exp(self.theta)
+        H = (Xs @ X.T if G is None else G) * s
+        H += b
+        H *= H
+        H *= (3.0 * var * s) * w
+        return H @ X
+
+    def local_terms(self, x, X, ny):
+        # h = s x.x_n + b (eq. 11): grad = 3 var s h^2 x_n, Hessian = 6 var s^2 h x_n x_n^T
+        var, s, b = np.exp(self.theta)
+        k = self.cross(x[None, :], X)[0]  # capped as in predictions
+        h = s * (X @ x) + b
+        Zy = X[:, :ny]
+        J = (3.0 * var * s * h * h)[:, None] * Zy
+
+        def hess(beta):
+            return (6.0 * var * s * s) * (Zy.T @ ((beta * h)[:, None] * Zy))
+
+        return k, J, hess
+
+    def diag_local(self, x, ny):
+        # k(x, x) = var [(t + b)^3 - b^3] + min(var b^3, cap) (or var (t + b)^3), t = s |x|^2:
+        # grad = 3 var (t + b)^2 2 s x, Hessian = 6 var (t + b) 4 s^2 x x^T + 3 var (t + b)^2 2 s I
+        var, s, b = np.exp(self.theta)
+        kxx = float(self.diag(x[None, :])[0])
+        t = s * float(x @ x)
+        xy = x[:ny]
+        f1 = 3.0 * var * (t + b) ** 2
+        f2 = 6.0 * var * (t + b)
+        H = (4.0 * s * s * f2) * np.outer(xy, xy)
+        H[np.diag_indices(ny)] += 2.0 * s * f1
+        return kxx, (2.0 * s * f1) * xy, H
+
 
 class White(Kernel):
     """White-noise kernel: sigma^2 on the diagonal of K(X, X), zero between distinct sets."""
@@ -351,6 +504,15 @@ class White(Kernel):
 
     def grad_x(self, xs, X):
         return np.zeros_like(X)
+
+    def grad_dot(self, Xs, X, w, G=None, sq1=None, sq2=None):
+        return np.zeros((Xs.shape[0], X.shape[1]))
+
+    def local_terms(self, x, X, ny):
+        return np.zeros(X.shape[0]), np.zeros((X.shape[0], ny)), lambda beta: np.zeros((ny, ny))
+
+    def diag_local(self, x, ny):
+        return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
 
 
 class Sum(Kernel):
@@ -412,6 +574,31 @@ class Sum(Kernel):
 
     def grad_x(self, xs, X):
         return sum(p.grad_x(xs, X) for p in self.parts)
+
+    def grad_dot(self, Xs, X, w, G=None, sq1=None, sq2=None):
+        G, sq1, sq2 = _gram_parts(Xs, X, G, sq1, sq2)
+        out = self.parts[0].grad_dot(Xs, X, w, G, sq1, sq2)
+        for p in self.parts[1:]:
+            out += p.grad_dot(Xs, X, w, G, sq1, sq2)
+        return out
+
+    def value_and_grad_dot(self, Xs, X, w, G, sq1, sq2):
+        K, out = self.parts[0].value_and_grad_dot(Xs, X, w, G, sq1, sq2)
+        for p in self.parts[1:]:
+            k, g = p.value_and_grad_dot(Xs, X, w, G, sq1, sq2)
+            K += k
+            out += g
+        return K, out
+
+    def local_terms(self, x, X, ny):
+        terms = [p.local_terms(x, X, ny) for p in self.parts]
+        k = sum(t[0] for t in terms)
+        J = sum(t[1] for t in terms)
+        return k, J, lambda beta: sum(t[2](beta) for t in terms)
+
+    def diag_local(self, x, ny):
+        terms = [p.diag_local(x, ny) for p in self.parts]
+        return sum(t[0] for t in terms), sum(t[1] for t in terms), sum(t[2] for t in terms)
 
     def to_dict(self):
         return {"type": "Sum", "parts": [p.to_dict() for p in self.parts]}

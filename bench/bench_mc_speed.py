@@ -1,0 +1,152 @@
+"""Monte Carlo free-run throughput on the real-BERT model: path-steps per second at 1024 paths,
+``simulate_mc`` (checked local model per step) against the previous code path, and the bands'
+agreement.
+
+Model: the ``bert-real`` bundle (sparse, M=256 inducing points, ny=16, nu=20, D=36), on two segments
+of a 64 s real record (default the 20 Hz sine, the held-out record nearest the first resonance):
+1024 steps from rest at 0 s (the start-up towards resonance) and 1024 steps from the measured
+outputs at 50 s (the drive stops and the structure decays: the latent variance falls below the
+noise there while the paths are still spread, the hardest case for the local model).
+
+Product: ``model.freerun.simulate_mc`` (default ``local=True``): each step a second-order model of
+eq. 8-9 around the paths' mean regressor in the 16 output-lag coordinates, checked against eq. 8-9
+at 12 paths (the farthest and random ones), with exact evaluation of the farthest quarter or of all
+paths when the check fails. Baseline, equal work (``ratio=``): ``_simulate_mc_reference``, the code
+path before this change (eq. 8-9 at every path, every step: one (P x M) kernel block and one
+(P x M x M) product), same posterior, paths, seed, segments, BLAS threads, in this process.
+Repetitions interleave product and baseline; ratio = median over repetitions of (baseline seconds /
+product seconds), both segments together.
+
+Accuracy, same seed and paths (the draws are the same random numbers, so paths differ only by the
+local model's error): the largest difference of the mean and of the 0.5 % / 99.5 % band edges,
+in units of the band's Monte Carlo standard error, estimated as the median difference between the
+baseline's bands at seeds 0 and 1 divided by sqrt(2); and the coverage of the measured output by
+each band (points).
+
+    python bench/bench_mc_speed.py [--quick] [--registry R] [--record PATH] [--reps N] [--threads N]
+
+Without --registry a bundle is trained from configs/bert-real.toml into a cache (about 10 minutes;
+bench_realtime.py shares the cache). --quick: a small Bouc-Wen sparse model (M=64, fixed
+hyperparameters), 256 paths, 60 steps; for the smoke test only.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+import _common as C
+from gpnarx.model.freerun import _simulate_mc_reference, simulate_mc
+
+
+def quick_model():
+    from gpnarx.model.estimator import GPNARX
+
+    pairs, _, r50 = C.protocol()
+    m = GPNARX(ny=C.NY, nu=C.NU, mode="sparse", n_inducing=64, max_train_points=500).fit(pairs, theta=C.THETA_REF)
+    return m, [("50 N sweep from measured", r50.u[900:960], r50.y[900:960], r50.y[900: 900 + C.NY])], "quick"
+
+
+def bert_model(registry, record):
+    import bench_realtime as R
+
+    from gpnarx.model.bundle import Registry
+    from gpnarx.training.records import read_record
+
+    reg, note = R.bert_registry(registry)
+    b = Registry(reg).scan().get("bert-real")
+    path = Path(record) if record else R.bert_data() / "Sine" / "Sine_20Hz"
+    rec = read_record(str(path), fs_default=b.fs)
+    fs = rec.fs
+    s1 = int(round(50.0 * fs))
+    ny = b.model.ny
+    segs = [(f"{path.name} 0 s from rest", rec.u[:1024], rec.y[:1024], None),
+            (f"{path.name} 50 s from measured", rec.u[s1: s1 + 1024 + ny], rec.y[s1: s1 + 1024 + ny],
+             rec.y[s1: s1 + ny])]
+    return b.model, segs, f"{note}; {b.name}:{b.version}"
+
+
+def coverage(y, run) -> float:
+    return 100.0 * float(np.mean((y >= run.lower) & (y <= run.upper)))
+
+
+def main():
+    def extra(ap):
+        ap.add_argument("--registry", default=None, help="registry holding bert-real (default: train into a cache)")
+        ap.add_argument("--record", default=None, help="64 s record (default: BERT Sine_20Hz)")
+        ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; 2 with --quick)")
+
+    args = C.parse_args(__doc__, extra)
+    q = args.quick
+    P = 256 if q else 1024
+    reps = args.reps or (2 if q else 3)
+    model, segs, note = quick_model() if q else bert_model(args.registry, args.record)
+    post = model.posterior_
+
+    def run(fn, seg, seed=0):
+        _, u, _, y0 = seg
+        return fn(post, model.x_scaler_, model.y_scaler_, model.ny, model.nu, u, n_paths=P, seed=seed, y0=y0,
+                  include_noise=model.include_noise)
+
+    for seg in segs:  # warm-up
+        run(simulate_mc, (seg[0], seg[1][:40], None, seg[3]))
+        run(_simulate_mc_reference, (seg[0], seg[1][:40], None, seg[3]))
+    load0 = C.load()
+    t_new = [[0.0] * len(segs) for _ in range(reps)]
+    t_ref = [[0.0] * len(segs) for _ in range(reps)]
+    last_new, last_ref, local = {}, {}, {}
+    steps = [0] * len(segs)
+    for r in range(reps):
+        for j, seg in enumerate(segs):
+            a = run(simulate_mc, seg)
+            b = run(_simulate_mc_reference, seg)
+            t_new[r][j], t_ref[r][j] = a.seconds, b.seconds
+            last_new[j], last_ref[j] = a, b
+            local[j] = a.local_steps
+            steps[j] = a.path_steps // P
+    load1 = C.load()
+    ratios = [sum(t_ref[r]) / sum(t_new[r]) for r in range(reps)]
+    ps_new = P * sum(steps) / C.median([sum(t) for t in t_new])
+    ps_ref = P * sum(steps) / C.median([sum(t) for t in t_ref])
+
+    print(f"bench_mc_speed: {note}; {P} paths; {reps} interleaved reps; load {load0:.1f} -> {load1:.1f}; "
+          f"BLAS threads {C.blas_threads()}")
+    print(f"  {'segment':<34} {'steps':>5} {'local':>5} {'new ps/s':>10} {'ref ps/s':>10} {'ratio':>6}")
+    for j, seg in enumerate(segs):
+        tn = C.median([t[j] for t in t_new])
+        tr = C.median([t[j] for t in t_ref])
+        print(f"  {seg[0]:<34} {steps[j]:>5} {local[j]:>5} {P * steps[j] / tn:>10,.0f} {P * steps[j] / tr:>10,.0f} "
+              f"{C.median_ratio([t[j] for t in t_ref], [t[j] for t in t_new]):>6.2f}")
+
+    # accuracy: same seed (same draws) product vs baseline; MC error from the baseline at seeds 0 and 1
+    worst = {"mean": 0.0, "edge": 0.0}
+    cov_gap = 0.0
+    rows = []
+    for j, seg in enumerate(segs):
+        a, b = last_new[j], last_ref[j]
+        b1 = run(_simulate_mc_reference, seg, seed=1)
+        k0 = 0 if seg[3] is None else model.ny
+        sl = slice(k0 + 1, None)
+        se = np.median(np.concatenate([np.abs(b.lower[sl] - b1.lower[sl]), np.abs(b.upper[sl] - b1.upper[sl])])) \
+            / np.sqrt(2.0)
+        se_mean = np.median(np.abs(b.mean[sl] - b1.mean[sl])) / np.sqrt(2.0)
+        d_edge = max(np.max(np.abs(a.lower[sl] - b.lower[sl])), np.max(np.abs(a.upper[sl] - b.upper[sl]))) / se
+        d_mean = np.max(np.abs(a.mean[sl] - b.mean[sl])) / se_mean
+        worst["edge"] = max(worst["edge"], d_edge)
+        worst["mean"] = max(worst["mean"], d_mean)
+        y = seg[2]
+        c_new, c_ref, c_ref1 = coverage(y, a), coverage(y, b), coverage(y, b1)
+        cov_gap = max(cov_gap, abs(c_new - c_ref))
+        rows.append((seg[0], d_mean, d_edge, c_new, c_ref, c_ref1))
+    print("  same seed, product vs baseline (MC standard error from the baseline at seeds 0 and 1):")
+    for name, dm, de, cn, cr, cr1 in rows:
+        print(f"    {name:<34} max |mean diff| {dm:.3f} MC s.e.; max |band-edge diff| {de:.3f} MC s.e.; "
+              f"coverage of measured y: product {cn:.2f} %, baseline {cr:.2f} % (seed 1: {cr1:.2f} %)")
+    C.result(path_steps_per_s=ps_new, baseline=ps_ref, baseline_what="simulate_mc_reference-same-posterior-paths-seed",
+             ratio=C.median(ratios), paths=P, steps=sum(steps), local_steps=sum(local.values()),
+             max_mean_diff_se=worst["mean"], max_edge_diff_se=worst["edge"], cov_gap_points=cov_gap,
+             load=C.load(), blas_threads=C.blas_threads())
+
+
+if __name__ == "__main__":
+    main()

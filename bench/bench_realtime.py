@@ -1,0 +1,217 @@
+"""Real-time factor of ``gpnarx predict`` with 99 % bands on a whole real record, and the bands'
+accuracy against a 1024-path Monte Carlo reference.
+
+Product: the whole ``python -m gpnarx predict --registry R --model bert-real REC --method linear
+--out OUT.npz`` process (interpreter start, imports, bundle load with checksums, reading the LMS
+Test.Lab record, the linearised free run from rest over the whole record, the envelope checks and
+metrics, writing OUT.npz), on a 64 s real BERT record (65,536 samples at 1024 Hz; default the 20 Hz
+sine, the held-out record nearest the first resonance). Real-time factor = record duration / wall.
+``--method linear`` is what the shipped bert-real config names for whole records
+(``[predict] method``); the CLI's own default is Monte Carlo (see the notes printed below).
+
+Baseline, equal work (``ratio=``): the same command in a process that first replaces
+``model.freerun.simulate_linear`` with ``_simulate_linear_reference`` (the code path before this
+change: one ``posterior.mean_grad`` call per step), then runs the same CLI entry point with the same
+arguments: same bundle, record, tuning and output. Product and baseline processes alternate
+(A, B, A, B, ...); ratio = median over repetitions of baseline wall / product wall.
+
+Accuracy (in this process, same bundle): on 4 s windows of the record (from rest at 0 s, and from
+the measured outputs at 20 s) the linearised band against the 1024-path Monte Carlo band
+(``simulate_mc``, seed 0): coverage of the measured output by each band (points), and the mean
+width ratio linear / MC. Also a faster Monte Carlo as a candidate default: 128 paths on the same
+windows (coverage, width) and its real-time factor extrapolated from the window's simulate time
+(the MC step cost does not depend on the position in the record).
+
+    python bench/bench_realtime.py [--quick] [--registry R] [--record PATH] [--reps N] [--threads N]
+
+Without --registry a bundle is trained from configs/bert-real.toml into a cache (about 10 minutes).
+--quick: a tiny Bouc-Wen model and a 2031-sample simulated sweep (bench_predict_e2e's quick
+config), 2 repetitions, 256-path reference; for the smoke test only.
+"""
+from __future__ import annotations
+
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import _common as C
+
+BASELINE_CODE = (
+    "import sys; import gpnarx.model.freerun as F; F.simulate_linear = F._simulate_linear_reference; "
+    "from gpnarx.cli.main import main; sys.argv = ['gpnarx'] + sys.argv[1:]; sys.exit(main())"
+)
+
+
+def bert_data() -> Path:
+    return Path(os.environ.get("GPNARX_BERT_DATA") or (C.ROOT.parent / "shared" / "data" / "bert-t5nm"))
+
+
+def _env():
+    e = dict(os.environ)
+    e["PYTHONPATH"] = str(C.ROOT) + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
+    e.pop("GPNARX_REGISTRY", None)
+    return e
+
+
+def timed(cmd: list, cpu: list | None = None) -> float:
+    """Wall seconds of a subprocess; its CPU seconds (user + system) appended to ``cpu``."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=C.ROOT, env=_env(), capture_output=True, text=True, timeout=3600)
+    dt = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(map(str, cmd[:4]))} ... failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    if cpu is not None:
+        cpu.append((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime))
+    return dt
+
+
+def bert_registry(arg: str | None) -> tuple[Path, str]:
+    if arg:
+        return Path(arg), f"registry {arg}"
+    import hashlib
+
+    text = (C.ROOT / "configs" / "bert-real.toml").read_text()
+    key = hashlib.sha256(text.encode()).hexdigest()[:12]
+    reg = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "gpnarx" / "bench-realtime" / key
+    if not (reg / "bert-real").is_dir():
+        t = timed([sys.executable, "-m", "gpnarx", "train", "bert-real", "--registry", str(reg), "--no-report"])
+        return reg, f"trained into {reg} in {t:.0f} s (cached)"
+    return reg, f"cached registry {reg}"
+
+
+def quick_setup(tmp: Path) -> tuple[Path, str, Path, str]:
+    import bench_predict_e2e as E
+
+    reg, note = E.cached_registry(True, False)
+    rec = tmp / "sweep50.npz"
+    timed([sys.executable, "-m", "gpnarx", "simulate", "bouc-wen", "--excitation", "sweep", "--amplitude", "50",
+           "--rate", "53.55", "--out", str(rec)])
+    return reg, "bouc-wen", rec, note
+
+
+def band_stats(y, run) -> tuple[float, float]:
+    """(coverage of y by the band [%], mean band width)."""
+    inside = (y >= run.lower) & (y <= run.upper)
+    return 100.0 * float(np.mean(inside)), float(np.mean(run.upper - run.lower))
+
+
+def accuracy(registry: Path, name: str, record: Path, quick: bool) -> dict:
+    """Linearised and few-path MC bands against the reference MC on 4 s windows (quick: 300 samples)."""
+    from gpnarx.model.bundle import Registry
+    from gpnarx.model.runtime import tune_for_free_run
+    from gpnarx.training.records import read_record
+
+    tune_for_free_run(None)
+    bundle = Registry(registry).scan().get(name)
+    model = bundle.model
+    rec = read_record(str(record), fs_default=bundle.fs)
+    P_ref = 256 if quick else 1024
+    P_few = 64 if quick else 128
+    win = int(round(4.0 * rec.fs)) if not quick else 300
+    starts = [0] if quick else [0, int(round(20.0 * rec.fs))]
+    out = {"windows": []}
+    for s0 in starts:
+        u, y = rec.u[s0: s0 + win], rec.y[s0: s0 + win]
+        y0 = None if s0 == 0 else y[: model.ny]
+        ref = model.simulate(u, n_paths=P_ref, seed=0, y0=y0, method="mc")
+        ref1 = model.simulate(u, n_paths=P_ref, seed=1, y0=y0, method="mc")
+        lin = model.simulate(u, y0=y0, method="linear")
+        few = model.simulate(u, n_paths=P_few, seed=0, y0=y0, method="mc")
+        c_ref, w_ref = band_stats(y, ref)
+        c_ref1, w_ref1 = band_stats(y, ref1)
+        c_lin, w_lin = band_stats(y, lin)
+        c_few, w_few = band_stats(y, few)
+        out["windows"].append({
+            "t0": s0 / rec.fs, "n": int(u.size), "start": "rest" if s0 == 0 else "measured", "mc_paths": P_ref,
+            "cov_mc": c_ref, "cov_mc_seed1": c_ref1, "width_mc_seed_ratio": w_ref1 / w_ref,
+            "cov_lin": c_lin, "cov_few": c_few, "width_mc": w_ref,
+            "width_ratio_lin": w_lin / w_ref, "width_ratio_few": w_few / w_ref,
+            "few_paths": P_few, "few_steps_per_s": (u.size - (0 if y0 is None else model.ny)) / few.seconds,
+            "mc_path_steps_per_s": ref.path_steps / ref.seconds})
+    return out
+
+
+def main():
+    def extra(ap):
+        ap.add_argument("--registry", default=None, help="registry holding bert-real (default: train into a cache)")
+        ap.add_argument("--record", default=None, help="64 s record (default: BERT Sine_20Hz)")
+        ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; 2 with --quick)")
+
+    args = C.parse_args(__doc__, extra)
+    q = args.quick
+    reps = args.reps or (2 if q else 3)
+    with tempfile.TemporaryDirectory(prefix="gpnarx-rt-") as tmp:
+        tmp = Path(tmp)
+        if q:
+            reg, name, record, note = quick_setup(tmp)
+        else:
+            reg, note = bert_registry(args.registry)
+            name = "bert-real"
+            record = Path(args.record) if args.record else bert_data() / "Sine" / "Sine_20Hz"
+        from gpnarx.training.records import read_record
+
+        rec = read_record(str(record), fs_default=None if q else 1024.0)
+        duration = rec.n / rec.fs
+        out = tmp / "pred.npz"
+        argv = ["predict", "--registry", str(reg), "--model", name, str(record), "--method", "linear",
+                "--out", str(out)]
+        product = [sys.executable, "-m", "gpnarx", *argv]
+        baseline = [sys.executable, "-c", BASELINE_CODE, *argv]
+        timed(product)  # warm the page cache (record, bundle, libraries) for both sides
+        load0 = C.load()
+        walls = {"product": [], "baseline": []}
+        cpus = {"product": [], "baseline": []}
+        for _ in range(reps):
+            walls["product"].append(timed(product, cpus["product"]))
+            walls["baseline"].append(timed(baseline, cpus["baseline"]))
+        load1 = C.load()
+        acc = accuracy(reg, name, record, q)
+
+    ratio = C.median_ratio(walls["baseline"], walls["product"])
+    wall = C.median(walls["product"])
+    base_wall = C.median(walls["baseline"])
+    rt = duration / wall
+    print(f"bench_realtime: {name}, {Path(record).name}: {rec.n} samples = {duration:.1f} s; {note}; "
+          f"{reps} interleaved reps; load {load0:.1f} -> {load1:.1f}")
+    print(f"  {'rep':>3} {'product s':>10} {'baseline s':>11} {'ratio':>6} {'product cpu s':>13} "
+          f"{'baseline cpu s':>14}")
+    for r in range(reps):
+        p, b = walls["product"][r], walls["baseline"][r]
+        print(f"  {r:>3} {p:10.2f} {b:11.2f} {b / p:6.2f} {cpus['product'][r]:13.2f} {cpus['baseline'][r]:14.2f}")
+    cpu = C.median(cpus["product"])
+    print(f"  real-time factor (whole process, --method linear): product {rt:.1f}x, "
+          f"baseline {duration / base_wall:.1f}x (wall, at the load above); on CPU time (what one free core "
+          f"gives): product {duration / cpu:.1f}x, baseline {duration / C.median(cpus['baseline']):.1f}x")
+    for w in acc["windows"]:
+        print(f"  window at {w['t0']:.0f} s ({w['n']} samples) from {w['start']}: coverage of measured y: "
+              f"MC{w['mc_paths']} "
+              f"{w['cov_mc']:.1f} % (seed 1: {w['cov_mc_seed1']:.1f} %, width x{w['width_mc_seed_ratio']:.3f}), "
+              f"linear {w['cov_lin']:.1f} %, MC{w['few_paths']} {w['cov_few']:.1f} %; "
+              f"mean width ratio to MC{w['mc_paths']}: linear {w['width_ratio_lin']:.3f}, MC{w['few_paths']} "
+              f"{w['width_ratio_few']:.3f}; MC{w['few_paths']} runs {w['few_steps_per_s']:.0f} steps/s = "
+              f"{w['few_steps_per_s'] / rec.fs:.1f}x real time before process overhead")
+    ws = acc["windows"]
+    cov_gap = max(abs(w["cov_lin"] - w["cov_mc"]) for w in ws)
+    width_dev = max(abs(w["width_ratio_lin"] - 1.0) for w in ws)
+    few_rt = min(w["few_steps_per_s"] for w in ws) / rec.fs
+    C.result(rt_factor=rt, baseline=duration / base_wall, baseline_what="same-cli-process-reference-linear-loop",
+             ratio=ratio, wall_s=wall, baseline_wall_s=base_wall, record_s=duration, cpu_s=cpu,
+             rt_factor_cpu=duration / cpu, baseline_cpu_s=C.median(cpus["baseline"]),
+             cov_mc_seed_gap=max(abs(w["cov_mc_seed1"] - w["cov_mc"]) for w in ws),
+             cov_gap_points=cov_gap, width_ratio_min=min(w["width_ratio_lin"] for w in ws),
+             width_ratio_max=max(w["width_ratio_lin"] for w in ws), width_dev=width_dev,
+             cov_mc=ws[0]["cov_mc"], cov_lin=ws[0]["cov_lin"], few_paths=ws[0]["few_paths"],
+             few_mc_rt_simulate_only=few_rt, few_width_ratio_min=min(w["width_ratio_few"] for w in ws),
+             load=C.load(), blas_threads=C.blas_threads())
+
+
+if __name__ == "__main__":
+    main()

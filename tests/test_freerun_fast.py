@@ -1,0 +1,155 @@
+"""The fast free-run paths agree with their reference implementations.
+
+* ``simulate_linear`` (mean recursion, batched eq. 9 and gradients, covariance recursion) gives the
+  numbers of ``_simulate_linear_reference`` (one ``mean_grad`` per step), sparse and exact posteriors.
+* ``simulate_mc`` (checked local model per step) gives, with the same seed, the bands of
+  ``_simulate_mc_reference`` up to far less than their Monte Carlo error; ``local=False`` and a
+  check that always fails give the reference's numbers.
+* The kernels' batched gradient and second-order terms match finite differences.
+"""
+import numpy as np
+import pytest
+
+from gpnarx.model import freerun
+from gpnarx.model.estimator import GPNARX
+from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, Sum, White
+
+THETA = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
+
+
+@pytest.fixture(scope="module")
+def sparse_model(sdof_data):
+    return GPNARX(ny=6, nu=6, mode="sparse", n_inducing=64, max_train_points=400).fit(
+        [(sdof_data["u"][:1200], sdof_data["yn"][:1200])], theta=THETA)
+
+
+@pytest.fixture(scope="module")
+def exact_model(sdof_data):
+    return GPNARX(ny=6, nu=6, mode="exact", max_train_points=300).fit(
+        [(sdof_data["u"][:1200], sdof_data["yn"][:1200])], theta=THETA)
+
+
+def _args(m, u):
+    return (m.posterior_, m.x_scaler_, m.y_scaler_, m.ny, m.nu, u)
+
+
+@pytest.mark.parametrize("which", ["sparse", "exact"])
+@pytest.mark.parametrize("kw", [{}, {"y0": "measured"}, {"cov_window": 15}])
+def test_linear_matches_reference(which, kw, sparse_model, exact_model, sdof_data):
+    m = sparse_model if which == "sparse" else exact_model
+    u = sdof_data["u2"][:600]
+    kw = dict(kw)
+    if kw.get("y0") == "measured":
+        kw["y0"] = sdof_data["y2"][:6]
+    new = freerun.simulate_linear(*_args(m, u), **kw)
+    ref = freerun._simulate_linear_reference(*_args(m, u), **kw)
+    scale = np.abs(ref.mean).max()
+    assert np.allclose(new.mean, ref.mean, rtol=0, atol=1e-9 * scale)
+    assert np.allclose(new.std, ref.std, rtol=1e-7, atol=1e-12 * scale)
+    assert np.allclose(new.upper, ref.upper, rtol=0, atol=1e-9 * scale)
+    assert np.allclose(new.latent_upper, ref.latent_upper, rtol=0, atol=1e-9 * scale)
+    assert np.allclose(new.latent_lower, ref.latent_lower, rtol=0, atol=1e-9 * scale)
+    if "cov_window" in kw:
+        assert new.cov_band.shape == ref.cov_band.shape == (u.size, 15)
+        assert np.allclose(new.cov_band, ref.cov_band, rtol=1e-7, atol=1e-12 * scale ** 2)
+    assert new.path_steps == ref.path_steps and new.method == "linear"
+
+
+def test_mc_local_matches_reference_same_seed(sparse_model, sdof_data):
+    m = sparse_model
+    u = sdof_data["u2"][:400]
+    new = freerun.simulate_mc(*_args(m, u), n_paths=256, seed=3)
+    ref = freerun._simulate_mc_reference(*_args(m, u), n_paths=256, seed=3)
+    other = freerun._simulate_mc_reference(*_args(m, u), n_paths=256, seed=4)
+    assert new.local_steps > 0.9 * u.size  # the local model served (nearly) every step
+    # Monte Carlo standard error of the band edges, from the reference at two seeds
+    se = np.median(np.abs(np.r_[ref.lower - other.lower, ref.upper - other.upper])) / np.sqrt(2)
+    assert se > 0
+    # same draws: the product's bands differ from the reference's by far less than that error
+    assert np.max(np.abs(new.lower - ref.lower)) < 0.1 * se
+    assert np.max(np.abs(new.upper - ref.upper)) < 0.1 * se
+    assert np.max(np.abs(new.mean - ref.mean)) < 0.1 * se
+    assert np.max(np.abs(new.latent_upper - ref.latent_upper)) < 0.1 * se
+    y = sdof_data["y2"][:400]
+    cov = [100 * np.mean((y >= r.lower) & (y <= r.upper)) for r in (new, ref)]
+    assert abs(cov[0] - cov[1]) < 1.0
+
+
+def test_mc_exact_paths_equal_reference(sparse_model, sdof_data, monkeypatch):
+    m = sparse_model
+    u = sdof_data["u2"][:120]
+    ref = freerun._simulate_mc_reference(*_args(m, u), n_paths=128, seed=1)
+    off = freerun.simulate_mc(*_args(m, u), n_paths=128, seed=1, local=False)
+    assert off.local_steps == 0
+    assert np.array_equal(off.mean, ref.mean) and np.array_equal(off.upper, ref.upper)
+    assert np.array_equal(off.latent_lower, ref.latent_lower)
+    monkeypatch.setattr(freerun, "LOCAL_TOL_MEAN", -1.0)  # every check fails: every step exact
+    failed = freerun.simulate_mc(*_args(m, u), n_paths=128, seed=1)
+    assert failed.local_steps == 0
+    assert np.array_equal(failed.mean, ref.mean) and np.array_equal(failed.lower, ref.lower)
+
+
+def test_mc_few_paths_and_measured_start(sparse_model, sdof_data):
+    m = sparse_model
+    u = sdof_data["u2"][:100]
+    few = freerun.simulate_mc(*_args(m, u), n_paths=16, seed=0)
+    assert few.local_steps == 0  # below LOCAL_MIN_PATHS: exact
+    y0 = sdof_data["y2"][:6]
+    a = freerun.simulate_mc(*_args(m, u), n_paths=128, seed=0, y0=y0)
+    b = freerun._simulate_mc_reference(*_args(m, u), n_paths=128, seed=0, y0=y0)
+    assert np.array_equal(a.mean[:6], b.mean[:6])
+    assert np.allclose(a.upper, b.upper, rtol=0, atol=1e-3 * np.abs(b.upper).max())
+
+
+KERNELS = [RBF(0.7, 1.3), Matern32(0.5, 2.0), CubicPolynomial(0.3, 0.2, 1.5, constant_cap=1.0), White(0.1),
+           Sum(Matern32(0.5, 2.0), CubicPolynomial(0.1, 0.1, 2.0, constant_cap=1.0))]
+
+
+@pytest.mark.parametrize("k", KERNELS, ids=lambda k: type(k).__name__)
+def test_kernel_batched_gradient_and_local_terms(k):
+    rng = np.random.default_rng(0)
+    D, ny = 6, 3
+    Z = rng.normal(size=(30, D))
+    Xs = rng.normal(size=(5, D))
+    w = rng.normal(size=30)
+    ref = np.stack([k.grad_x(x, Z).T @ w for x in Xs])
+    assert np.allclose(k.grad_dot(Xs, Z, w), ref, rtol=1e-10, atol=1e-12)
+    G = Xs @ Z.T
+    K, g = k.value_and_grad_dot(Xs, Z, w, G, np.einsum("ij,ij->i", Xs, Xs), np.einsum("ij,ij->i", Z, Z))
+    assert np.allclose(K, k.cross(Xs, Z), rtol=1e-12, atol=1e-14) and np.allclose(g, ref, rtol=1e-10, atol=1e-12)
+    x = Xs[0]
+    kv, J, hess = k.local_terms(x, Z, ny)
+    assert np.allclose(kv, k.cross(x[None], Z)[0])
+    h = 1e-4
+    E = np.eye(D)
+    Jfd = np.stack([(k.cross((x + h * E[j])[None], Z)[0] - k.cross((x - h * E[j])[None], Z)[0]) / (2 * h)
+                    for j in range(ny)], 1)
+    assert np.allclose(J, Jfd, rtol=1e-6, atol=1e-8)
+
+    def f(xx):
+        return k.cross(xx[None], Z)[0] @ w
+
+    Hfd = np.array([[(f(x + h * (E[i] + E[j])) - f(x + h * (E[i] - E[j])) - f(x - h * (E[i] - E[j]))
+                      + f(x - h * (E[i] + E[j]))) / (4 * h * h) for j in range(ny)] for i in range(ny)])
+    assert np.allclose(hess(w), Hfd, rtol=1e-4, atol=1e-6)
+    d0, dg, dH = k.diag_local(x, ny)
+    assert d0 == pytest.approx(float(k.diag(x[None])[0]))
+    dgfd = np.array([(k.diag((x + h * E[j])[None])[0] - k.diag((x - h * E[j])[None])[0]) / (2 * h)
+                     for j in range(ny)])
+    assert np.allclose(dg, dgfd, rtol=1e-6, atol=1e-8)
+
+
+def test_local_model_matches_posterior_at_its_centre(sparse_model, exact_model):
+    from gpnarx.model.gp import local_model
+
+    for m in (sparse_model, exact_model):
+        post = m.posterior_
+        x = post.X[3] + 0.01
+        Xc = post.X[:4] + 0.02
+        m0, gm, Hm, v0, gv, Hv, mc, vc = local_model(post, x, m.ny, Xc)
+        mu, var = post.predict(np.vstack([x, Xc]))
+        assert m0 == pytest.approx(mu[0], rel=1e-9, abs=1e-12)
+        assert v0 == pytest.approx(var[0], rel=1e-6)
+        assert np.allclose(mc, mu[1:], rtol=1e-9, atol=1e-12) and np.allclose(vc, var[1:], rtol=1e-6)
+        _, _, g = post.mean_var_grad(x[None])
+        assert np.allclose(gm, g[0, : m.ny], rtol=1e-8, atol=1e-12)
