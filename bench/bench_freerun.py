@@ -24,7 +24,12 @@ import numpy as np
 from scipy import linalg
 
 import _common as C
+from gpnarx.model import freerun
 from gpnarx.model.freerun import simulate_mc
+
+# equal work with the exact baselines: the product's Monte Carlo evaluates eq. 8-9 at every path
+# (its default checked local model is compared like for like in bench_mc_speed.py)
+freerun.LOCAL_MODEL = False
 
 
 class GemmPosterior:

@@ -39,7 +39,10 @@ def child(case: str, n: int, m: int, paths: int, steps: int) -> dict:
     import numpy as np
     from sklearn.gaussian_process import GaussianProcessRegressor  # noqa: F401  (import before tracing)
 
+    from gpnarx.model import freerun
     from gpnarx.model.freerun import simulate_mc
+
+    freerun.LOCAL_MODEL = False  # equal work with the scikit-learn loop: eq. 8-9 at every path
     from gpnarx.model.gp import SparsePosterior, choose_inducing
 
     theta = C.THETA_REF

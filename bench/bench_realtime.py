@@ -17,8 +17,9 @@ arguments: same bundle, record, tuning and output. Product and baseline processe
 
 Accuracy (in this process, same bundle): on 4 s windows of the record (from rest at 0 s, and from
 the measured outputs at 20 s) the linearised band against the 1024-path Monte Carlo band
-(``simulate_mc``, seed 0): coverage of the measured output by each band (points), and the mean
-width ratio linear / MC. Also a faster Monte Carlo as a candidate default: 128 paths on the same
+(``_simulate_mc_reference``: eq. 8-9 exactly at every path, seed 0; seed 1 shows its own Monte Carlo
+spread): coverage of the measured output by each band (points), and the mean width ratio linear /
+MC. Also a faster Monte Carlo as a candidate default: 128 paths on the same
 windows (coverage, width) and its real-time factor extrapolated from the window's simulate time
 (the MC step cost does not depend on the position in the record).
 
@@ -113,6 +114,9 @@ def accuracy(registry: Path, name: str, record: Path, quick: bool) -> dict:
     bundle = Registry(registry).scan().get(name)
     model = bundle.model
     rec = read_record(str(record), fs_default=bundle.fs)
+    from gpnarx.model.freerun import _simulate_mc_reference
+
+    args = (model.posterior_, model.x_scaler_, model.y_scaler_, model.ny, model.nu)
     P_ref = 256 if quick else 1024
     P_few = 64 if quick else 128
     win = int(round(4.0 * rec.fs)) if not quick else 300
@@ -121,8 +125,8 @@ def accuracy(registry: Path, name: str, record: Path, quick: bool) -> dict:
     for s0 in starts:
         u, y = rec.u[s0: s0 + win], rec.y[s0: s0 + win]
         y0 = None if s0 == 0 else y[: model.ny]
-        ref = model.simulate(u, n_paths=P_ref, seed=0, y0=y0, method="mc")
-        ref1 = model.simulate(u, n_paths=P_ref, seed=1, y0=y0, method="mc")
+        ref = _simulate_mc_reference(*args, u, n_paths=P_ref, seed=0, y0=y0, include_noise=model.include_noise)
+        ref1 = _simulate_mc_reference(*args, u, n_paths=P_ref, seed=1, y0=y0, include_noise=model.include_noise)
         lin = model.simulate(u, y0=y0, method="linear")
         few = model.simulate(u, n_paths=P_few, seed=0, y0=y0, method="mc")
         c_ref, w_ref = band_stats(y, ref)

@@ -101,6 +101,7 @@ LOCAL_CHECKS = 12  # paths checked against eq. 8-9 per step: the farthest from t
 LOCAL_MIN_PATHS = 64  # fewer paths: every step exact
 LOCAL_BACKOFF = 16  # steps that start at the next level after a failed check
 LOCAL_EXACT_SHARE = (0, 4)  # levels: exact at none, then at the farthest 1/4 of the paths; then all exact
+LOCAL_MODEL = True  # simulate_mc(local=None) uses the local model (benches comparing exact loops set False)
 
 
 def simulate_mc(
@@ -120,7 +121,7 @@ def simulate_mc(
     progress=None,
     diverge_limit: float | None = None,
     latent: bool = True,
-    local: bool = True,
+    local: bool | None = None,
 ) -> FreeRun:
     """Monte Carlo free-run over ``n_paths`` paths advanced together (see module docstring).
 
@@ -131,7 +132,7 @@ def simulate_mc(
 
     Evaluation of eq. 8 (mean) and eq. 9 (latent variance) at the paths' regressors. All paths share
     the input lags, and their output lags lie close together (their spread is the band, a small
-    fraction of the kernel's lengthscale), so with ``local`` (default) each step uses a second-order
+    fraction of the kernel's lengthscale), so with ``local`` (None: ``LOCAL_MODEL``, True) each step uses a second-order
     model of the mean and of the variance around the paths' mean regressor in the ny output-lag
     coordinates (``gp.local_model``: analytic gradient and Hessian, O(M^2 ny) per step instead of
     O(P M^2)), and checks it against eq. 8-9 evaluated exactly at ``LOCAL_CHECKS`` paths (the
@@ -181,7 +182,8 @@ def simulate_mc(
     lat_hi = upper.copy() if lat else None
     path_peak = np.zeros(P)
     b0 = i0
-    use_local = bool(local) and P >= LOCAL_MIN_PATHS and _has_local_model(posterior, ny + nu, ny)
+    use_local = (bool(LOCAL_MODEL if local is None else local) and P >= LOCAL_MIN_PATHS
+                 and _has_local_model(posterior, ny + nu, ny))
     n_check = min(LOCAL_CHECKS, P)
     check_rng = np.random.default_rng(None if seed is None else [int(seed), 0x10CA1])
     floor, retry_at = 0, -1  # after a failed check, start at level ``floor`` until step retry_at
