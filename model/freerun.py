@@ -3,11 +3,15 @@
 Section 2.2 step 3 of the paper: each predicted output is a Gaussian random variable fed back as a
 lagged regressor. Two propagation methods:
 
-* ``simulate_mc``: Monte Carlo. n paths advance together; at each step one kernel block
-  K(x_paths, X) (one BLAS-3 Gram product) and one BLAS-3 product for the variances give mean and
-  variance for every path; each path samples y ~ N(mu, sigma^2) and feeds it back. Seeded.
+* ``simulate_mc``: Monte Carlo. n paths advance together; at each step every path gets its mean
+  (eq. 8) and latent variance (eq. 9), samples y ~ N(mu, sigma^2) and feeds it back. Seeded. By
+  default eq. 8-9 come from a second-order local model around the paths' mean regressor, checked
+  each step against eq. 8-9 at the farthest paths (exact fallback); ``_simulate_mc_reference``
+  evaluates them at every path (one kernel block K(x_paths, X) and one BLAS-3 variance product).
 * ``simulate_linear``: first-order (Taylor) propagation of mean and covariance of the lagged
-  outputs through the GP mean's Jacobian: var(y_i) = sigma_f^2(x_i) + sigma_y^2 + J S J^T.
+  outputs through the GP mean's Jacobian: var(y_i) = sigma_f^2(x_i) + sigma_y^2 + J S J^T (mean
+  recursion, then eq. 9 and J batched over the record, then the covariance recursion;
+  ``_simulate_linear_reference`` is the one-call-per-step loop).
 
 Both return a ``FreeRun`` with mean, std and the two-sided band at ``confidence`` (99% default:
 the 0.5% and 99.5% quantiles over Monte Carlo paths; mean -/+ 2.576 std for the linearised method).

@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import linalg
-from scipy.optimize import minimize
 
 from .kernels import RBF, SQRT3, CubicPolynomial, Kernel, Matern32, Sum, White
 
@@ -366,7 +365,7 @@ def multistart_lbfgsb(fun, args: tuple, starts: list, bounds: list, n_restarts: 
     result, with ``x``, ``fun``, ``nfev``, or None; history of (value, n_iter) per start; total
     evaluations).
     """
-    from scipy.optimize import OptimizeResult
+    from scipy.optimize import OptimizeResult, minimize  # here: predictions never import the optimiser
 
     lo = np.array([b[0] for b in bounds])
     hi = np.array([b[1] for b in bounds])
