@@ -140,7 +140,7 @@ def main():
         rows.append((seg[0], d_mean, d_edge, c_new, c_ref, c_ref1))
     print("  same seed, product vs baseline (MC standard error from the baseline at seeds 0 and 1):")
     for name, dm, de, cn, cr, cr1 in rows:
-        print(f"    {name:<34} max |mean diff| {dm:.3f} MC s.e.; max |band-edge diff| {de:.3f} MC s.e.; "
+        print(f"    {name:<34} max |mean diff| {dm:.2g} MC s.e.; max |band-edge diff| {de:.2g} MC s.e.; "
               f"coverage of measured y: product {cn:.2f} %, baseline {cr:.2f} % (seed 1: {cr1:.2f} %)")
     C.result(path_steps_per_s=ps_new, baseline=ps_ref, baseline_what="simulate_mc_reference-same-posterior-paths-seed",
              ratio=C.median(ratios), paths=P, steps=sum(steps), local_steps=sum(local.values()),
