@@ -104,7 +104,7 @@ LOCAL_TOL_VAR = 1e-2  # largest latent-variance error, relative to the predictiv
 LOCAL_CHECKS = 12  # paths checked against eq. 8-9 per step: the farthest from the mean regressor, and random ones
 LOCAL_MIN_PATHS = 64  # fewer paths: every step exact
 LOCAL_BACKOFF = 16  # steps that start at the next level after a failed check
-LOCAL_EXACT_SHARE = (0, 4)  # levels: exact at none, then at the farthest 1/4 of the paths; then all exact
+LOCAL_EXACT_SHARE = (0, 16, 4)  # levels: exact at none, at the farthest 1/16, 1/4 of the paths; then all exact
 LOCAL_MODEL = True  # simulate_mc(local=None) uses the local model (benches comparing exact loops set False)
 
 
@@ -142,9 +142,10 @@ def simulate_mc(
     O(P M^2)), and checks it against eq. 8-9 evaluated exactly at ``LOCAL_CHECKS`` paths (the
     farthest from the mean regressor, where the model's error is largest, and random ones). When the
     check fails (mean error above ``LOCAL_TOL_MEAN`` predictive std or latent-variance error above
-    ``LOCAL_TOL_VAR`` of the predictive variance), the farthest quarter of the paths is evaluated
-    exactly and the model, checked again on the others, serves the rest; failing that, the step is
-    exact at every path. A failed level is skipped for the next ``LOCAL_BACKOFF`` steps. Steps with a
+    ``LOCAL_TOL_VAR`` of the predictive variance), the farthest 1/16 of the paths, then the farthest
+    quarter, is evaluated exactly and the model, checked again on the others, serves the rest;
+    failing that, the step is exact at every path (``LOCAL_EXACT_SHARE``). A failed level is skipped
+    for the next ``LOCAL_BACKOFF`` steps. Steps with a
     clipped lag, runs with fewer than ``LOCAL_MIN_PATHS`` paths and kernels without ``local_terms``
     are exact. ``FreeRun.local_steps`` counts the steps served (wholly or partly) by the local model.
     The random draws are the same as the exact evaluation's (same seed, same paths up to the model's
