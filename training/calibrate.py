@@ -55,9 +55,11 @@ def score_healthy(bundle: Bundle, records, method: str, n_paths: int = 1024, see
 
 
 def calibrate(bundle: Bundle, records, registry, *, false_alarm_rate: float = 0.01, score_method: str | None = None,
-              n_paths: int = 1024, seed: int = 0, propagation: str = "mc", version=None, progress=None) -> dict:
+              n_paths: int = 1024, seed: int = 0, propagation: str = "mc", version=None, progress=None,
+              name: str | None = None) -> dict:
     """Write a new version of ``bundle`` calibrated on healthy ``records``; returns its name, version,
-    path, the novelty calibration and each record's score and verdict under it."""
+    path, the novelty calibration and each record's score and verdict under it. ``name``: write it
+    under that model name instead (a monitor derived from a model, same GP)."""
     records = list(records)
     if len(records) < 2:
         raise ValueError(f"at least 2 healthy records are needed to calibrate, got {len(records)}")
@@ -75,6 +77,6 @@ def calibrate(bundle: Bundle, records, registry, *, false_alarm_rate: float = 0.
         probe = probe_check(r.u, r.fs, novelty["probe"], "measured")
         s["verdict"] = verdict(s["score"], novelty["threshold"], outside_envelope(r.u, r.y, novelty["envelope"]),
                                probe["probe_match"])
-    path = derive_bundle(bundle, registry, {"novelty": novelty}, version=version)
-    return {"name": bundle.name, "version": path.name, "path": str(path), "source_version": bundle.version,
+    path = derive_bundle(bundle, registry, {"novelty": novelty}, version=version, name=name)
+    return {"name": name or bundle.name, "version": path.name, "path": str(path), "source_version": bundle.version,
             "novelty": novelty, "records": scored}

@@ -3,8 +3,9 @@
 ``ensure_default_registry()`` returns the registry folder (``$GPNARX_REGISTRY`` or
 ``~/.cache/gpnarx/registry``), training any missing default bundle first: Bouc-Wen, the BERT
 stand-in and its bolt-loosening monitor (9 Hz sine probe, novelty calibrated) always, the real BERT
-bundle too when the lab records are present (``$GPNARX_BERT_DATA`` or ``../shared/data/bert-t5nm``
-beside the repository).
+bundle and its real-rig monitor (``training.real_monitor``: the same GP with a novelty calibration
+from healthy real windows, derived without a refit) too when the lab records are present
+(``$GPNARX_BERT_DATA`` or ``../shared/data/bert-t5nm`` beside the repository).
 ``$GPNARX_DEFAULTS`` (comma-separated names, e.g. ``bouc-wen``) limits the defaults built.
 
 ``DEFAULT_BUNDLES`` is in build order, lightest first (measured: docs/benchmarks.md, "First
@@ -31,7 +32,11 @@ __all__ = ["CONFIG_DIR", "DEFAULT_BUNDLES", "DEFAULT_MC", "LIGHT_METHOD", "build
            "shipped_config_names"]
 
 #: build order, lightest first (first start on 2 cores: docs/benchmarks.md)
-DEFAULT_BUNDLES = ("bouc-wen", "bert-standin", "bert-standin-monitor", "bert-real")
+DEFAULT_BUNDLES = ("bouc-wen", "bert-standin", "bert-standin-monitor", "bert-real", "bert-real-monitor")
+#: defaults derived from another default (a novelty calibration, no refit) rather than trained
+DERIVED = {"bert-real-monitor": "bert-real"}
+#: defaults that need the real BERT records
+NEEDS_BERT_DATA = ("bert-real", "bert-real-monitor")
 DEFAULT_MC = 128
 #: report method of a default build; absent: the config's own (``[predict] method``)
 LIGHT_METHOD = {"bouc-wen": "linear", "bert-standin": "linear"}
@@ -74,7 +79,9 @@ def plan_defaults(root, names=None) -> dict:
     for name in names:
         if name in have:
             plan["present"].append(name)
-        elif name == "bert-real" and not _bert_data_present():
+        elif name in DERIVED and DERIVED[name] not in have and DERIVED[name] not in plan["missing"]:
+            plan["skipped"][name] = f"derived from {DERIVED[name]}, which is neither present nor being built"
+        elif name in NEEDS_BERT_DATA and not _bert_data_present():
             plan["skipped"][name] = "real BERT records not found ($GPNARX_BERT_DATA or ../shared/data/bert-t5nm)"
         else:
             plan["missing"].append(name)
@@ -85,6 +92,10 @@ def build_default(name: str, root, progress: bool = False, log=None, mc_paths: i
     """Train the default bundle ``name`` into ``root`` (the shipped config, lighter report)."""
     if name not in DEFAULT_BUNDLES:
         raise ValueError(f"{name!r} is not a default bundle; choose among {', '.join(DEFAULT_BUNDLES)}")
+    if name in DERIVED:
+        from gpnarx.training.real_monitor import build_real_monitor
+
+        return build_real_monitor(Path(root), bert_data_dir(), mc_paths=mc_paths, log=log)
     return train(shipped_config(name), Path(root), progress=progress, mc_paths=mc_paths, log=log,
                  method=LIGHT_METHOD.get(name))
 

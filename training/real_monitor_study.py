@@ -35,11 +35,8 @@ import numpy as np
 
 from gpnarx.training.cli_runner import run_cli
 from gpnarx.training.config import bert_data_dir
+from gpnarx.training.real_monitor import CALIBRATION, OFF_PROBE, TEST
 from gpnarx.training.records import read_record
-
-CALIBRATION = {"Sine_08Hz": (24.0, 48.0), "Sine_09p5Hz": (24.0, 48.0)}
-TEST = {"Sine_08p5Hz": (6.0, 50.0), "Sine_09Hz": (6.0, 50.0)}
-OFF_PROBE = {"Sine_17Hz": (6.0, 14.0)}
 
 
 def _cli(argv: list[str]) -> dict:
