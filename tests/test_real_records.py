@@ -27,9 +27,7 @@ pytestmark = pytest.mark.skipif(not RECORDS, reason=f"real BERT records not foun
 def model():
     from gpnarx.training.config import load_config
     from gpnarx.training.defaults import shipped_config
-    from gpnarx.training.pipeline import model_from_config
-
-    from gpnarx.training.pipeline import calibrate_band_from_config
+    from gpnarx.training.pipeline import calibrate_band_from_config, model_from_config
 
     cfg = load_config(shipped_config("bert-real"))
     m = model_from_config(cfg, None, None).fit(cfg.records_for("train"), heldout=cfg.records_for("lags"))
