@@ -79,10 +79,10 @@ def plan_defaults(root, names=None) -> dict:
     for name in names:
         if name in have:
             plan["present"].append(name)
-        elif name in DERIVED and DERIVED[name] not in have and DERIVED[name] not in plan["missing"]:
-            plan["skipped"][name] = f"derived from {DERIVED[name]}, which is neither present nor being built"
         elif name in NEEDS_BERT_DATA and not _bert_data_present():
             plan["skipped"][name] = "real BERT records not found ($GPNARX_BERT_DATA or ../shared/data/bert-t5nm)"
+        elif name in DERIVED and DERIVED[name] not in have and DERIVED[name] not in plan["missing"]:
+            plan["skipped"][name] = f"derived from {DERIVED[name]}, which is neither present nor being built"
         else:
             plan["missing"].append(name)
     return plan
