@@ -1,0 +1,27 @@
+"""The simulated systems' results pages are renders of their runs' JSON (issue 22): docs/results-SYSTEM.md
+equals what training.reproduce.results_page renders from docs/runs/SYSTEM/ (the run's summary.json and
+lag_surface.json), so a figure on the page cannot drift from its run. Re-render with
+``gpnarx reproduce SYSTEM --out docs/runs/SYSTEM --from-run --docs docs/results-SYSTEM.md``; a new run
+replaces both the JSON and the page."""
+import json
+from pathlib import Path
+
+import pytest
+
+from gpnarx.training.reproduce import results_page
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+
+@pytest.mark.parametrize("system", ["bouc-wen", "bert-standin"])
+def test_docs_results_page_is_the_render_of_its_stored_run(system):
+    run = DOCS / "runs" / system
+    summary = json.loads((run / "summary.json").read_text())
+    surface = json.loads((run / "lag_surface.json").read_text())
+    assert summary["system"] == system and not summary["quick"]
+    page = (DOCS / f"results-{system}.md").read_text()
+    assert page == results_page(summary, surface), f"docs/results-{system}.md differs from its run's render"
+    # every record of the run is on the page, with its use and both coverages
+    for name, rec in summary["records"].items():
+        row = next(ln for ln in page.splitlines() if ln.startswith(f"| {name} |"))
+        assert f" {rec['coverage']:.1f} " in row and f" {rec['coverage_latent']:.1f} " in row, name
