@@ -219,7 +219,7 @@ def test_bouc_wen_full_verification_fit_at_least_90(bouc_wen_full, name):
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="known miss: the 10 N sweep's clean fit is 79.6 % at the chosen lags "
                    "(target 90 %; 88.1-90.4 % at the paper's 20/17 over 11 training-noise draws), see "
-                   "docs/results-bouc-wen.md")
+                   "docs/study-bouc-wen-10n.md")
 def test_reproduce_bouc_wen_full_10n_sweep_fit(bouc_wen_full):
     assert bouc_wen_full["res"]["records"]["sweep-10N"]["fit_clean"] >= 90
 
