@@ -43,7 +43,7 @@ def run(args):
         ran = json.loads(summary.read_text()).get("system")
         if ran != args.system:
             raise CLIError(f"--from-run: {out} holds a {ran} run, not {args.system}")
-        render_from_run(out, args.docs)
+        render_from_run(out, args.docs, write_out=False)  # the run folder keeps the page its run wrote
         return {"system": args.system, "out": out, "docs": args.docs}
     log = None if args.json else (lambda m: print(m, file=sys.stderr, flush=True))
     s = reproduce(args.system, out, quick=args.quick, jobs=args.jobs, scheduler=args.scheduler, mc_paths=args.mc,

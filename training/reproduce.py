@@ -195,15 +195,16 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
     return page
 
 
-def render_from_run(out_dir, docs_page=None) -> str:
+def render_from_run(out_dir, docs_page=None, write_out: bool = True) -> str:
     """Render the results page from a finished run folder's JSON (no computation): written to
-    OUT/results-SYSTEM.md and, when given, to ``docs_page``."""
+    OUT/results-SYSTEM.md (unless ``write_out`` is False) and, when given, to ``docs_page``."""
     out = Path(out_dir)
     summary = json.loads((out / "summary.json").read_text())
     surf_path = out / "lag_surface.json"
     surface = json.loads(surf_path.read_text()) if surf_path.is_file() else None
     page = results_page(summary, surface)
-    (out / f"results-{summary['system']}.md").write_text(page)
+    if write_out:
+        (out / f"results-{summary['system']}.md").write_text(page)
     if docs_page:
         Path(docs_page).write_text(page)
     return page
