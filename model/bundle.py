@@ -551,7 +551,7 @@ def load_bundle(path) -> Bundle:
                        selection=est["selection"], seed=int(est["seed"]),
                        include_noise=bool(est["include_noise"]), hyper=est["hyper"],
                        constant_cap=est["constant_cap"])
-        model._validate_params()
+        model._check_params()
         model.kernel_ = kernel
         model.theta_ = arrays["theta"]
         model.noise_var_ = float(manifest["noise_var"])

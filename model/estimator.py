@@ -1,16 +1,14 @@
-"""The GP-NARX estimator (scikit-learn style).
+"""The GP-NARX estimator (scikit-learn style; a worked example is in ``GPNARX``'s docstring).
 
-    >>> m = GPNARX(ny=20, nu=17).fit([record_10N, record_80N])
-    >>> run = m.simulate(u, n_paths=1024, seed=0)      # free-run mean, std, 99% band
-    >>> mean, std = m.predict_one_step(record)          # eqs. (8)-(9)
-
-Parameters are set in ``__init__``; learned attributes end in ``_``.
+A scikit-learn estimator (``BaseEstimator``): keyword-only parameters set in ``__init__``,
+learned attributes ending in ``_``.
 """
 from __future__ import annotations
 
 import time
 
 import numpy as np
+from sklearn.base import BaseEstimator
 
 from . import freerun
 from .discrepancy import widen
@@ -61,33 +59,95 @@ def _as_input(u, name: str = "u") -> np.ndarray:
     return arr
 
 
-class GPNARX:
-    """GP-NARX model of eq. (1)-(3) with the kernel of eq. (12) by default.
+class GPNARX(BaseEstimator):
+    """GP-NARX model of eqs. (1)-(3) with the kernel of eq. (12) by default.
 
-    ny, nu: output and input lag orders of eq. (3) (1..200 each).
-    kernel: a ``Kernel`` or a name for ``make_kernel`` (default 'matern32+cubic', eq. 12).
-    mode: 'exact' (full GP) or 'sparse' (M inducing points; hyperparameters from exact ML-II on
-        the capped training set, posterior over all rows at O(N M^2)).
-    n_inducing: M for sparse mode.
-    max_train_points: cap on GP training rows for ML-II (and the exact posterior).
-    selection: how the cap selects rows: 'stride', 'random' or 'resonance' (section 4.2).
-    n_restarts: extra seeded L-BFGS-B starts for ML-II (stops early when two agree). From 2000
-        ML-II rows, the first start is warm-started on a quarter of them (strided) before the
-        full-N L-BFGS-B (``fit_ml2(warm_start_subset=N // 4)``: fewer O(N^3) evaluations), and the
-        redundant cubic scale s is held fixed (``hold_redundant``, see ``fit_ml2``).
-    seed: seed of the selection, restarts and inducing-point k-means.
-    include_noise: free-run samples include the likelihood noise sigma_y^2 (eq. 2).
-    hyper: how sparse mode sets hyperparameters: 'subset' (exact ML-II, eq. 13, on the capped
-        rows) or 'vfe' (that, then refined on all rows by maximising the Titsias VFE bound with
-        analytic gradients, O(N M^2) per evaluation; see ``model.vfe``).
-    constant_cap: cap on the constant term sigma_p^2 b^3 of the cubic kernel (eq. 11) for the
-        predictive variance, in standardised output variance units (None: no cap). ML-II can leave
-        that term at 1e4 while the latent variance is 1e-4, and eq. 9 then cancels below float64
-        precision; with the cap (1: the variance of the standardised output) the variance is exact
-        to ~1e-10. The mean (eq. 8) keeps the uncapped kernel (see ``CubicPolynomial``).
+    A scikit-learn estimator: parameters are keyword-only and set in ``__init__`` (so
+    ``get_params``, ``set_params`` and ``sklearn.base.clone`` work); everything learned by ``fit``
+    is an attribute ending in ``_``.
+
+    Parameters
+    ----------
+    ny, nu : int, default=2
+        Output and input lag orders of eq. (3) (1..200 each).
+    kernel : Kernel or str, default='matern32+cubic'
+        A ``Kernel`` or a name for ``make_kernel`` (eq. 12 by default).
+    mode : {'exact', 'sparse'}, default='exact'
+        'exact' (full GP) or 'sparse' (M inducing points; hyperparameters from exact ML-II on the
+        capped training set, posterior over all rows at O(N M^2)).
+    n_inducing : int, default=256
+        M for sparse mode (1..4096).
+    max_train_points : int or None, default=2000
+        Cap on GP training rows for ML-II (and the exact posterior).
+    selection : {'stride', 'random', 'resonance'}, default='stride'
+        How the cap selects rows (section 4.2).
+    n_restarts : int, default=2
+        Extra seeded L-BFGS-B starts for ML-II (stops early when two agree). From 2000 ML-II rows,
+        the first start is warm-started on a quarter of them (strided) before the full-N L-BFGS-B
+        (``fit_ml2(warm_start_subset=N // 4)``: fewer O(N^3) evaluations), and the redundant cubic
+        scale s is held fixed (``hold_redundant``, see ``fit_ml2``).
+    seed : int, default=0
+        Seed of the selection, restarts and inducing-point k-means.
+    include_noise : bool, default=True
+        Free-run samples include the likelihood noise sigma_y^2 (eq. 2).
+    sparse_max_rows : int or None, default=50000
+        Cap on the (strided) rows of the sparse posterior and of the VFE refinement.
+    hyper : {'subset', 'vfe'}, default='subset'
+        How sparse mode sets hyperparameters: 'subset' (exact ML-II, eq. 13, on the capped rows) or
+        'vfe' (that, then refined on all rows by maximising the Titsias VFE bound with analytic
+        gradients, O(N M^2) per evaluation; see ``model.vfe``).
+    constant_cap : float or None, default=1.0
+        Cap on the constant term sigma_p^2 b^3 of the cubic kernel (eq. 11) for the predictive
+        variance, in standardised output variance units (None: no cap). ML-II can leave that term at
+        1e4 while the latent variance is 1e-4, and eq. 9 then cancels below float64 precision; with
+        the cap (1: the variance of the standardised output) the variance is exact to ~1e-10. The
+        mean (eq. 8) keeps the uncapped kernel (see ``CubicPolynomial``).
+
+    Attributes
+    ----------
+    kernel_ : Kernel
+        The fitted kernel (hyperparameters of ML-II or ``theta``).
+    theta_ : ndarray
+        Log-hyperparameters: the kernel's, then log sigma_y^2.
+    nlml_ : float
+        Negative log marginal likelihood at ``theta_`` (NaN when ``theta`` was given).
+    ml2_restarts_ : list
+        The ML-II starts that were run.
+    noise_var_ : float
+        Likelihood noise variance sigma_y^2 in use (standardised units).
+    noise_var_ml2_ : float
+        sigma_y^2 from ML-II, before any held-out calibration.
+    noise_calibration_ : dict or None
+        What the held-out noise calibration did (``fit(heldout=...)``), else None.
+    band_discrepancy_ : dict or None
+        The band's model-discrepancy term set by ``calibrate_band``, else None.
+    posterior_ : ExactPosterior or SparsePosterior
+        The GP posterior over the standardised training rows.
+    x_scaler_, y_scaler_ : Standardizer
+        Standardisation of the regressors and of the output.
+    envelope_ : dict
+        The training envelope (``model.envelope``) a free run is checked against.
+    n_train_ : int
+        Rows used by ML-II (and the exact posterior).
+    n_rows_ : int
+        Regressor rows of all training records.
+    fit_seconds_ : float
+        Wall time of ``fit``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gpnarx.model.estimator import GPNARX
+    >>> u = np.random.default_rng(0).normal(size=400)
+    >>> y = np.convolve(u, [0.5, 0.3, 0.1])[:400]
+    >>> m = GPNARX(ny=2, nu=3, max_train_points=200, n_restarts=0).fit([(u, y)])
+    >>> run = m.simulate(u[:100], n_paths=64, seed=0)      # free-run mean, std, 99% band
+    >>> run.mean.shape
+    (100,)
+    >>> mean, std = m.predict_one_step([(u, y)])          # eqs. (8)-(9)
     """
 
-    def __init__(self, ny: int = 2, nu: int = 2, kernel: Kernel | str = "matern32+cubic", mode: str = "exact",
+    def __init__(self, *, ny: int = 2, nu: int = 2, kernel: Kernel | str = "matern32+cubic", mode: str = "exact",
                  n_inducing: int = 256, max_train_points: int | None = 2000, selection: str = "stride",
                  n_restarts: int = 2, seed: int = 0, include_noise: bool = True,
                  sparse_max_rows: int | None = 50000, hyper: str = "subset",
@@ -107,7 +167,7 @@ class GPNARX:
         self.constant_cap = constant_cap
 
     # ------------------------------------------------------------------------------------------
-    def _validate_params(self) -> None:
+    def _check_params(self) -> None:
         self.ny, self.nu = check_lags(self.ny, self.nu)
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
@@ -133,7 +193,7 @@ class GPNARX:
             (``model.calibration``; never below ML-II's) and the posterior is rebuilt with it. The
             ML-II value stays in ``noise_var_ml2_``; ``noise_calibration_`` records what was done.
         """
-        self._validate_params()
+        self._check_params()
         t0 = time.perf_counter()
         pairs = _as_pairs(records)
         held = None

@@ -100,9 +100,9 @@ def test_bad_parameters_name_the_argument(kwargs, match):
 def test_bad_records_are_refused():
     u = np.ones(50)
     with pytest.raises(RecordError, match="non-finite"):
-        GPNARX(2, 2).fit([Record(np.r_[u[:-1], np.nan], u, 100.0)])
+        GPNARX(ny=2, nu=2).fit([Record(np.r_[u[:-1], np.nan], u, 100.0)])
     with pytest.raises(ValueError, match="need at least"):
-        GPNARX(10, 2).fit([(u[:8], u[:8])])
+        GPNARX(ny=10, nu=2).fit([(u[:8], u[:8])])
     with pytest.raises(RecordError, match="must match"):
         Record(u, u[:10], 100.0)
     with pytest.raises(RecordError, match="fs must be a finite positive"):
@@ -447,3 +447,38 @@ def test_latent_band_leaves_out_the_noise_term(sdof_data, method):
     w = np.median(run.latent_upper - run.latent_lower)
     assert abs(w / np.median(other.latent_upper - other.latent_lower) - 1) < 0.15
     assert coverage(y2, run.latent_lower, run.latent_upper) > 90
+
+
+def test_scikit_learn_estimator_api():
+    """GPNARX is a scikit-learn estimator: keyword-only parameters, get_params/set_params, clone."""
+    from sklearn.base import BaseEstimator, clone
+
+    m = GPNARX(ny=3, nu=4, mode="sparse", n_inducing=32, max_train_points=150, n_restarts=0, seed=7)
+    assert isinstance(m, BaseEstimator)
+    params = m.get_params()
+    assert params["ny"] == 3 and params["nu"] == 4 and params["mode"] == "sparse" and params["seed"] == 7
+    assert set(params) == {"ny", "nu", "kernel", "mode", "n_inducing", "max_train_points", "selection",
+                           "n_restarts", "seed", "include_noise", "sparse_max_rows", "hyper", "constant_cap"}
+    with pytest.raises(TypeError):
+        GPNARX(2, 2)  # keyword-only
+    u = np.random.default_rng(0).normal(size=300)
+    y = np.convolve(u, [0.5, 0.3, 0.1])[:300]
+    m.fit([(u, y)])
+    c = clone(m)
+    assert c.get_params() == m.get_params()
+    assert not hasattr(c, "posterior_") and hasattr(m, "posterior_")  # fitted attributes are not cloned
+    assert all(k.endswith("_") for k in vars(m) if k not in params)
+    assert c.set_params(ny=5, mode="exact") is c and c.ny == 5 and c.mode == "exact"
+    with pytest.raises(ValueError):
+        c.set_params(not_a_parameter=1)
+    mean = clone(m).fit([(u, y)]).predict_one_step([(u, y)], return_std=False)
+    np.testing.assert_allclose(mean, m.predict_one_step([(u, y)], return_std=False))
+
+
+def test_estimator_docstring_example_runs():
+    import doctest
+
+    from gpnarx.model import estimator
+
+    result = doctest.testmod(estimator, optionflags=doctest.ELLIPSIS)
+    assert result.attempted > 0 and result.failed == 0
