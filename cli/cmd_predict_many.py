@@ -159,8 +159,8 @@ def run(args):
 
 def _run(args, runner, mc: int) -> dict:
     from gpnarx.cli.cmd_predict import check_fs, load_model
+    from gpnarx.model.jsonsafe import to_json_safe
     from gpnarx.training.distributed import Failed
-    from gpnarx.training.jsonsafe import to_json_safe
     from gpnarx.training.records import read_record
 
     out = _Results(args.out)

@@ -17,7 +17,7 @@ import sys
 import numpy as np
 
 from gpnarx.cli.errors import CLIError
-from gpnarx.training.jsonsafe import to_json_safe
+from gpnarx.model.jsonsafe import to_json_safe
 
 # Subcommand modules, in the order shown by --help.
 COMMAND_MODULES = [

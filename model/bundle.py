@@ -50,6 +50,7 @@ from .discrepancy import check_discrepancy
 from .envelope import check_envelope
 from .estimator import GPNARX
 from .gp import ExactPosterior, SparsePosterior
+from .jsonsafe import json_default
 from .kernels import DEFAULT_CONSTANT_CAP, kernel_from_dict
 from .scaling import Standardizer
 from .storage import RemoteStore, StorageError, as_local, cache_dir_for, write_atomic
@@ -225,7 +226,7 @@ def _new_version_target(registry: Path, name: str, version) -> tuple[str, Path]:
 
 def _write_manifest(folder: Path, manifest: dict) -> None:
     with open(folder / MANIFEST, "w") as f:
-        json.dump(manifest, f, indent=1, allow_nan=False, default=_json_default)
+        json.dump(manifest, f, indent=1, allow_nan=False, default=json_default)
         f.flush()
         os.fsync(f.fileno())
     (folder / MANIFEST_SUM).write_text(_sha256(folder / MANIFEST) + "\n")
@@ -407,14 +408,6 @@ def derive_bundle(bundle: "Bundle", registry, updates: dict, version=None, name:
         _write_manifest(tmp, manifest)
 
     return _write_new_version(registry, name, version, fill)
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def _migrate_1_to_2(m: dict) -> None:

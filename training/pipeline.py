@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from gpnarx.model.bundle import save_bundle
 from gpnarx.model.estimator import GPNARX
+from gpnarx.model.jsonsafe import to_json_safe
 from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import (
     RMS_METHOD,
@@ -33,7 +34,6 @@ from gpnarx.model.records import Record
 from gpnarx.training.baselines import fit_baselines, score_baselines
 from gpnarx.training.config import DatasetConfig, load_config
 from gpnarx.training.distributed import TaskRunner
-from gpnarx.training.jsonsafe import to_json_safe
 from gpnarx.training.prepare import model_from_config, shorten
 
 __all__ = ["EVAL_ROLES", "as_config", "basic_metrics", "evaluate_record", "model_from_config", "score_records",
