@@ -1,29 +1,13 @@
 """Service settings and request bounds.
 
-Every bound is documented here (``DEFAULT_BOUNDS``), in the OpenAPI document (field descriptions
-and the API description) and in docs/api.md. Each one can be changed with an environment variable
-(``Settings.from_env``); the defaults are what the committed OpenAPI document describes.
+``Settings`` is a pydantic-settings model: each field is read from the environment variable
+``GPNARX_<FIELD>`` by ``Settings.from_env`` (``Settings(...)`` alone reads no environment), and its
+metadata (description, what exceeding it answers) is the one list of the service's bounds: the
+OpenAPI description (``DEFAULT_BOUNDS``) and the table in docs/api.md are generated from it. The
+defaults are what the committed OpenAPI document describes.
 
-=====================  ==========================  ===========  =============================
-setting                 environment variable         default      exceeded ->
-=====================  ==========================  ===========  =============================
-max_samples             GPNARX_MAX_SAMPLES           65536        413, field ``u`` (or ``y``)
-max_batch               GPNARX_MAX_BATCH             64           413, field ``requests``
-mc_paths_default        GPNARX_MC_PATHS_DEFAULT      256          -
-mc_paths_max            GPNARX_MC_PATHS_MAX          4096         422, field ``mc_paths``
-max_mc_work             GPNARX_MAX_MC_WORK           2**24        413, field ``mc_paths``
-max_body_bytes          GPNARX_MAX_BODY_BYTES        32 MiB       413, field ``body``
-workers                 GPNARX_WORKERS               min(4, CPUs) -
-queue_size              GPNARX_QUEUE_SIZE            16           503 + Retry-After
-retry_after             GPNARX_RETRY_AFTER           2 (s)        -
-request_timeout         GPNARX_REQUEST_TIMEOUT       120 (s)      504 (running) / 503 (queued)
-api_key                 GPNARX_API_KEY               unset (off)  401 on /v1 routes
-blas_threads            GPNARX_BLAS_THREADS          1            - (0: leave BLAS as it is)
-mmap_threshold          GPNARX_MMAP_THRESHOLD        32 MiB       - (0: leave malloc as it is)
-registry                GPNARX_REGISTRY              unset        - (a folder or an fsspec URL)
-registry_poll           GPNARX_REGISTRY_POLL         30 (s)       - (0: no polling)
-max_loaded              GPNARX_MAX_LOADED            8            - (built models kept in memory)
-=====================  ==========================  ===========  =============================
+The table of settings, variables, defaults and what exceeding a bound answers is generated from
+the fields below (``settings_table()``; docs/api.md holds it, checked by tests/test_settings.py).
 
 ``registry`` is a folder or an fsspec URL (``s3://bucket/prefix``, ``gs://...``, ``file://...``;
 ``model.storage`` says where credentials, endpoint and ``GPNARX_STORAGE_OPTIONS`` come from).
@@ -64,121 +48,191 @@ server process predicted about 30 % slower than a process that had trained a mod
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field, replace
+from contextvars import ContextVar
+from typing import Any
+
+from pydantic import Field, ValidationError, model_validator
+from pydantic.fields import FieldInfo
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 MiB = 1024 * 1024
-
-#: Default bounds (documented in the OpenAPI document and docs/api.md).
-DEFAULT_BOUNDS = {
-    "max_samples": 65536,
-    "max_batch": 64,
-    "mc_paths_default": 256,
-    "mc_paths_max": 4096,
-    "max_mc_work": 2**24,
-    "max_body_bytes": 32 * MiB,
-}
-
-ENV = {
-    "max_samples": "GPNARX_MAX_SAMPLES",
-    "max_batch": "GPNARX_MAX_BATCH",
-    "mc_paths_default": "GPNARX_MC_PATHS_DEFAULT",
-    "mc_paths_max": "GPNARX_MC_PATHS_MAX",
-    "max_mc_work": "GPNARX_MAX_MC_WORK",
-    "max_body_bytes": "GPNARX_MAX_BODY_BYTES",
-    "workers": "GPNARX_WORKERS",
-    "queue_size": "GPNARX_QUEUE_SIZE",
-    "retry_after": "GPNARX_RETRY_AFTER",
-    "request_timeout": "GPNARX_REQUEST_TIMEOUT",
-    "api_key": "GPNARX_API_KEY",
-    "registry": "GPNARX_REGISTRY",
-    "blas_threads": "GPNARX_BLAS_THREADS",
-    "mmap_threshold": "GPNARX_MMAP_THRESHOLD",
-    "registry_poll": "GPNARX_REGISTRY_POLL",
-    "max_loaded": "GPNARX_MAX_LOADED",
-}
+ENV_PREFIX = "GPNARX_"
 
 
 def _default_workers() -> int:
     return max(1, min(4, os.cpu_count() or 1))
 
 
-@dataclass(frozen=True)
-class Settings:
-    """Runtime configuration of the HTTP service (see the module docstring for the table)."""
+def _setting(default: Any = None, *, label: str, exceeded: str = "-", shown: str | None = None, kind: str,
+             bound: bool = False, default_factory=None, **constraints) -> Any:
+    """A settings field with the metadata of the limits table (``settings_table``)."""
+    extra = {"label": label, "exceeded": exceeded, "shown": shown, "kind": kind, "bound": bound}
+    if default_factory is not None:
+        return Field(default_factory=default_factory, description=label, json_schema_extra=extra, **constraints)
+    return Field(default, description=label, json_schema_extra=extra, **constraints)
 
-    max_samples: int = DEFAULT_BOUNDS["max_samples"]
-    max_batch: int = DEFAULT_BOUNDS["max_batch"]
-    mc_paths_default: int = DEFAULT_BOUNDS["mc_paths_default"]
-    mc_paths_max: int = DEFAULT_BOUNDS["mc_paths_max"]
-    max_mc_work: int = DEFAULT_BOUNDS["max_mc_work"]
-    max_body_bytes: int = DEFAULT_BOUNDS["max_body_bytes"]
-    workers: int = field(default_factory=_default_workers)
-    queue_size: int = 16
-    retry_after: int = 2
-    #: seconds from submission to answer of a compute request (0: no limit)
-    request_timeout: float = 120.0
-    api_key: str | None = None
-    registry: str | None = None
-    blas_threads: int = 1
-    mmap_threshold: int = 32 * MiB
-    #: seconds between rescans of the registry for new, changed or removed versions (0: none)
-    registry_poll: float = 30.0
-    #: built models kept in memory (least recently used dropped first)
-    max_loaded: int = 8
-    #: reload the registry on SIGHUP (only where the event loop runs in the main thread)
-    sighup_reload: bool = False
 
-    def __post_init__(self):
-        for name in ("max_samples", "max_batch", "mc_paths_default", "mc_paths_max", "max_mc_work",
-                     "max_body_bytes", "workers", "retry_after", "max_loaded"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"setting {name} must be a positive integer, got {v!r}")
-        if isinstance(self.queue_size, bool) or not isinstance(self.queue_size, int) or self.queue_size < 0:
-            raise ValueError(f"setting queue_size must be a non-negative integer, got {self.queue_size!r}")
-        for name in ("blas_threads", "mmap_threshold"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ValueError(f"setting {name} must be a non-negative integer, got {v!r}")
-        for name in ("request_timeout", "registry_poll"):
-            t = getattr(self, name)
-            if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 <= t < float("inf"):
-                raise ValueError(f"setting {name} must be a non-negative number of seconds, got {t!r}")
-            object.__setattr__(self, name, float(t))
-        if self.mc_paths_default > self.mc_paths_max:
-            raise ValueError(f"setting mc_paths_default ({self.mc_paths_default}) exceeds mc_paths_max "
-                             f"({self.mc_paths_max})")
-        if self.api_key is not None and not str(self.api_key).strip():
-            object.__setattr__(self, "api_key", None)
+_POSITIVE = "a positive integer"
+_NON_NEGATIVE = "a non-negative integer"
+_SECONDS = "a non-negative number of seconds"
 
-    @classmethod
-    def from_env(cls, environ=None, **overrides) -> Settings:
-        """Settings from ``GPNARX_*`` environment variables; ``overrides`` win."""
-        env = os.environ if environ is None else environ
-        kw: dict = {}
-        for name, var in ENV.items():
+#: the mapping ``Settings.from_env`` reads (None: ``Settings(...)`` reads no environment)
+_ENVIRON: ContextVar[Any] = ContextVar("gpnarx_settings_environ", default=None)
+
+
+class _EnvironSource(PydanticBaseSettingsSource):
+    """``GPNARX_<FIELD>`` variables of the mapping ``from_env`` was given, parsed to the field's type."""
+
+    def get_field_value(self, field: FieldInfo, field_name: str) -> tuple[Any, str, bool]:  # pragma: no cover
+        raise NotImplementedError  # __call__ reads every field at once
+
+    def __call__(self) -> dict[str, Any]:
+        env = _ENVIRON.get()
+        if env is None:
+            return {}
+        out: dict[str, Any] = {}
+        for name, field in self.settings_cls.model_fields.items():
+            var = env_var(name)
             raw = env.get(var)
-            if raw is None or raw == "":
+            if name == "sighup_reload" or raw is None or raw == "":
                 continue
-            if name in ("api_key", "registry"):
-                kw[name] = raw
-            elif name in ("request_timeout", "registry_poll"):
+            kind = (field.json_schema_extra or {}).get("kind")
+            if kind is None:  # text: api_key, registry
+                out[name] = raw
+            elif kind == _SECONDS:
                 try:
-                    kw[name] = float(raw)
+                    out[name] = float(raw)
                 except ValueError:
                     raise ValueError(f"environment variable {var} must be a number of seconds, got {raw!r}") from None
             else:
                 try:
-                    kw[name] = int(raw.replace("_", ""))
+                    out[name] = int(raw.replace("_", ""))
                 except ValueError:
                     raise ValueError(f"environment variable {var} must be an integer, got {raw!r}") from None
-        kw.update({k: v for k, v in overrides.items() if v is not None})
-        return cls(**kw)
+        return out
+
+
+class Settings(BaseSettings):
+    """Runtime configuration of the HTTP service (``settings_table()`` lists it)."""
+
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, frozen=True, strict=True, extra="forbid",
+                                      validate_default=True)
+
+    max_samples: int = _setting(65536, ge=1, kind=_POSITIVE, bound=True, label="samples per record",
+                                exceeded="413, field `u` (or `y`)")
+    max_batch: int = _setting(64, ge=1, kind=_POSITIVE, bound=True, label="records per batch",
+                              exceeded="413, field `requests`")
+    mc_paths_default: int = _setting(256, ge=1, kind=_POSITIVE, bound=True,
+                                     label="Monte Carlo paths when a request names none")
+    mc_paths_max: int = _setting(4096, ge=1, kind=_POSITIVE, bound=True, label="Monte Carlo paths per record",
+                                 exceeded="422, field `mc_paths`")
+    max_mc_work: int = _setting(2**24, ge=1, kind=_POSITIVE, bound=True, shown="2^24",
+                                label="path-steps (paths x samples) per HTTP request (a batch shares it)",
+                                exceeded="413, field `mc_paths`")
+    max_body_bytes: int = _setting(32 * MiB, ge=1, kind=_POSITIVE, bound=True, shown="32 MiB", label="body size",
+                                   exceeded="413, field `body`")
+    workers: int = _setting(default_factory=_default_workers, ge=1, kind=_POSITIVE, shown="min(4, CPUs)",
+                            label="worker threads running compute jobs")
+    queue_size: int = _setting(16, ge=0, kind=_NON_NEGATIVE, label="jobs waiting for a worker",
+                               exceeded="503 + `Retry-After`")
+    retry_after: int = _setting(2, ge=1, kind=_POSITIVE, shown="2 s", label="`Retry-After` of a 503 (seconds)")
+    request_timeout: float = _setting(120.0, ge=0, allow_inf_nan=False, kind=_SECONDS, shown="120 s",
+                                      label="time per predict/loops/novelty/batch request, queue wait included "
+                                            "(0 = none)",
+                                      exceeded="504 if its job was computing, 503 + `Retry-After` if still queued")
+    api_key: str | None = _setting(None, kind=None, shown="unset (off)",
+                                   label="API key every `/v1` route then needs in `X-API-Key`", exceeded="401")
+    registry: str | None = _setting(None, kind=None, shown="unset",
+                                    label="the registry: a folder or an fsspec URL (`s3://bucket/prefix`)")
+    blas_threads: int = _setting(1, ge=0, kind=_NON_NEGATIVE, label="BLAS threads per process (0 = leave BLAS)")
+    mmap_threshold: int = _setting(32 * MiB, ge=0, kind=_NON_NEGATIVE, shown="32 MiB",
+                                   label="glibc's mmap threshold (0 = leave malloc)")
+    registry_poll: float = _setting(30.0, ge=0, allow_inf_nan=False, kind=_SECONDS, shown="30 s",
+                                    label="seconds between rescans of the registry (0 = none)")
+    max_loaded: int = _setting(8, ge=1, kind=_POSITIVE, label="built models kept in memory (least recently used "
+                                                              "dropped first)")
+    #: reload the registry on SIGHUP (only where the event loop runs in the main thread); not an env setting
+    sighup_reload: bool = False
+
+    def __init__(self, **values: Any):
+        try:
+            super().__init__(**values)
+        except ValidationError as exc:  # one plain message naming the setting
+            err = exc.errors()[0]
+            name = str(err["loc"][0]) if err.get("loc") else ""
+            field = type(self).model_fields.get(name)
+            kind = (field.json_schema_extra or {}).get("kind") if field is not None else None
+            if not name:  # a rule across settings (model validator)
+                raise ValueError(str(err["msg"]).removeprefix("Value error, ")) from None
+            if kind is None:
+                raise ValueError(f"setting {name}: {err['msg']}") from None
+            raise ValueError(f"setting {name} must be {kind}, got {err.get('input')!r}") from None
+
+    @classmethod
+    def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,
+                                   file_secret_settings):
+        return (init_settings, _EnvironSource(settings_cls))  # arguments win over the environment
+
+    @model_validator(mode="before")
+    @classmethod
+    def _blank_key_is_none(cls, data: Any) -> Any:
+        if isinstance(data, dict) and isinstance(data.get("api_key"), str) and not data["api_key"].strip():
+            data = {**data, "api_key": None}
+        if isinstance(data, dict) and isinstance(data.get("registry"), os.PathLike):  # a folder given as a Path
+            data = {**data, "registry": os.fspath(data["registry"])}
+        return data
+
+    @model_validator(mode="after")
+    def _paths_default_within_max(self) -> Settings:
+        if self.mc_paths_default > self.mc_paths_max:
+            raise ValueError(f"setting mc_paths_default ({self.mc_paths_default}) exceeds mc_paths_max "
+                             f"({self.mc_paths_max})")
+        return self
+
+    @classmethod
+    def from_env(cls, environ=None, **overrides) -> Settings:
+        """Settings from ``GPNARX_*`` environment variables (``environ``, default ``os.environ``);
+        ``overrides`` that are not None win."""
+        token = _ENVIRON.set(os.environ if environ is None else environ)
+        try:
+            return cls(**{k: v for k, v in overrides.items() if v is not None})
+        finally:
+            _ENVIRON.reset(token)
 
     def with_(self, **changes) -> Settings:
-        return replace(self, **changes)
+        """A copy with ``changes`` (validated like the original)."""
+        return type(self)(**{**self.model_dump(), **changes})
 
     def bounds(self) -> dict:
         """The request bounds in force (no secrets)."""
-        d = asdict(self)
-        return {k: d[k] for k in DEFAULT_BOUNDS}
+        return {k: getattr(self, k) for k in DEFAULT_BOUNDS}
+
+
+def env_var(name: str) -> str:
+    """The environment variable of setting ``name``."""
+    return ENV_PREFIX + name.upper()
+
+
+def _meta(name: str) -> dict:
+    return Settings.model_fields[name].json_schema_extra or {}
+
+
+#: Default request bounds (the OpenAPI description and docs/api.md show them).
+DEFAULT_BOUNDS = {name: f.default for name, f in Settings.model_fields.items()
+                  if (f.json_schema_extra or {}).get("bound")}
+#: setting -> environment variable
+ENV = {name: env_var(name) for name in Settings.model_fields if name != "sighup_reload"}
+
+
+def settings_table() -> str:
+    """The Markdown table of every ``GPNARX_*`` setting (docs/api.md holds it; tests/test_settings.py checks)."""
+    rows = ["| setting | variable | default | exceeded |", "|---|---|---|---|"]
+    for name, var in ENV.items():
+        f, m = Settings.model_fields[name], _meta(name)
+        shown = m.get("shown") or str(f.default)
+        rows.append(f"| {m['label']} | `{var}` | {shown} | {m['exceeded']} |")
+    return "\n".join(rows) + "\n"
+
+
+if __name__ == "__main__":  # python -m gpnarx.service.settings: print the table for docs/api.md
+    print(settings_table(), end="")

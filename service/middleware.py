@@ -1,0 +1,118 @@
+"""The outermost ASGI layer: body-size cap, request metrics and the last-resort 500 problem.
+
+The API key is a route dependency (``service.deps.require_api_key``), so OpenAPI documents it.
+"""
+from __future__ import annotations
+
+import logging
+import time
+import uuid
+
+from fastapi import FastAPI
+from starlette.routing import Match
+
+from .problems import ProblemError
+from .responses import problem_response
+from .state import ServiceState
+
+log = logging.getLogger("gpnarx.service")
+
+
+class _BodyTooLarge(Exception):
+    pass
+
+
+class GuardMiddleware:
+    """Outermost ASGI layer: body-size cap, metrics, and the last-resort 500 problem."""
+
+    def __init__(self, app, state: ServiceState, fastapi_app: FastAPI):
+        self.app = app
+        self.state = state
+        self.fastapi_app = fastapi_app
+
+    def _route_label(self, scope) -> str:
+        route = scope.get("route")
+        if route is not None and getattr(route, "path", None):
+            return route.path
+        for r in self.fastapi_app.router.routes:
+            try:
+                match, _ = r.matches(scope)
+            except Exception:  # pragma: no cover
+                continue
+            if match == Match.FULL:
+                return getattr(r, "path", "unmatched")
+        return "unmatched"
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        st = self.state
+        t0 = time.perf_counter()
+        ctx = {"status": None, "exceeded": False, "swallow": False}
+        limit = st.settings.max_body_bytes
+        received = 0
+
+        async def send_wrapper(message):
+            if message["type"] == "http.response.start":
+                if ctx["exceeded"]:
+                    ctx["swallow"] = True
+                    return
+                ctx["status"] = message["status"]
+            elif ctx["swallow"]:
+                return
+            await send(message)
+
+        async def receive_wrapper():
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > limit:
+                    ctx["exceeded"] = True
+                    raise _BodyTooLarge()
+            return message
+
+        async def reply(p: ProblemError):
+            resp = problem_response(p)
+            ctx["status"] = p.status
+            await resp(scope, receive, send)
+
+        too_large = ProblemError(413, f"the request body exceeds the limit of {limit} bytes", "body", limit=limit)
+        try:
+            headers = {}
+            for k, v in scope.get("headers", []):
+                headers.setdefault(k.decode("latin-1").lower(), v.decode("latin-1"))
+            cl = headers.get("content-length")
+            if cl is not None:
+                try:
+                    n = int(cl)
+                    if n < 0:
+                        raise ValueError
+                except ValueError:
+                    await reply(ProblemError(400, "the Content-Length header is not a non-negative integer",
+                                             "Content-Length"))
+                    return
+                if n > limit:
+                    await reply(too_large)
+                    return
+            try:
+                await self.app(scope, receive_wrapper, send_wrapper)
+            except _BodyTooLarge:
+                pass
+            if ctx["exceeded"] and (ctx["status"] is None or ctx["swallow"]):
+                ctx["swallow"] = False
+                await reply(too_large)
+        except Exception as exc:  # last resort: never a stack trace or a bare 500
+            incident = uuid.uuid4().hex[:12]
+            log.exception("unhandled error (incident %s) on %s %s", incident, scope.get("method"), scope.get("path"))
+            if ctx["exceeded"] and not ctx["status"]:
+                await reply(too_large)
+            elif ctx["status"] is None:
+                await reply(ProblemError(500, f"internal error (incident {incident}); the error was logged",
+                                         incident=incident))
+            del exc
+        finally:
+            label = self._route_label(scope)
+            status = ctx["status"] or 500
+            st.metrics.observe(scope.get("method", "GET"), label, status, time.perf_counter() - t0)
+

@@ -1,0 +1,59 @@
+"""JSON bodies of the service: fast rendering of numpy arrays, strict parsing, problem responses."""
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from starlette.responses import JSONResponse
+
+from gpnarx.model.jsonsafe import to_json_safe
+
+from .problems import PROBLEM_MEDIA_TYPE, ProblemError
+
+try:  # fast JSON for long float arrays
+    import orjson as _orjson
+except ImportError:  # pragma: no cover - exercised only without orjson
+    _orjson = None
+
+
+def render_json(obj) -> bytes:
+    """JSON bytes; numpy arrays serialised natively (orjson) and non-finite floats as null."""
+    if _orjson is not None:
+        return _orjson.dumps(obj, option=_orjson.OPT_SERIALIZE_NUMPY | _orjson.OPT_NON_STR_KEYS)
+    return json.dumps(to_json_safe(obj), separators=(",", ":"), allow_nan=False).encode()
+
+
+def parse_json(raw: bytes):
+    """Parse a request body; ``ValueError`` with a clear message when it is not JSON."""
+    if _orjson is not None:
+        try:
+            return _orjson.loads(raw)
+        except _orjson.JSONDecodeError as exc:
+            raise ValueError(f"request body is not valid JSON: {exc}") from None
+    try:
+        return json.loads(raw, parse_constant=_refuse_constant)
+    except RecursionError:
+        raise ValueError("request body is not valid JSON: nested too deeply") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"request body is not valid JSON: {exc}") from None
+
+
+def _refuse_constant(name):
+    raise json.JSONDecodeError(f"{name} is not a JSON number", name, 0)
+
+
+class JSONBytesResponse(JSONResponse):
+    """JSON answer rendered by ``render_json`` (numpy arrays without a Python-float detour)."""
+
+    media_type = "application/json"
+
+    def render(self, content: Any) -> bytes:
+        return render_json(content)
+
+
+class ProblemResponse(JSONBytesResponse):
+    media_type = PROBLEM_MEDIA_TYPE
+
+
+def problem_response(p: ProblemError) -> ProblemResponse:
+    return ProblemResponse(p.to_dict(), status_code=p.status, headers=p.headers)

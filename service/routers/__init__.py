@@ -1,0 +1,19 @@
+"""The service's routes, one router per group (``service.app.create_app`` includes them all).
+
+==========  =================================================================================
+health      GET /health/live, /health/ready, /metrics (open even when an API key is set)
+models      GET /v1/models, /v1/models/{name}, /v1/models/{name}/versions/{version}
+predict     POST /v1/models/{name}[/versions/{version}]/{predict|loops|novelty}
+batch       POST /v1/batch
+admin       POST /v1/admin/reload
+ui          GET /ui, /docs, /redoc, /static/...; GET .../report; POST /v1/records/parse
+==========  =================================================================================
+"""
+from __future__ import annotations
+
+from . import admin, batch, health, models, predict, ui
+
+#: in the order the app includes them
+ROUTERS = [health.router, models.router, predict.router, batch.router, admin.router, ui.pages, ui.router]
+
+__all__ = ["ROUTERS", "admin", "batch", "health", "models", "predict", "ui"]

@@ -1,0 +1,193 @@
+"""The state of one service app: the registry (swapped atomically on reload), the executor,
+metrics and settings; routes reach it with ``Depends(get_state)`` (``service.deps``)."""
+from __future__ import annotations
+
+import asyncio
+import logging
+from pathlib import Path
+
+from fastapi import Request
+
+from gpnarx.model.bundle import BundleError, Registry, check_name, check_version_ref
+from gpnarx.model.storage import StorageError
+
+from .metrics import ServiceMetrics
+from .problems import ProblemError
+from .settings import Settings
+from .worker import Abandoned, BoundedExecutor, CancelToken, Overloaded, QueueTimeout, TimedOut
+
+log = logging.getLogger("gpnarx.service")
+
+
+class ServiceState:
+    """Registry (swapped atomically on reload), executor, metrics and settings of one app.
+
+    The registry is lazy: every version is verified when first seen, its model built on first use
+    (at most ``settings.max_loaded`` kept). ``reload`` (admin route, SIGHUP) and the poll
+    (``settings.registry_poll``) swap in a rescan; a registry that cannot be read keeps the last
+    good one serving (``registry_error`` says why).
+    """
+
+    def __init__(self, registry_dir, settings: Settings, startup_status=None):
+        self.settings = settings
+        # start-up hook: a callable returning a dict (schemas.StartupStatus) of the bundles a launcher is
+        # still building into the registry (``gpnarx serve`` without --registry); shown by /health/ready
+        self.startup_status = startup_status
+        self.loop: asyncio.AbstractEventLoop | None = None  # the server's loop while the app runs
+        self.registry_dir = registry_dir if registry_dir else None  # a folder or an fsspec URL
+        self.registry = Registry(self.registry_dir or Path("/nonexistent-gpnarx-registry"), lazy=True,
+                                 max_loaded=settings.max_loaded)
+        self.registry_error: str | None = None
+        if self.registry_dir is not None:
+            try:
+                self.registry.scan()
+            except StorageError as exc:  # unreachable store: not ready; the poll and reload try again
+                self.registry_error = str(exc)
+                log.error("the registry could not be read: %s", exc)
+        self.executor = BoundedExecutor(settings.workers, settings.queue_size)
+        self.metrics = ServiceMetrics(self)
+        self.reload_lock = asyncio.Lock()
+        self.reloads = 0
+        self.polls = 0
+        self._reported = self._listed(self.registry)  # what the last reload answered against
+
+    def refused(self, registry: Registry | None = None) -> list[dict]:
+        reg = registry or self.registry
+        root = str(reg.root).rstrip("/") + "/"
+        out = []
+        for r in reg.refused:
+            path = r["path"][len(root):] if r["path"].startswith(root) else Path(r["path"]).name
+            out.append({"path": path, "reason": r["reason"].replace(root, "")})
+        return out
+
+    def models(self, registry: Registry | None = None) -> dict:
+        reg = registry or self.registry
+        return {name: reg.versions(name) for name in reg.names()}
+
+    def n_bundles(self, registry: Registry | None = None) -> int:
+        reg = registry or self.registry
+        return sum(len(v) for v in reg.bundles.values())
+
+    @staticmethod
+    def _listed(reg: Registry) -> set:
+        return {f"{n}:{v}" for n, vs in reg.bundles.items() for v in vs}
+
+    async def reload(self, poll: bool = False) -> dict:
+        """Rescan the registry and swap it in. ``added``/``removed`` compare with the previous reload
+        (or the start), so versions a poll picked up meanwhile are still reported; a poll does not
+        move that reference."""
+        if self.registry_dir is None:
+            raise ProblemError(409, "no registry folder is configured; nothing to reload")
+        async with self.reload_lock:
+            old = self.registry
+            try:
+                new = await asyncio.to_thread(old.rescan)
+            except StorageError as exc:
+                self.registry_error = str(exc)
+                raise ProblemError(503, f"the registry could not be read ({exc}); the versions listed before "
+                                        f"keep serving", headers={"Retry-After": str(self.settings.retry_after)}
+                                   ) from None
+            self.registry = new  # atomic swap: in-flight requests keep the bundle they hold
+            self.registry_error = None
+            if poll:
+                self.polls += 1
+            else:
+                self.reloads += 1
+            before, after = (self._listed(old), self._listed(new)) if poll else (self._reported, self._listed(new))
+            if not poll:
+                self._reported = after
+        self.metrics.update_bundles()
+        if not poll or before != after or len(old.refused) != len(new.refused):
+            log.info("registry %s: %d bundles, %d refused; added %s, removed %s", "polled" if poll else "reloaded",
+                     self.n_bundles(new), len(new.refused), sorted(after - before) or "none",
+                     sorted(before - after) or "none")
+        return {"bundles": self.n_bundles(new), "models": self.models(new), "refused": self.refused(new),
+                "added": sorted(after - before), "removed": sorted(before - after)}
+
+    def reload_from_thread(self, timeout: float | None = 300.0) -> dict:
+        """``reload()`` called from another thread (e.g. a launcher that has just written a bundle).
+
+        Runs on the server's event loop while the app runs (so it takes turns with admin reloads), else
+        in this thread; returns reload()'s answer.
+        """
+        loop = self.loop
+        if loop is not None and loop.is_running():
+            return asyncio.run_coroutine_threadsafe(self.reload(), loop).result(timeout)
+        return asyncio.run(self.reload())
+
+    def startup(self) -> dict | None:
+        """The start-up hook's status (None without a hook, or if the hook fails: logged)."""
+        if self.startup_status is None:
+            return None
+        try:
+            return self.startup_status()
+        except Exception:  # pragma: no cover - a launcher's bug must not break readiness
+            log.exception("the start-up status hook failed")
+            return None
+
+    def lookup(self, name: str, version: str | None, build: bool = True):
+        """The bundle a name and a version or alias (None: latest) name: built (``build``) or the
+        registry's verified entry (manifest and path; no model built). ProblemError otherwise."""
+        try:
+            check_name(name)
+        except BundleError as exc:
+            raise ProblemError(422, str(exc), "name") from None
+        if version is not None:
+            try:
+                check_version_ref(version)
+            except BundleError as exc:
+                raise ProblemError(422, str(exc), "version") from None
+        try:
+            return self.registry.get(name, version) if build else self.registry.entry(name, version)
+        except KeyError as exc:
+            startup = self.startup() or {}
+            if name not in self.registry.bundles and name in [*startup.get("building", []),
+                                                               *startup.get("pending", [])]:
+                raise ProblemError(503, f"model {name!r} is still being built at start-up (see /health/ready); "
+                                        f"retry after {self.settings.retry_after} s", "name",
+                                   headers={"Retry-After": str(self.settings.retry_after)}) from None
+            msg = str(exc.args[0] if exc.args else "not found")
+            msg = msg.replace(str(self.registry.root).rstrip("/") + "/", "")  # paths inside the registry only
+            raise ProblemError(404, msg, "version" if name in self.registry.bundles else "name") from None
+
+    async def alookup(self, name: str, version: str | None):
+        """``lookup`` that builds a model not yet in memory on a thread (the event loop keeps serving)."""
+        if self.registry.is_built(name, version):
+            return self.lookup(name, version)
+        return await asyncio.to_thread(self.lookup, name, version)
+
+    async def run(self, fn, *args, request: Request | None = None, token: CancelToken | None = None):
+        """Run ``fn(*args)`` on the worker pool under the request deadline; cancel it if the client goes.
+
+        ``token`` (the caller passes it to ``fn`` too) is set when a running job must stop.
+        """
+        timeout = self.settings.request_timeout or None
+        watch = (lambda: _client_gone(request)) if request is not None else None
+        try:
+            return await self.executor.run(fn, *args, timeout=timeout, watch=watch, token=token)
+        except QueueTimeout:
+            self.metrics.timed_out.labels("queued").inc()
+            raise ProblemError(503, f"the service is busy: the request waited its whole time limit of {timeout:g} s "
+                                    f"(GPNARX_REQUEST_TIMEOUT) for a worker; retry after {self.settings.retry_after} s",
+                               headers={"Retry-After": str(self.settings.retry_after)}, limit=timeout) from None
+        except Overloaded as exc:
+            self.metrics.shed.inc()
+            raise ProblemError(503, f"the service is busy ({exc}); retry after {self.settings.retry_after} s",
+                               headers={"Retry-After": str(self.settings.retry_after)}) from None
+        except TimedOut:
+            self.metrics.timed_out.labels("running").inc()
+            raise ProblemError(504, f"the request did not finish within its time limit of {timeout:g} s "
+                                    f"(GPNARX_REQUEST_TIMEOUT); send fewer mc_paths, a shorter record or "
+                                    f"method 'linear'", "mc_paths", limit=timeout) from None
+        except Abandoned as exc:
+            self.metrics.abandoned.inc()
+            raise ProblemError(499, f"{exc}; the job was cancelled") from None
+
+
+async def _client_gone(request: Request) -> None:
+    """Completes when the client disconnects (the body has already been read)."""
+    while True:
+        message = await request.receive()
+        if message["type"] == "http.disconnect":
+            return
+
