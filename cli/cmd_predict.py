@@ -7,6 +7,7 @@ import sys
 import numpy as np
 
 from gpnarx.cli.errors import CLIError
+from gpnarx.model.atomicio import atomic_file
 from gpnarx.model.envelope import assess
 
 
@@ -198,27 +199,17 @@ def predict_answer(bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0
 
 
 def _write_prediction(path, rec, run):
-    import tempfile
     from pathlib import Path
 
     path = Path(path)
     cols = {"time": rec.t, "u": rec.u, "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std}
     if rec.y is not None:
         cols["y"] = rec.y
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", suffix=path.suffix + ".tmp")
-    os.close(fd)
-    try:
+    with atomic_file(path) as f:
         if path.suffix.lower() == ".csv":
-            arr = np.column_stack(list(cols.values()))
-            np.savetxt(tmp, arr, delimiter=",", header=",".join(cols), comments="")
+            np.savetxt(f, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols), comments="")
         else:
-            with open(tmp, "wb") as f:
-                np.savez(f, fs=rec.fs, **cols)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+            np.savez(f, fs=rec.fs, **cols)
 
 
 def run_novelty(args):

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gpnarx.cli.errors import CLIError
+from gpnarx.model.atomicio import write_atomic
 
 INDEX = "index.json"
 
@@ -128,9 +129,7 @@ class _Results:
                 f.write(text)
             return f"{self.out.rstrip('/')}/{name}"
         target = self.dir / name
-        tmp = self.dir / f".{name}.{os.getpid()}.tmp"
-        tmp.write_text(text)
-        os.replace(tmp, target)
+        write_atomic(target, text)
         return str(target)
 
 

@@ -28,6 +28,7 @@ import sys
 from pathlib import Path
 
 from gpnarx.cli.errors import CLIError
+from gpnarx.model.atomicio import write_atomic
 
 DEFAULT_OPENAPI = os.path.join("openapi", "openapi.json")
 
@@ -153,7 +154,5 @@ def run_export(args):
         return None
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, out)
+    write_atomic(out, text)
     return {"path": str(out), "bytes": len(text.encode())}

@@ -46,12 +46,12 @@ from __future__ import annotations
 import math
 import os
 import sys
-import tempfile
 import time
 
 import numpy as np
 
 from gpnarx.cli.errors import CLIError
+from gpnarx.model.atomicio import atomic_file
 from gpnarx.model.records import Record
 from gpnarx.training.records import write_record
 from gpnarx.training.simulation_specs import (
@@ -266,19 +266,12 @@ def _write_record(path: str, u: np.ndarray, y: np.ndarray, fs: float, units: dic
         raise CLIError(f"--out: unsupported record extension {ext or '(none)'!r}; use .npz or .csv")
     u = np.ascontiguousarray(u, dtype=np.float64).ravel()
     y = np.ascontiguousarray(y, dtype=np.float64).ravel()
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=ext, dir=os.path.dirname(path))
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            if ext == ".npz":
-                np.savez(fh, u=u, y=y, fs=np.float64(fs))
-            else:
-                t = np.arange(u.size, dtype=np.float64) / fs
-                np.savetxt(fh, np.column_stack([t, u, y]), delimiter=",", header="time,u,y", comments="", fmt="%.17g")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_file(path) as fh:
+        if ext == ".npz":
+            np.savez(fh, u=u, y=y, fs=np.float64(fs))
+        else:
+            t = np.arange(u.size, dtype=np.float64) / fs
+            np.savetxt(fh, np.column_stack([t, u, y]), delimiter=",", header="time,u,y", comments="", fmt="%.17g")
     return path
 
 

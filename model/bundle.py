@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomicio import write_atomic
 from .discrepancy import check_discrepancy
 from .envelope import check_envelope
 from .estimator import GPNARX
@@ -53,7 +54,7 @@ from .gp import ExactPosterior, SparsePosterior
 from .jsonsafe import json_default
 from .kernels import DEFAULT_CONSTANT_CAP, kernel_from_dict
 from .scaling import Standardizer
-from .storage import RemoteStore, StorageError, as_local, cache_dir_for, write_atomic
+from .storage import RemoteStore, StorageError, as_local, cache_dir_for
 
 SCHEMA_VERSION = 2  # what save_bundle writes; older manifests are migrated on load (MIGRATIONS)
 MANIFEST = "manifest.json"

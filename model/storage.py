@@ -21,7 +21,6 @@ import hashlib
 import json
 import os
 import re
-import tempfile
 from pathlib import Path
 
 URL_RE = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*)://")
@@ -78,24 +77,6 @@ def cache_dir_for(url: str) -> Path:
     """The cache folder of one registry URL (readable name plus a hash, so two URLs never share one)."""
     slug = re.sub(r"[^A-Za-z0-9._-]+", "_", url)[:48].strip("_") or "registry"
     return cache_root() / f"{slug}-{hashlib.sha256(url.encode()).hexdigest()[:12]}"
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write a local file through a temporary file and a rename (readers see old or new, never half)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 def _tag(info: dict):

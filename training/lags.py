@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from joblib import Parallel, delayed
 
+from gpnarx.model.atomicio import write_atomic
 from gpnarx.model.metrics import fit_percent
 from gpnarx.training.config import load_config
 from gpnarx.training.lagchoice import DEFAULT_TOLERANCE, choose_lags, edge_message, grid_edge
@@ -117,9 +118,7 @@ def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler=
         bar = tqdm(total=len(grid), initial=len(grid) - len(todo), desc="lag surface", unit="cell")
 
     def store(res):
-        tmp = cdir / f".ny{res['ny']}_nu{res['nu']}.json.tmp"
-        tmp.write_text(json.dumps(res, allow_nan=True))
-        os.replace(tmp, cdir / f"ny{res['ny']}_nu{res['nu']}.json")
+        write_atomic(cdir / f"ny{res['ny']}_nu{res['nu']}.json", json.dumps(res, allow_nan=True))
         cells[(res["ny"], res["nu"])] = res
         if bar is not None:
             bar.update(1)
@@ -161,13 +160,10 @@ def write_surface(surface: dict, out) -> list[Path]:
     paths = []
     if out.suffix.lower() == ".csv":
         lines = ["ny,nu,fit,seconds"] + [f"{c['ny']},{c['nu']},{c['fit']},{c['seconds']:.3f}" for c in surface["cells"]]
-        tmp = out.with_suffix(".csv.tmp")
-        tmp.write_text("\n".join(lines) + "\n")
+        write_atomic(out, "\n".join(lines) + "\n")
     else:
-        tmp = out.with_suffix(out.suffix + ".tmp")
         clean = json.loads(json.dumps(surface, default=float).replace("NaN", "null"))
-        tmp.write_text(json.dumps(clean, indent=1))
-    os.replace(tmp, out)
+        write_atomic(out, json.dumps(clean, indent=1))
     paths.append(out)
     try:
         # the report module imports matplotlib and selects its Agg backend: imported only here, when a

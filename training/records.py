@@ -60,10 +60,11 @@ from __future__ import annotations
 import io
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from gpnarx.model.atomicio import atomic_file
 
 # The parsers live in gpnarx.model.record_formats (no filesystem access there), so the service can
 # parse uploaded files without importing training; this module opens files and folders.
@@ -169,10 +170,8 @@ def write_record(path, record: Record) -> Path:
     u = np.ascontiguousarray(record.u, dtype=np.float64)
     y = None if record.y is None else np.ascontiguousarray(record.y, dtype=np.float64)
     units = {k: normalize_unit(record.units.get(k, ""), p) for k in ("u", "y")}
-    tmp_name = None
     try:
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
-        with os.fdopen(fd, "wb") as fh:
+        with atomic_file(p) as fh:
             if ext == ".npz":
                 arrays = {"u": u, "fs": np.float64(record.fs), "units_u": np.str_(units["u"]),
                           "units_y": np.str_(units["y"]), "name": np.str_(record.name)}
@@ -198,20 +197,10 @@ def write_record(path, record: Record) -> Path:
                 if y is not None:
                     mdict["y"] = y
                 scipy.io.savemat(fh, mdict, do_compression=False)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp_name, p)
-        tmp_name = None
     except RecordFileError:
         raise
     except Exception as exc:  # noqa: BLE001
         raise RecordFileError(p, f"cannot write the record ({type(exc).__name__}: {exc})") from None
-    finally:
-        if tmp_name is not None:
-            try:
-                os.unlink(tmp_name)
-            except OSError:
-                pass
     return p
 
 

@@ -1,0 +1,47 @@
+"""Atomic local file writes: the one helper every writer of the package uses.
+
+The data go to a temporary file in the destination's folder (same filesystem), are flushed and
+fsynced, and the file then replaces the destination with ``os.replace``: a reader sees the old
+file or the new one, never half of one, and a failed write leaves no temporary file behind.
+(Bundles are folders: ``model.bundle`` publishes them by renaming a temporary folder.)
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO
+
+
+@contextmanager
+def atomic_file(path, mode: str = "wb", *, encoding: str | None = None) -> Iterator[IO]:
+    """Open a temporary file beside ``path`` for writing (``mode`` 'wb' or 'w'); when the block
+    ends without an error it replaces ``path``, otherwise it is removed."""
+    if mode not in ("wb", "w"):
+        raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
+    path = Path(os.fspath(path))
+    parent = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
+    try:
+        with os.fdopen(fd, mode, **({"encoding": encoding or "utf-8"} if mode == "w" else {})) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def write_atomic(path, data: bytes | str) -> None:
+    """Write ``data`` (bytes, or text as UTF-8) to ``path`` atomically (see the module docstring)."""
+    with atomic_file(path, "w" if isinstance(data, str) else "wb") as f:
+        f.write(data)
+
+
+__all__ = ["atomic_file", "write_atomic"]

@@ -1,0 +1,33 @@
+"""The one atomic-write helper (gpnarx.model.atomicio)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpnarx.model.atomicio import atomic_file, write_atomic
+
+
+def test_write_atomic_text_and_bytes(tmp_path):
+    p = tmp_path / "a.json"
+    write_atomic(p, '{"x": 1}')
+    assert p.read_text() == '{"x": 1}'
+    write_atomic(p, b"\x00\x01")
+    assert p.read_bytes() == b"\x00\x01"
+    assert [q.name for q in tmp_path.iterdir()] == ["a.json"]
+
+
+def test_a_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
+    p = tmp_path / "r.npz"
+    write_atomic(p, b"old")
+    with pytest.raises(RuntimeError):
+        with atomic_file(p) as f:
+            np.savez(f, u=np.arange(3.0))
+            raise RuntimeError("disk full")
+    assert p.read_bytes() == b"old"
+    assert [q.name for q in tmp_path.iterdir()] == ["r.npz"]
+    with atomic_file(p) as f:
+        np.savez(f, u=np.arange(3.0))
+    assert np.load(p)["u"].tolist() == [0.0, 1.0, 2.0]
+    with pytest.raises(ValueError, match="mode"):
+        with atomic_file(p, "a"):
+            pass
