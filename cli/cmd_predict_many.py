@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import re
 import sys
 import time
@@ -159,14 +158,14 @@ def run(args):
 def _run(args, runner, mc: int) -> dict:
     from gpnarx.cli.cmd_predict import check_fs, load_model
     from gpnarx.model.jsonsafe import to_json_safe
+    from gpnarx.model.runtime import blas_threads_from_env
     from gpnarx.training.distributed import Failed
     from gpnarx.training.records import read_record
 
     out = _Results(args.out)
     bundle = load_model(args)
     # load_model has checked GPNARX_BLAS_THREADS; the same limit applies to every free run, on a worker too
-    blas = args.blas_threads if args.blas_threads is not None else int(os.environ.get("GPNARX_BLAS_THREADS", "").strip()
-                                                                       or 1)
+    blas = args.blas_threads if args.blas_threads is not None else blas_threads_from_env()
     options = {"mc": mc, "seed": args.seed, "confidence": args.confidence, "method": args.method,
                "start": args.start, "blas_threads": blas}
     files = _file_names(args.records)

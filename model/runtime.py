@@ -21,17 +21,38 @@ MiB = 1024 * 1024
 _LIMITERS = []
 
 
-def _env_int(name: str, default: int) -> int:
-    raw = os.environ.get(name, "").strip()
+BLAS_THREADS_ENV = "GPNARX_BLAS_THREADS"
+MMAP_THRESHOLD_ENV = "GPNARX_MMAP_THRESHOLD"
+DEFAULT_BLAS_THREADS = 1
+DEFAULT_MMAP_THRESHOLD = 32 * MiB
+
+
+def env_int(name: str, default, environ=None, *, minimum: int | None = 0):
+    """The integer in environment variable ``name`` (``environ``, default ``os.environ``; ``1_000``
+    allowed), ``default`` when it is unset or blank; ``ValueError`` naming the variable when it is not
+    an integer or is below ``minimum``. The one parser of the package's integer ``GPNARX_*`` variables
+    (the service's settings use it too)."""
+    raw = (os.environ if environ is None else environ).get(name)
+    raw = "" if raw is None else str(raw).strip()
     if not raw:
         return default
     try:
         v = int(raw)
     except ValueError:
-        raise ValueError(f"{name} must be an integer, got {raw!r}") from None
-    if v < 0:
-        raise ValueError(f"{name} must be >= 0, got {v}")
+        raise ValueError(f"environment variable {name} must be an integer, got {raw!r}") from None
+    if minimum is not None and v < minimum:
+        raise ValueError(f"environment variable {name} must be >= {minimum}, got {v}")
     return v
+
+
+def blas_threads_from_env(environ=None) -> int:
+    """``GPNARX_BLAS_THREADS`` (default 1; 0 = leave BLAS as it is)."""
+    return env_int(BLAS_THREADS_ENV, DEFAULT_BLAS_THREADS, environ)
+
+
+def mmap_threshold_from_env(environ=None) -> int:
+    """``GPNARX_MMAP_THRESHOLD`` in bytes (default 32 MiB; 0 = leave malloc as it is)."""
+    return env_int(MMAP_THRESHOLD_ENV, DEFAULT_MMAP_THRESHOLD, environ)
 
 
 def limit_blas(n: int) -> bool:
@@ -64,6 +85,6 @@ def tune_malloc(mmap_threshold: int) -> bool:
 
 def tune_for_free_run(blas_threads: int | None = None) -> dict:
     """Apply both settings (``blas_threads`` overrides ``GPNARX_BLAS_THREADS``); returns what was set."""
-    n = _env_int("GPNARX_BLAS_THREADS", 1) if blas_threads is None else int(blas_threads)
-    mm = _env_int("GPNARX_MMAP_THRESHOLD", 32 * MiB)
+    n = blas_threads_from_env() if blas_threads is None else int(blas_threads)
+    mm = mmap_threshold_from_env()
     return {"blas_threads": n if limit_blas(n) else 0, "mmap_threshold": mm if tune_malloc(mm) else 0}

@@ -55,6 +55,8 @@ from pydantic import Field, ValidationError, model_validator
 from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
+from gpnarx.model.runtime import DEFAULT_BLAS_THREADS, DEFAULT_MMAP_THRESHOLD, env_int
+
 MiB = 1024 * 1024
 ENV_PREFIX = "GPNARX_"
 
@@ -104,11 +106,8 @@ class _EnvironSource(PydanticBaseSettingsSource):
                     out[name] = float(raw)
                 except ValueError:
                     raise ValueError(f"environment variable {var} must be a number of seconds, got {raw!r}") from None
-            else:
-                try:
-                    out[name] = int(raw.replace("_", ""))
-                except ValueError:
-                    raise ValueError(f"environment variable {var} must be an integer, got {raw!r}") from None
+            else:  # the package's one integer-variable parser; the range is the field's to check
+                out[name] = env_int(var, None, env, minimum=None)
         return out
 
 
@@ -144,8 +143,9 @@ class Settings(BaseSettings):
                                    label="API key every `/v1` route then needs in `X-API-Key`", exceeded="401")
     registry: str | None = _setting(None, kind=None, shown="unset",
                                     label="the registry: a folder or an fsspec URL (`s3://bucket/prefix`)")
-    blas_threads: int = _setting(1, ge=0, kind=_NON_NEGATIVE, label="BLAS threads per process (0 = leave BLAS)")
-    mmap_threshold: int = _setting(32 * MiB, ge=0, kind=_NON_NEGATIVE, shown="32 MiB",
+    blas_threads: int = _setting(DEFAULT_BLAS_THREADS, ge=0, kind=_NON_NEGATIVE,
+                                 label="BLAS threads per process (0 = leave BLAS)")
+    mmap_threshold: int = _setting(DEFAULT_MMAP_THRESHOLD, ge=0, kind=_NON_NEGATIVE, shown="32 MiB",
                                    label="glibc's mmap threshold (0 = leave malloc)")
     registry_poll: float = _setting(30.0, ge=0, allow_inf_nan=False, kind=_SECONDS, shown="30 s",
                                     label="seconds between rescans of the registry (0 = none)")

@@ -12,7 +12,6 @@ Tasks are plain module-level functions (pickled by reference, so the workers nee
 """
 from __future__ import annotations
 
-import os
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 
@@ -202,24 +201,16 @@ def on_worker(fn: Callable, *args):
     so a worker computes what a local run computes, as fast."""
     from threadpoolctl import threadpool_limits
 
-    from gpnarx.model.runtime import MiB, tune_malloc
+    from gpnarx.model.runtime import blas_threads_from_env, mmap_threshold_from_env, tune_malloc
 
     if not _TUNED:
-        tune_malloc(_env_int("GPNARX_MMAP_THRESHOLD", 32 * MiB))
+        tune_malloc(mmap_threshold_from_env())
         _TUNED.append(True)
-    blas = _env_int("GPNARX_BLAS_THREADS", 1)
+    blas = blas_threads_from_env()
     if not blas:
         return fn(*args)
     with threadpool_limits(limits=blas, user_api="blas"):
         return fn(*args)
-
-
-def _env_int(name: str, default: int) -> int:
-    raw = os.environ.get(name, "").strip()
-    try:
-        return int(raw) if raw else default
-    except ValueError:
-        return default
 
 
 def _capture(i, fn, args):
