@@ -213,8 +213,7 @@ def _write_prediction(path, rec, run):
 
 
 def run_novelty(args):
-    from gpnarx.model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
-    from gpnarx.model.probe import probe_check
+    from gpnarx.model.novelty import assess_novelty, novelty_start
 
     bundle, rec, mc = load(args)
     if rec.y is None:
@@ -226,18 +225,12 @@ def run_novelty(args):
                        "the default bert-standin-monitor bundle has one)")
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method,
                                 y0=novelty_start(rec.y, bundle.model.ny))
-    s = novelty_score(rec.y, run.mean, run.std, method_of(nov))
-    outside = outside_envelope(rec.u, rec.y, nov.get("envelope"))
     flags = assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y)
-    flagged = flags["out_of_range"] + [f for f in outside if f not in flags["out_of_range"]]
-    probe = probe_check(rec.u, rec.fs, nov.get("probe"), "measured")
-    if probe["probe_match"] is False:
-        flagged.append("probe")
-    return {"model": bundle.name, "version": bundle.version, "score": s["score"], "nlpd": s["nlpd"],
-            "threshold": nov["threshold"], "verdict": verdict(s["score"], nov["threshold"], outside,
-                                                              probe["probe_match"]),
-            "false_alarm_rate": nov["false_alarm_rate"], "out_of_range": flagged,
-            "diverged_paths": flags["diverged_paths"], "start": "measured", "score_method": s["method"], **probe}
+    a = assess_novelty(nov, rec.u, rec.y, rec.fs, run, start="measured", flags=flags)
+    return {"model": bundle.name, "version": bundle.version, "score": a["score"], "nlpd": a["nlpd"],
+            "threshold": a["threshold"], "verdict": a["verdict"], "false_alarm_rate": a["false_alarm_rate"],
+            "out_of_range": a["out_of_range"], "diverged_paths": flags["diverged_paths"], "start": "measured",
+            "score_method": a["score_method"], **{k: a[k] for k in ("probe_match", "probe_reasons", "drive")}}
 
 
 def run_loops(args):

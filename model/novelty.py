@@ -46,6 +46,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtri
 
+from .probe import probe_check
+
 STD_FLOOR_REL = 1e-6
 RMS_METHOD = "rms_standardised_residual"
 SEGMENT_METHOD = "segment_median_rms"
@@ -162,3 +164,50 @@ def verdict(score: float, threshold: float, out_of_range=(), probe_match: bool |
     if probe_match is False:
         return "healthy"
     return "novel" if score > threshold else "healthy"
+
+
+# ------------------------------------------------------------------------------------------ assessment
+class UnusableProbeContract(ValueError):
+    """The bundle's probe contract (``novelty["probe"]``) cannot be read: a bundle fault, not the record's."""
+
+
+def judge(novelty: dict, score: float, u, y, fs: float, *, start: str = "measured", flags: dict | None = None,
+          check_probe: bool = True) -> dict:
+    """Verdict of a scored record under a novelty calibration: ``{"verdict", "out_of_range"}`` plus,
+    with ``check_probe``, the probe fields of ``model.probe.probe_check`` (``probe_match``,
+    ``probe_reasons``, ``drive``).
+
+    ``out_of_range`` is ``flags["out_of_range"]`` (the training-envelope flags of the run,
+    ``model.envelope.assess``), then the calibration envelope's (``outside_envelope``), then "probe"
+    when the drive does not match the probe contract. ``check_probe`` False: the probe is not
+    consulted (training scores the very records its contract is derived from).
+    """
+    outside = outside_envelope(u, y, novelty.get("envelope"))
+    base = list((flags or {}).get("out_of_range", []))
+    flagged = base + [f for f in outside if f not in base]
+    probe: dict = {}
+    if check_probe:
+        try:
+            probe = probe_check(u, fs, novelty.get("probe"), start)
+        except ValueError as exc:
+            raise UnusableProbeContract(str(exc)) from None
+        if probe["probe_match"] is False:
+            flagged.append("probe")
+    return {"verdict": verdict(score, float(novelty["threshold"]), outside, probe.get("probe_match")),
+            "out_of_range": flagged, **probe}
+
+
+def assess_novelty(novelty: dict, u, y, fs: float, run, *, start: str = "measured", flags: dict | None = None) -> dict:
+    """The novelty assessment of a measured record (``u``, ``y``) from its free run ``run`` (mean,
+    std): score by the bundle's method, threshold, verdict, false-alarm rate, NLPD, out-of-range flags
+    and probe fields. The one assessment ``gpnarx novelty`` and the service's novelty answers share.
+
+    ``ValueError`` when the record cannot be scored; ``UnusableProbeContract`` (a ``ValueError``) when
+    the bundle's probe contract is malformed.
+    """
+    s = novelty_score(np.asarray(y, float), run.mean, run.std, method_of(novelty))
+    j = judge(novelty, s["score"], u, y, fs, start=start, flags=flags)
+    far = novelty.get("false_alarm_rate")
+    return {"score": s["score"], "threshold": float(novelty["threshold"]), "verdict": j.pop("verdict"),
+            "false_alarm_rate": float(far) if isinstance(far, (int, float)) else None, "nlpd": s["nlpd"],
+            "n_samples": s["n_samples"], "score_method": s["method"], **j}

@@ -17,8 +17,7 @@ from gpnarx.model.bundle import Bundle
 from gpnarx.model.cycles import cov_window_for, cycles
 from gpnarx.model.envelope import assess
 from gpnarx.model.metrics import summary
-from gpnarx.model.novelty import method_of, novelty_score, novelty_start, outside_envelope, verdict
-from gpnarx.model.probe import probe_check
+from gpnarx.model.novelty import UnusableProbeContract, assess_novelty, novelty_start
 from gpnarx.model.restoring import loop_area, loop_units, restoring_force
 
 from .problems import ProblemError
@@ -212,23 +211,13 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
     if plan.operation == "novelty":
         nov = novelty_of(b)
         try:
-            s = novelty_score(np.asarray(req.y, float), run.mean, run.std, method_of(nov))
+            a = assess_novelty(nov, u, req.y, b.fs, run, start=start_of(plan.operation, req), flags=flags)
+        except UnusableProbeContract as exc:  # a malformed contract in the manifest: say so rather than guess
+            raise ProblemError(409, f"model {b.name}:{b.version} has an unusable probe contract: {exc}") from None
         except ValueError as exc:
             raise ProblemError(422, f"cannot score this record: {exc}", "y") from None
-        thr = float(nov["threshold"])
-        far = nov.get("false_alarm_rate")
-        outside = outside_envelope(req.u, req.y, nov.get("envelope"))
-        flagged = flags["out_of_range"] + [f for f in outside if f not in flags["out_of_range"]]
-        try:
-            probe = probe_check(u, b.fs, nov.get("probe"), start_of(plan.operation, req))
-        except ValueError as exc:  # a malformed contract in the manifest: say so rather than guess
-            raise ProblemError(409, f"model {b.name}:{b.version} has an unusable probe contract: {exc}") from None
-        if probe["probe_match"] is False:
-            flagged.append("probe")
-        out = {**head, "score": s["score"], "threshold": thr,
-               "verdict": verdict(s["score"], thr, outside, probe["probe_match"]),
-               "false_alarm_rate": float(far) if isinstance(far, (int, float)) else None,
-               "nlpd": s["nlpd"], "n_samples": s["n_samples"], "score_method": s["method"], **common,
-               "out_of_range": flagged, **probe}
+        probe = {k: a.pop(k) for k in ("probe_match", "probe_reasons", "drive")}
+        flagged = a.pop("out_of_range")
+        out = {**head, **a, **common, "out_of_range": flagged, **probe}
         return out, steps
     raise ProblemError(422, f"operation must be one of {OPERATIONS}", "operation")

@@ -20,14 +20,13 @@ from gpnarx.model.novelty import (
     RMS_METHOD,
     calibrate_threshold,
     check_method,
+    judge,
     method_of,
     novelty_score,
     novelty_start,
-    outside_envelope,
     record_envelope,
-    verdict,
 )
-from gpnarx.model.probe import probe_check, probe_contract
+from gpnarx.model.probe import probe_contract
 
 __all__ = ["calibrate", "score_healthy"]
 
@@ -74,9 +73,7 @@ def calibrate(bundle: Bundle, records, registry, *, false_alarm_rate: float = 0.
     novelty["calibration"] = {"records": [r.name for r in records], "source_version": bundle.version,
                               "propagation": propagation, "seed": int(seed), "refit": False}
     for s, r in zip(scored, records):
-        probe = probe_check(r.u, r.fs, novelty["probe"], "measured")
-        s["verdict"] = verdict(s["score"], novelty["threshold"], outside_envelope(r.u, r.y, novelty["envelope"]),
-                               probe["probe_match"])
+        s["verdict"] = judge(novelty, s["score"], r.u, r.y, r.fs)["verdict"]
     path = derive_bundle(bundle, registry, {"novelty": novelty}, version=version, name=name)
     return {"name": name or bundle.name, "version": path.name, "path": str(path), "source_version": bundle.version,
             "novelty": novelty, "records": scored}

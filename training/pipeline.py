@@ -23,11 +23,10 @@ from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import (
     RMS_METHOD,
     calibrate_threshold,
+    judge,
     novelty_score,
     novelty_start,
-    outside_envelope,
     record_envelope,
-    verdict,
 )
 from gpnarx.model.probe import probe_contract
 from gpnarx.model.records import Record
@@ -248,8 +247,9 @@ def _train(config, registry, name, version, *, progress, mc_paths, ny, nu, repor
         # the probe contract: the excitation (and start rule) the threshold holds for (model.probe)
         novelty["probe"] = probe_contract([ev["u"] for ev in healthy], cfg.fs, start="measured")
         for ev in scored:
-            ev["metrics"]["verdict"] = verdict(ev["metrics"]["novelty_score"], novelty["threshold"],
-                                               outside_envelope(ev["u"], ev["y"], novelty["envelope"]))
+            # the records the probe contract is derived from: judged on score and envelope only
+            ev["metrics"]["verdict"] = judge(novelty, ev["metrics"]["novelty_score"], ev["u"], ev["y"], cfg.fs,
+                                             check_probe=False)["verdict"]
     training_metrics = {
         "fit_seconds": model.fit_seconds_, "n_train": model.n_train_, "n_rows": model.n_rows_,
         "nlml": model.nlml_, "train_records": [r.name for r in train_recs],
