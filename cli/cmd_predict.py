@@ -20,7 +20,9 @@ def _common(p):
     p.add_argument("record", help="record file (.npz, .npy, .csv, .mat) or LMS Test.Lab folder")
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
-    p.add_argument("--method", choices=("mc", "linear"), default="mc", help="uncertainty propagation")
+    p.add_argument("--method", choices=("mc", "linear"), default=None,
+                   help="uncertainty propagation (default: the model's, see 'gpnarx models' / GET /v1/models/NAME "
+                        "default_method)")
     p.add_argument("--blas-threads", type=int, default=None,
                    help="BLAS threads for the free run (default: $GPNARX_BLAS_THREADS or 1; 0 leaves BLAS as it is)")
     p.add_argument("--window", default=None, metavar="START:END",
@@ -149,6 +151,7 @@ def _progress(enabled, n):
 
 def run_predict(args):
     bundle, rec, mc = load(args)
+    args.method = args.method or bundle.default_method("predict")
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
     try:
         out = predict_answer(bundle, rec, mc=mc, seed=args.seed, confidence=args.confidence, method=args.method,
@@ -223,6 +226,7 @@ def run_novelty(args):
         raise CLIError(f"model {bundle.name}:{bundle.version} has no novelty calibration "
                        "(train it with 'healthy' records; "
                        "the default bert-standin-monitor bundle has one)")
+    args.method = args.method or bundle.default_method("novelty")
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method,
                                 y0=novelty_start(rec.y, bundle.model.ny))
     flags = assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y)
@@ -248,6 +252,7 @@ def run_loops(args):
         raise CLIError(f"model {bundle.name}:{bundle.version} has no physical constants (mass) for the restoring "
                        "force; loops are not available for it") from None
     phys.update(mass=mass, input_gain=float(phys.get("input_gain", 1.0)), output=phys.get("output", "displacement"))
+    args.method = args.method or bundle.default_method("loops")
     y0 = None
     if args.start == "measured":
         y0 = None if rec.y is None else novelty_start(rec.y, bundle.model.ny)

@@ -45,7 +45,8 @@ def add_parser(sub):
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths (the same for every "
                                                        "record, as 'gpnarx predict --seed')")
-    p.add_argument("--method", choices=("mc", "linear"), default="mc", help="uncertainty propagation")
+    p.add_argument("--method", choices=("mc", "linear"), default=None,
+                   help="uncertainty propagation (default: the model's default_method)")
     p.add_argument("--confidence", type=float, default=0.99, help="band level (default 0.99)")
     p.add_argument("--start", choices=("rest", "measured"), default="rest",
                    help="initial state of every free run: 'rest' (default) or 'measured' (each record's first ny "
@@ -164,6 +165,7 @@ def _run(args, runner, mc: int) -> dict:
 
     out = _Results(args.out)
     bundle = load_model(args)
+    args.method = args.method or bundle.default_method("predict")
     # load_model has checked GPNARX_BLAS_THREADS; the same limit applies to every free run, on a worker too
     blas = args.blas_threads if args.blas_threads is not None else blas_threads_from_env()
     options = {"mc": mc, "seed": args.seed, "confidence": args.confidence, "method": args.method,

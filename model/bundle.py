@@ -160,6 +160,21 @@ def model_arrays(model: GPNARX) -> dict:
     return arrays
 
 
+def default_method(manifest: dict, operation: str = "predict") -> str:
+    """The propagation ('mc' or 'linear') an answer of ``operation`` uses when the request names none.
+
+    novelty: the one the threshold was calibrated with (``novelty.mc_paths`` 0: linearised), so a
+    score is compared with scores of its own kind; predict and loops: the trained config's
+    ``[predict] method`` (manifest ``predict.method``; 'mc', the paper's, for bundles without it).
+    """
+    nov = manifest.get("novelty")
+    if operation == "novelty" and isinstance(nov, dict) and nov.get("mc_paths") is not None:
+        return "linear" if int(nov["mc_paths"]) == 0 else "mc"
+    pred = manifest.get("predict")
+    method = pred.get("method") if isinstance(pred, dict) else None
+    return method if method in ("mc", "linear") else "mc"
+
+
 @dataclass
 class Bundle:
     """A loaded bundle: the fitted model plus its manifest."""
@@ -179,6 +194,10 @@ class Bundle:
     @property
     def fs(self) -> float:
         return float(self.manifest["fs"])
+
+    def default_method(self, operation: str = "predict") -> str:
+        """The propagation an answer uses when the request names none (``default_method``)."""
+        return default_method(self.manifest, operation)
 
 
 def next_version(registry: Path, name: str) -> str:
@@ -604,6 +623,10 @@ class BundleRef:
     @property
     def fs(self) -> float:
         return float(self.manifest["fs"])
+
+    def default_method(self, operation: str = "predict") -> str:
+        """The propagation an answer uses when the request names none (``default_method``)."""
+        return default_method(self.manifest, operation)
 
 
 class _Loaded:

@@ -68,7 +68,8 @@ def plan(operation: str, req, bundle: Bundle, settings: Settings, budget: int | 
         physics_of(bundle)
     if operation == "novelty":
         novelty_of(bundle)
-    if req.method == "mc":
+    method = req.method or bundle.default_method(operation)
+    if method == "mc":
         paths = settings.mc_paths_default if req.mc_paths is None else int(req.mc_paths)
         if paths > settings.mc_paths_max:
             raise ProblemError(422, f"mc_paths {paths} exceeds the limit of {settings.mc_paths_max} Monte Carlo "
@@ -83,7 +84,7 @@ def plan(operation: str, req, bundle: Bundle, settings: Settings, budget: int | 
                                     f"a shorter record", "mc_paths", limit=limit)
     else:
         paths, work = 0, n
-    return Plan(operation, bundle, req.method, paths, work)
+    return Plan(operation, bundle, method, paths, work)
 
 
 def start_of(operation: str, req) -> str:

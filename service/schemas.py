@@ -46,7 +46,9 @@ _START_DESC = ("Where the free run starts: 'rest' (the system at rest before the
                "from `y`; the default for novelty). Use 'measured' for a window cut from the middle of a steady "
                "run, 'rest' for a record that starts with the structure at rest.")
 _METHOD_DESC = ("Uncertainty propagation: 'mc' (Monte Carlo over `mc_paths` paths, the paper's method) or "
-                "'linear' (first-order propagation of mean and variance, one pass).")
+                "'linear' (first-order propagation of mean and variance, one pass). Default: the model's "
+                "`default_method` (GET /v1/models/{name}): the trained config's, and for novelty the one its "
+                "threshold was calibrated with.")
 
 
 class _Strict(BaseModel):
@@ -66,7 +68,7 @@ class RecordRequest(_Strict):
     mc_paths: StrictInt | None = Field(None, ge=1, description=_MC_DESC)
     seed: StrictInt = Field(0, ge=0, le=2**63 - 1, description=_SEED_DESC)
     confidence: FiniteFloat = Field(0.99, ge=0.5, lt=1.0, description=_CONF_DESC)
-    method: Literal["mc", "linear"] = Field("mc", description=_METHOD_DESC)
+    method: Literal["mc", "linear"] | None = Field(None, description=_METHOD_DESC)
     start: Literal["rest", "measured"] | None = Field(None, description=_START_DESC)
 
 
@@ -340,6 +342,13 @@ class ModelDetail(BaseModel):
         None, description="Held-out calibration of the noise variance (method, n_records, n_residuals, "
                           "noise_var_ml2, noise_var, residual_var, latent_var_mean; standardised output "
                           "units) or null when the bundle keeps ML-II's value.")
+    band_discrepancy: dict[str, Any] | None = Field(
+        None, description="The free-run band's model-discrepancy term (method, scale: fraction of the local "
+                          "amplitude, window [samples], target, reached, records, coverage_before, coverage_after) "
+                          "or null when the band is eq. 9's alone.")
+    default_method: dict[str, Literal["mc", "linear"]] = Field(
+        ..., description="The propagation each operation (predict, loops, novelty) uses when a request names no "
+                         "`method`.")
     n_train: int | None = None
     training: dict[str, Any] = Field(..., description="Training metrics.")
     novelty: dict[str, Any] | None = Field(None, description="Novelty calibration (threshold, "

@@ -286,7 +286,10 @@ def _train(config, registry, name, version, *, progress, mc_paths, ny, nu, repor
         training_metrics["wall_seconds"] = time.perf_counter() - t0
         path = save_bundle(model, registry, name or cfg.name, version, fs=cfg.fs, units=cfg.units,
                            physics=physics, novelty=novelty, training=to_json_safe(training_metrics),
-                           attach_dir=report_dir)
+                           attach_dir=report_dir,
+                           # the answers' default propagation (Bundle.default_method): the config's, not
+                           # a lighter report's override
+                           extra={"predict": {"method": cfg.predict.get("method", "mc")}})
     log(f"bundle written to {path}")
     return {"name": name or cfg.name, "version": path.name, "path": str(path),
             "metrics": to_json_safe(training_metrics), "evals": evals, "model": model,

@@ -29,7 +29,9 @@ def detail_of(state: ServiceState, b) -> dict:
             "created": m.get("created"), "lags": lags_of(m), "mode": m.get("mode"),
             "fs": b.fs, "units": m.get("units") or {}, "kernel": m.get("kernel") or {},
             "hyperparameters": m.get("hyperparameters") or {},
-            "noise_calibration": m.get("noise_calibration"), "n_train": m.get("n_train"),
+            "noise_calibration": m.get("noise_calibration"), "band_discrepancy": m.get("band_discrepancy"),
+            "default_method": {op: b.default_method(op) for op in ("predict", "loops", "novelty")},
+            "n_train": m.get("n_train"),
             "training": m.get("training") or {}, "novelty": m.get("novelty"), "physics": m.get("physics") or {},
             "package_versions": m.get("package_versions") or {},
             "probe": (m.get("novelty") or {}).get("probe") if isinstance(m.get("novelty"), dict) else None}
