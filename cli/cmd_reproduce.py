@@ -18,6 +18,9 @@ def add_parser(sub):
                         "holds it as results-SYSTEM.md")
     p.add_argument("--table-mc", type=int, default=None, metavar="N",
                    help="bert-real: Monte Carlo paths of the every-record table (default: --mc; 0: linearised only)")
+    p.add_argument("--table-only", action="store_true",
+                   help="bert-real: score the run folder --out's own bundle on every real record again with "
+                        "--table-mc paths and re-render its page (and --docs), training nothing")
     p.add_argument("--from-run", action="store_true",
                    help="only re-render the results page (--docs) from the run folder --out, computing nothing")
     p.set_defaults(func=run)
@@ -28,6 +31,20 @@ def run(args):
     from gpnarx.training.reproduce import reproduce
 
     out = args.out or f"runs/reproduce-{args.system}{'-quick' if args.quick else ''}"
+    if args.table_only:
+        from pathlib import Path
+
+        from gpnarx.cli.errors import CLIError
+        from gpnarx.training.reproduce import rescore_table
+
+        if args.system != "bert-real" or args.table_mc is None:
+            raise CLIError("--table-only re-scores a bert-real run's every-record table: give bert-real and "
+                           "--table-mc N")
+        if not (Path(out) / "summary.json").is_file():
+            raise CLIError(f"--table-only: no summary.json in {out} (run gpnarx reproduce bert-real --out {out})")
+        log = None if args.json else (lambda m: print(m, file=sys.stderr, flush=True))
+        s = rescore_table(out, args.table_mc, jobs=args.jobs, docs_page=args.docs, log=log)
+        return {"system": args.system, "out": out, "docs": args.docs, "real_table_checks": s["real_table"]["checks"]}
     if args.from_run:
         from gpnarx.cli.errors import CLIError
         from gpnarx.training.reproduce import render_from_run

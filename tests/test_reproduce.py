@@ -176,6 +176,17 @@ def test_reproduce_bert_real_quick(tmp_path, capsys):
     assert main(["reproduce", "bert-real", "--out", str(tmp_path), "--from-run", "--docs",
                  str(tmp_path / "again.md")]) == 0
     assert (tmp_path / "again.md").read_text() == page
+    # the band's discrepancy term was calibrated on the 'lags' records
+    bd = json.loads((Path(res["bundle"]) / "manifest.json").read_text())["band_discrepancy"]
+    assert bd["records"] == ["lags-06Hz", "lags-09Hz", "lags-noise-10to16s"] and bd["scale"] >= 0
+    # --table-only re-scores the run's own bundle with other paths and re-renders the page, training nothing
+    capsys.readouterr()
+    assert main(["--json", "reproduce", "bert-real", "--out", str(tmp_path), "--table-only", "--table-mc", "3",
+                 "--docs", str(tmp_path / "mc.md")]) == 0
+    again = json.loads((tmp_path / "summary.json").read_text())
+    assert again["bundle"] == res["bundle"] and again["real_table"]["mc_paths"] == 3
+    assert again["real_table"]["records"]["Sine_20Hz"]["whole_mc"]["fit"] is not None
+    assert "Monte Carlo paths of the table: 3." in (tmp_path / "mc.md").read_text()
 
 
 def _full(tmp_path_factory, system, *extra):

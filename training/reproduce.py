@@ -195,6 +195,31 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
     return page
 
 
+def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=None) -> dict:
+    """bert-real: score the finished run's own bundle on every real record again with ``table_mc``
+    Monte Carlo paths (0: linearised only), replace the table in OUT/summary.json and re-render the
+    page (OUT/results-bert-real.md and ``docs_page``). The model is the run's; only the table changes."""
+    from gpnarx.model.bundle import load_bundle
+    from gpnarx.training.config import bert_data_dir, load_config
+    from gpnarx.training.real_table import real_table, table_checks
+
+    out = Path(out_dir)
+    summary = json.loads((out / "summary.json").read_text())
+    if summary.get("system") != "bert-real":
+        raise ValueError(f"{out} holds a {summary.get('system')} run; only a bert-real run has the every-record table")
+    t0 = time.perf_counter()
+    bundle = load_bundle(summary["bundle"])
+    cfg = load_config(shipped_config("bert-real"))
+    table = real_table(bundle.model, cfg, bert_data_dir(), mc_paths=int(table_mc), max_seconds=None if not
+                       summary.get("quick") else QUICK["max_seconds"], jobs=jobs, log=log)
+    table["checks"] = table_checks(table)
+    table["rescored_seconds"] = time.perf_counter() - t0
+    summary["real_table"] = _clean(table)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    render_from_run(out, docs_page)
+    return summary
+
+
 def render_from_run(out_dir, docs_page=None, write_out: bool = True) -> str:
     """Render the results page from a finished run folder's JSON (no computation): written to
     OUT/results-SYSTEM.md (unless ``write_out`` is False) and, when given, to ``docs_page``."""
