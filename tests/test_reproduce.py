@@ -389,3 +389,17 @@ def test_standin_oracle_uses_each_records_own_input():
     again = standin_oracle(load_config(shipped_config("bert-standin")), names)
     assert first == again  # the noise record's excitation is not redrawn
     assert first["sine-18Hz-0.15V"]["fit_clean"] > 90  # nominal vs one realization of a steady sine
+
+
+def test_docs_real_results_page_is_the_render_of_its_stored_run():
+    """docs/results-bert-real.md is what results_page renders from docs/runs/bert-real (the run's JSON,
+    its table re-scored with 1024 paths by --table-only): a figure on the page cannot drift from its run."""
+    from gpnarx.training.reproduce import results_page
+
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    summary = json.loads((docs / "runs" / "bert-real" / "summary.json").read_text())
+    surface = json.loads((docs / "runs" / "bert-real" / "lag_surface.json").read_text())
+    assert summary["system"] == "bert-real" and not summary["quick"] and summary["real_table"]["mc_paths"] == 1024
+    assert (docs / "results-bert-real.md").read_text() == results_page(summary, surface)
+    checks = summary["real_table"]["checks"]
+    assert checks["diverged"] == [] and checks["n_records"] == 14
