@@ -21,7 +21,7 @@ from gpnarx.cli.main import main
 from gpnarx.training.lagchoice import DEFAULT_TOLERANCE
 
 BERT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bert-t5nm"
-STANDIN_FULL_MC = 1024  # the slow suite's Monte Carlo paths for the stand-in (the protocol's 4096: --mc 4096)
+STANDIN_FULL_MC = 4096  # the protocol's Monte Carlo paths for the stand-in (section 4; --mc 4096)
 
 
 def _run(system, out, quick, capsys):
