@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import linalg
 
-from .kernels import RBF, SQRT3, CubicPolynomial, Kernel, Matern32, Sum, White
+from .kernels import Kernel, Sum
 
 LOG_2PI = np.log(2.0 * np.pi)
 NOISE_LOG_BOUNDS = (np.log(1e-8), np.log(10.0))
@@ -59,38 +59,31 @@ def chol_inverse(L: np.ndarray) -> np.ndarray:
 class NLMLWorkspace:
     """Reusable buffers for ``nlml_and_grad`` on one training set (one ML-II fit).
 
-    Holds, for the lower-triangle row blocks only, the theta-independent Gram matrix G = X X^T
-    and distances r = |x - x'| (computed once), one buffer for exp(-a) per stationary kernel part,
-    and the N x N buffer that is K + sigma_y^2 I, then its Cholesky factor L, then W = K^-1 in
-    place (LAPACK potrf/potri on the F-ordered view, no copies). Memory: (3 + stationary parts)
-    N^2 float64 (about 0.5 GB at N=4000). Kernels other than sums of Matern32, RBF,
-    CubicPolynomial and White fall back to ``Kernel.K_and_grads`` (``fused`` is False).
+    Holds, for the lower-triangle row blocks only, what the kernel's parts are functions of
+    (``Kernel.workspace_input``: the Gram matrix G = X X^T and/or the distances r = |x - x'|, computed
+    once), one buffer per part that asks for it (``Kernel.workspace_buffer``), and the N x N buffer
+    that is K + sigma_y^2 I, then its Cholesky factor L, then W = K^-1 in place (LAPACK potrf/potri on
+    the F-ordered view, no copies). The formulas of each part (eqs. 10-12 and their derivatives) are
+    the kernel's own (``block_value``, ``block_grad_sums``, ``grads_from_sums``); this class only
+    walks the blocks. Memory: (3 + buffered parts) N^2 float64 (about 0.5 GB at N=4000). A kernel
+    with a part that has no block formulas falls back to ``Kernel.K_and_grads`` (``fused`` is False).
     """
 
     def __init__(self, kernel: Kernel, X: np.ndarray, chunk: int = 64):
         self.X = X
         n = X.shape[0]
         self.n = n
-        parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
-        self.fused = all(isinstance(p, (Matern32, RBF, CubicPolynomial, White)) for p in parts)
+        self.parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
+        self.fused = all(p.workspace_ready for p in self.parts)
         if not self.fused:
             return
         self.KL = np.empty((n, n))
         self.chunk = max(8, int(chunk))
         self.blocks = [(r0, min(n, r0 + self.chunk)) for r0 in range(0, n, self.chunk)]
-        self.kinds = []
-        for p in parts:
-            if isinstance(p, Matern32):
-                self.kinds.append("matern")
-            elif isinstance(p, RBF):
-                self.kinds.append("rbf")
-            elif isinstance(p, CubicPolynomial):
-                self.kinds.append("cubic")
-            else:
-                self.kinds.append("white")
-        self.G = np.empty((n, n)) if "cubic" in self.kinds else None
-        self.R = np.empty((n, n)) if ("matern" in self.kinds or "rbf" in self.kinds) else None
-        self.E = [np.empty((n, n)) if k in ("matern", "rbf") else None for k in self.kinds]
+        inputs = {p.workspace_input for p in self.parts}
+        self.G = np.empty((n, n)) if "gram" in inputs else None
+        self.R = np.empty((n, n)) if "distance" in inputs else None
+        self.E = [np.empty((n, n)) if p.workspace_buffer else None for p in self.parts]
         sq = np.einsum("ij,ij->i", X, X)
         for r0, r1 in self.blocks:
             g = X[r0:r1] @ X[:r1].T
@@ -115,40 +108,21 @@ class NLMLWorkspace:
             self.tril_masks[m] = w
         return w
 
-    def fill_K(self, params: list, noise: float, jitter: float = 0.0) -> None:
+    def _block_args(self, part: Kernel, E, r0: int, r1: int):
+        """(input block, buffer block) of one part for rows r0:r1 of the lower triangle."""
+        base = self.R if part.workspace_input == "distance" else self.G
+        return base[r0:r1, :r1], (None if E is None else E[r0:r1, :r1])
+
+    def fill_K(self, noise: float, jitter: float = 0.0) -> None:
         """Lower triangle (row blocks) of K + (noise + jitter) I into KL: eqs. (10)-(12) summed over parts."""
         KL = self.KL
         for r0, r1 in self.blocks:
             out = KL[r0:r1, :r1]
             first = True
-            for kind, th, E in zip(self.kinds, params, self.E):
-                if kind == "white":
+            for part, E in zip(self.parts, self.E):
+                if part.workspace_input is None:
                     continue
-                if kind == "matern":
-                    var, ls = th
-                    a = self.R[r0:r1, :r1] * (SQRT3 / ls)
-                    e = E[r0:r1, :r1]
-                    np.negative(a, out=e)
-                    np.exp(e, out=e)
-                    a += 1.0
-                    a *= e
-                    a *= var
-                    t = a
-                elif kind == "rbf":
-                    var, ls = th
-                    e = E[r0:r1, :r1]
-                    np.multiply(self.R[r0:r1, :r1], 1.0 / ls, out=e)
-                    e *= e
-                    e *= -0.5
-                    np.exp(e, out=e)
-                    t = e * var
-                else:  # cubic
-                    var, s, b = th
-                    P = self.G[r0:r1, :r1] * s
-                    P += b
-                    t = P * P
-                    t *= P
-                    t *= var
+                t = part.block_value(*self._block_args(part, E, r0, r1))
                 if first:
                     out[...] = t
                     first = False
@@ -157,61 +131,31 @@ class NLMLWorkspace:
             if first:
                 out[...] = 0.0
         d = noise + jitter
-        for kind, th in zip(self.kinds, params):
-            if kind == "white":
-                d += th[0]
+        for part in self.parts:
+            d += part.block_diagonal()
         KL[np.diag_indices(self.n)] += d
 
-    def grad_traces(self, params: list, alpha: np.ndarray, tr_w: float) -> list:
+    def grad_traces(self, alpha: np.ndarray, tr_w: float) -> list:
         """0.5 tr((K^-1 - alpha alpha^T) dK/dtheta_j) for every kernel log-parameter (not the noise).
 
         KL holds K^-1 in its lower triangle. Both matrices are symmetric, so the full trace is
         twice the sum over the lower triangle with the diagonal weighted 1/2; W' = K^-1 - alpha
-        alpha^T is formed block by block in place. Matern32: dK/dlog var = K, dK/dlog l =
-        var a^2 e^-a (a = sqrt(3) r / l); RBF: K and K r^2/l^2; cubic (P = s x.x' + b):
-        dK/dlog var = var P^3, dK/dlog b = 3 var b P^2, dK/dlog s = 3 var P^3 - dK/dlog b.
+        alpha^T is formed block by block in place and each part sums what its gradients need.
         """
-        acc = [np.zeros(len(th)) for th in params]  # lower-triangle sums per part
+        acc = [None] * len(self.parts)  # lower-triangle sums per part
         KL = self.KL
         for r0, r1 in self.blocks:
             W = KL[r0:r1, :r1]
             W -= np.outer(alpha[r0:r1], alpha[:r1])
             W[:, r0:r1] *= self._mask(r1 - r0)
-            for kind, th, E, s_ in zip(self.kinds, params, self.E, acc):
-                if kind == "white":
+            for k, (part, E) in enumerate(zip(self.parts, self.E)):
+                if part.workspace_input is None:
                     continue
-                if kind == "matern":
-                    a = self.R[r0:r1, :r1] * (SQRT3 / th[1])
-                    t = W * E[r0:r1, :r1]
-                    s0 = t.sum()
-                    t *= a
-                    s1 = t.sum()
-                    s_[0] += s0 + s1
-                    s_[1] += np.einsum("ij,ij->", t, a)
-                elif kind == "rbf":
-                    t = W * E[r0:r1, :r1]
-                    s_[0] += t.sum()
-                    r2 = self.R[r0:r1, :r1] * (1.0 / th[1])
-                    r2 *= r2
-                    s_[1] += np.einsum("ij,ij->", t, r2)
-                else:
-                    P = self.G[r0:r1, :r1] * th[1]
-                    P += th[2]
-                    t = W * P
-                    t *= P
-                    s_[1] += t.sum()
-                    s_[0] += np.einsum("ij,ij->", t, P)
+                sums = part.block_grad_sums(W, *self._block_args(part, E, r0, r1))
+                acc[k] = sums if acc[k] is None else acc[k] + sums
         out = []
-        for kind, th, s_ in zip(self.kinds, params, acc):
-            if kind == "matern" or kind == "rbf":
-                out += [th[0] * s_[0], th[0] * s_[1]]
-            elif kind == "cubic":
-                var, _, b = th
-                g_var = var * s_[0]
-                g_b = 3.0 * var * b * s_[1]
-                out += [g_var, 3.0 * g_var - g_b, g_b]
-            else:  # White: dK/dlog var = var I
-                out.append(0.5 * th[0] * tr_w)
+        for part, sums in zip(self.parts, acc):
+            out += part.grads_from_sums(sums, tr_w)
         return out
 
 
@@ -238,15 +182,13 @@ def nlml_and_grad(theta: np.ndarray, kernel: Kernel, X: np.ndarray, y: np.ndarra
     n = y.size
     if not ws.fused:
         return _nlml_and_grad_generic(theta, kernel, X, y, noise)
-    parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
-    params = [np.exp(p.theta) for p in parts]
-    ws.fill_K(params, noise)
+    ws.fill_K(noise)
     scale = float(np.mean(np.diag(ws.KL)))
     jitter = 0.0
     for rel in JITTERS:
         if rel:
             jitter = rel * scale
-            ws.fill_K(params, noise, jitter)
+            ws.fill_K(noise, jitter)
         c, info = _potrf_inplace(ws.KL)
         if info == 0 and np.all(np.isfinite(np.diag(ws.KL))):
             break
@@ -262,7 +204,7 @@ def nlml_and_grad(theta: np.ndarray, kernel: Kernel, X: np.ndarray, y: np.ndarra
         raise NotPositiveDefiniteError(f"potri failed (info={info})")
     tr_w = float(np.sum(np.diag(ws.KL))) - float(alpha @ alpha)  # tr(K^-1 - alpha alpha^T)
     g = np.empty(theta.size)
-    g[:-1] = ws.grad_traces(params, alpha, tr_w)
+    g[:-1] = ws.grad_traces(alpha, tr_w)
     g[-1] = 0.5 * noise * tr_w
     return nlml, g
 
@@ -285,28 +227,15 @@ def _nlml_and_grad_generic(theta, kernel, X, y, noise):
 
 
 def initial_theta(kernel: Kernel, X: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Starting log-hyperparameters from data scales (standardised data).
-
-    Stationary parts get variance ~ var(y) and lengthscale ~ median pairwise distance; dot-product
-    parts get a small variance and scale 1/D; the noise starts at 1% of var(y).
-    """
+    """Starting log-hyperparameters from data scales (standardised data): each kernel part's own
+    ``Kernel.initial_theta`` from var(y), the median pairwise regressor distance and the regressor
+    dimension, then the noise at 1 % of var(y)."""
     rng = np.random.default_rng(0)
     sub = X[rng.choice(X.shape[0], size=min(500, X.shape[0]), replace=False)]
     d2 = np.sum((sub[:, None, :] - sub[None, :, :]) ** 2, axis=-1)
     med = float(np.sqrt(np.median(d2[d2 > 0]))) if np.any(d2 > 0) else 1.0
     vy = float(np.var(y)) or 1.0
-    D = X.shape[1]
-    parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
-    theta = []
-    for p in parts:
-        if isinstance(p, (Matern32, RBF)):
-            theta += [np.log(vy), np.log(med)]
-        elif isinstance(p, CubicPolynomial):
-            theta += [np.log(0.1 * vy), np.log(1.0 / D), np.log(1.0)]
-        elif isinstance(p, White):
-            theta += [np.log(1e-3 * vy)]
-        else:
-            theta += list(p.theta)
+    theta = list(kernel.initial_theta(vy, med, X.shape[1]))
     theta.append(np.log(1e-2 * vy))
     return np.array(theta, dtype=float)
 
@@ -405,13 +334,8 @@ def _nlml_ws(theta, kernel, X, y, ws):
 
 
 def redundant_scale_indices(kernel: Kernel) -> list[int]:
-    """Positions in theta of the cubic parts' log scale s (redundant with sigma_p^2 and b, eq. 11)."""
-    out, i = [], 0
-    for p in kernel.parts if isinstance(kernel, Sum) else [kernel]:
-        if isinstance(p, CubicPolynomial):
-            out.append(i + 1)
-        i += p.n_params
-    return out
+    """Positions in theta of the redundant parameters (the cubic parts' log scale s, eq. 11)."""
+    return kernel.redundant_indices()
 
 
 def default_warm_start_subset(n: int) -> int | None:

@@ -15,9 +15,12 @@ plus ``RBF`` and ``White``.
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 
 SQRT3 = np.sqrt(3.0)
+DEFAULT_LOG_BOUNDS = (-12.0, 12.0)  # every log-parameter unless a kernel's ``log_param_bounds`` says otherwise
 
 
 def squared_distances(X: np.ndarray, X2: np.ndarray | None = None) -> np.ndarray:
@@ -65,6 +68,8 @@ class Kernel:
     """Base class. Subclasses define ``param_names``, ``theta`` (log-parameters) and the methods."""
 
     param_names: tuple[str, ...] = ()
+    log_param_bounds: dict[str, tuple[float, float]] = {}  # per-parameter L-BFGS-B bounds in log space
+    redundant: tuple[str, ...] = ()  # parameters another combination of the others can stand in for
 
     def __init__(self) -> None:
         self.theta = np.zeros(len(self.param_names))
@@ -89,8 +94,18 @@ class Kernel:
         return {n: float(np.exp(t)) for n, t in zip(self.param_names, self.theta)}
 
     def log_bounds(self) -> list[tuple[float, float]]:
-        """Bounds on each log-parameter for L-BFGS-B."""
-        return [(-12.0, 12.0)] * self.n_params
+        """Bounds on each log-parameter for L-BFGS-B, by name from ``log_param_bounds`` (default (-12, 12))."""
+        return [tuple(self.log_param_bounds.get(n, DEFAULT_LOG_BOUNDS)) for n in self.param_names]
+
+    def initial_theta(self, var_y: float, median_distance: float, n_dims: int) -> np.ndarray:
+        """Data-scaled starting log-parameters for ML-II (eq. 13) on standardised regressors: ``var_y``
+        is the target variance, ``median_distance`` the median pairwise regressor distance and ``n_dims``
+        the regressor dimension. Kernels without a rule start from their current theta."""
+        return self.get_theta()
+
+    def redundant_indices(self) -> list[int]:
+        """Positions in theta of the parameters named in ``redundant`` (held fixed by ML-II on request)."""
+        return [i for i, n in enumerate(self.param_names) if n in self.redundant]
 
     # --- maths --------------------------------------------------------------------------------
     def __call__(self, X: np.ndarray, X2: np.ndarray | None = None) -> np.ndarray:
@@ -140,6 +155,44 @@ class Kernel:
 
     def diag_local(self, x: np.ndarray, ny: int):
         """k(x, x), its gradient and Hessian in x[:ny] (float, (ny,), (ny, ny))."""
+        raise NotImplementedError
+
+    # --- hyperparameter gradients of the bounds ML-II maximises --------------------------------
+    def iter_cross_grads(self, G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> Iterator[np.ndarray]:
+        """dK(X1, X2)/dtheta_j for each log-parameter in order, from G = X1 X2^T and the squared norms.
+
+        One (n1 x n2) array at a time, so the sparse bound (``vfe``) contracts and discards each."""
+        raise NotImplementedError(f"cross-covariance gradients are not implemented for {type(self).__name__}")
+
+    def diag_and_grads(self, X: np.ndarray, q: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+        """diag K(X, X) (N,) and [d diag / dtheta_j] for each log-parameter; q = |x|^2 when known."""
+        raise NotImplementedError(f"diagonal gradients are not implemented for {type(self).__name__}")
+
+    # --- blocks of K for the ML-II workspace (``gp.NLMLWorkspace``) --------------------------------
+    # The workspace precomputes, once per training set, what a kernel's blocks are a function of:
+    # ``workspace_input`` "distance" (r = |x - x'|) or "gram" (x.x'); None means the kernel only adds
+    # ``block_diagonal()`` to the diagonal. ``workspace_buffer`` asks for an N x N buffer the kernel
+    # fills in ``block_value`` and reads back in ``block_grad_sums`` (e.g. exp(-a)).
+    workspace_input: str | None = None
+    workspace_buffer: bool = False
+    workspace_ready: bool = False  # the four methods below are implemented
+
+    def block_value(self, base: np.ndarray, buf: np.ndarray | None) -> np.ndarray:
+        """One row block of K from the block ``base`` of the workspace input (a new array)."""
+        raise NotImplementedError
+
+    def block_diagonal(self) -> float:
+        """Constant added to the diagonal of K(X, X) beyond ``block_value`` (White's variance)."""
+        return 0.0
+
+    def block_grad_sums(self, W: np.ndarray, base: np.ndarray, buf: np.ndarray | None) -> np.ndarray:
+        """Partial sums over one block of W' (K^-1 - alpha alpha^T, lower triangle weighted) that
+        ``grads_from_sums`` turns into gradients; one entry per sum the kernel needs."""
+        return np.zeros(0)
+
+    def grads_from_sums(self, sums: np.ndarray, tr_w: float) -> list[float]:
+        """0.5 tr(W' dK/dtheta_j) per log-parameter from the summed block sums (lower triangle, so the
+        full trace is twice the sum) and tr_w = tr(W')."""
         raise NotImplementedError
 
     def __add__(self, other: "Kernel") -> "Sum":
@@ -268,6 +321,54 @@ class Matern32(Kernel):
     def diag_local(self, x, ny):
         return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
 
+    def initial_theta(self, var_y, median_distance, n_dims):
+        return np.log([var_y, median_distance])
+
+    def iter_cross_grads(self, G, sq1, sq2):
+        var, ls = np.exp(self.theta)
+        a = _r2_from_gram(G, sq1, sq2)
+        np.sqrt(a, out=a)
+        a *= SQRT3 / ls
+        e = np.exp(-a)
+        yield var * (1.0 + a) * e           # d/dlog var = K
+        a *= a
+        a *= e
+        a *= var
+        yield a                             # d/dlog l = var a^2 exp(-a)
+
+    def diag_and_grads(self, X, q=None):
+        var = float(np.exp(self.theta[0]))
+        n = X.shape[0]
+        return np.full(n, var), [np.full(n, var), np.zeros(n)]
+
+    # eq. (10) on a block of distances r: a = sqrt(3) r / l, K = var (1 + a) e^-a with e^-a kept in buf
+    workspace_input = "distance"
+    workspace_buffer = True
+    workspace_ready = True
+
+    def block_value(self, base, buf):
+        var, ls = np.exp(self.theta)
+        a = base * (SQRT3 / ls)
+        np.negative(a, out=buf)
+        np.exp(buf, out=buf)
+        a += 1.0
+        a *= buf
+        a *= var
+        return a
+
+    def block_grad_sums(self, W, base, buf):
+        # dK/dlog var = K = var (1 + a) e^-a, dK/dlog l = var a^2 e^-a: sums of W e^-a (1 + a) and W e^-a a^2
+        a = base * (SQRT3 / np.exp(self.theta[1]))
+        t = W * buf
+        s0 = t.sum()
+        t *= a
+        s1 = t.sum()
+        return np.array([s0 + s1, np.einsum("ij,ij->", t, a)])
+
+    def grads_from_sums(self, sums, tr_w):
+        var = np.exp(self.theta[0])
+        return [var * sums[0], var * sums[1]]
+
 
 class RBF(Kernel):
     """Squared-exponential kernel: sigma^2 exp(-r^2 / (2 l^2))."""
@@ -335,6 +436,48 @@ class RBF(Kernel):
 
     def diag_local(self, x, ny):
         return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
+
+    def initial_theta(self, var_y, median_distance, n_dims):
+        return np.log([var_y, median_distance])
+
+    def iter_cross_grads(self, G, sq1, sq2):
+        var, ls = np.exp(self.theta)
+        r2 = _r2_from_gram(G, sq1, sq2)
+        r2 /= ls**2
+        K = np.exp(-0.5 * r2)
+        K *= var
+        yield K                             # d/dlog var = K
+        r2 *= K
+        yield r2                            # d/dlog l = K r^2 / l^2
+
+    def diag_and_grads(self, X, q=None):
+        var = float(np.exp(self.theta[0]))
+        n = X.shape[0]
+        return np.full(n, var), [np.full(n, var), np.zeros(n)]
+
+    # K = var exp(-(r/l)^2 / 2) on a block of distances r, exp(...) kept in buf
+    workspace_input = "distance"
+    workspace_buffer = True
+    workspace_ready = True
+
+    def block_value(self, base, buf):
+        var, ls = np.exp(self.theta)
+        np.multiply(base, 1.0 / ls, out=buf)
+        buf *= buf
+        buf *= -0.5
+        np.exp(buf, out=buf)
+        return buf * var
+
+    def block_grad_sums(self, W, base, buf):
+        # dK/dlog var = K, dK/dlog l = K r^2 / l^2: sums of W exp(.) and W exp(.) r^2 / l^2
+        t = W * buf
+        r2 = base * (1.0 / np.exp(self.theta[1]))
+        r2 *= r2
+        return np.array([t.sum(), np.einsum("ij,ij->", t, r2)])
+
+    def grads_from_sums(self, sums, tr_w):
+        var = np.exp(self.theta[0])
+        return [var * sums[0], var * sums[1]]
 
 
 DEFAULT_CONSTANT_CAP = 1.0  # variance of the standardised output; GPNARX(constant_cap=...) default
@@ -478,6 +621,60 @@ class CubicPolynomial(Kernel):
         H[np.diag_indices(ny)] += 2.0 * s * f1
         return kxx, (2.0 * s * f1) * xy, H
 
+    redundant = ("scale",)  # var (s x.x' + b)^3 = (var s^3)(x.x' + b/s)^3: s adds a flat direction to eq. 13
+
+    def initial_theta(self, var_y, median_distance, n_dims):
+        return np.log([0.1 * var_y, 1.0 / n_dims, 1.0])
+
+    def iter_cross_grads(self, G, sq1, sq2):
+        var, s, b = np.exp(self.theta)
+        H = G * s                           # s x.x'
+        P = H + b                           # s x.x' + b
+        P2 = P * P
+        yield var * P2 * P                  # d/dlog var = K
+        P2 *= 3.0 * var                     # 3 var (s x.x' + b)^2
+        H *= P2
+        yield H                             # d/dlog s = 3 var P^2 s x.x'
+        P2 *= b
+        yield P2                            # d/dlog b = 3 var P^2 b
+
+    def diag_and_grads(self, X, q=None):
+        # uncapped, as ML-II uses it: var (s |x|^2 + b)^3
+        var, s, b = np.exp(self.theta)
+        q = np.einsum("ij,ij->i", X, X) if q is None else q
+        P = s * q + b
+        dp = var * P**3
+        return dp, [dp, 3.0 * var * P**2 * (s * q), 3.0 * var * P**2 * b]
+
+    # eq. (11) on a block of the Gram matrix G = x.x' (uncapped: ML-II uses eq. 11 as it is)
+    workspace_input = "gram"
+    workspace_ready = True
+
+    def block_value(self, base, buf):
+        var, s, b = np.exp(self.theta)
+        P = base * s
+        P += b
+        t = P * P
+        t *= P
+        t *= var
+        return t
+
+    def block_grad_sums(self, W, base, buf):
+        # P = s x.x' + b: sums of W P^3 and W P^2
+        _, s, b = np.exp(self.theta)
+        P = base * s
+        P += b
+        t = W * P
+        t *= P
+        return np.array([np.einsum("ij,ij->", t, P), t.sum()])
+
+    def grads_from_sums(self, sums, tr_w):
+        # dK/dlog var = var P^3, dK/dlog b = 3 var b P^2, dK/dlog s = 3 var P^3 - dK/dlog b
+        var, _, b = np.exp(self.theta)
+        g_var = var * sums[0]
+        g_b = 3.0 * var * b * sums[1]
+        return [g_var, 3.0 * g_var - g_b, g_b]
+
 
 class White(Kernel):
     """White-noise kernel: sigma^2 on the diagonal of K(X, X), zero between distinct sets."""
@@ -513,6 +710,25 @@ class White(Kernel):
 
     def diag_local(self, x, ny):
         return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
+
+    def initial_theta(self, var_y, median_distance, n_dims):
+        return np.log([1e-3 * var_y])
+
+    def iter_cross_grads(self, G, sq1, sq2):
+        yield np.zeros_like(G)              # zero between distinct input sets
+
+    def diag_and_grads(self, X, q=None):
+        var = float(np.exp(self.theta[0]))
+        n = X.shape[0]
+        return np.full(n, var), [np.full(n, var)]
+
+    workspace_ready = True  # workspace_input None: only the diagonal
+
+    def block_diagonal(self):
+        return float(np.exp(self.theta[0]))
+
+    def grads_from_sums(self, sums, tr_w):
+        return [0.5 * np.exp(self.theta[0]) * tr_w]  # dK/dlog var = var I
 
 
 class Sum(Kernel):
@@ -611,6 +827,30 @@ class Sum(Kernel):
 
     def __repr__(self):
         return " + ".join(repr(p) for p in self.parts)
+
+    def redundant_indices(self):
+        out, i = [], 0
+        for p in self.parts:
+            out += [i + j for j in p.redundant_indices()]
+            i += p.n_params
+        return out
+
+    def initial_theta(self, var_y, median_distance, n_dims):
+        return np.concatenate([p.initial_theta(var_y, median_distance, n_dims) for p in self.parts])
+
+    def iter_cross_grads(self, G, sq1, sq2):
+        for p in self.parts:
+            yield from p.iter_cross_grads(G, sq1, sq2)
+
+    def diag_and_grads(self, X, q=None):
+        q = np.einsum("ij,ij->i", X, X) if q is None else q
+        d = np.zeros(X.shape[0])
+        grads: list[np.ndarray] = []
+        for p in self.parts:
+            dp, gp = p.diag_and_grads(X, q)
+            d += dp
+            grads += gp
+        return d, grads
 
 
 KERNEL_TYPES = {c.__name__: c for c in (Matern32, RBF, CubicPolynomial, White)}

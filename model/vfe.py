@@ -24,29 +24,20 @@ Gradient (derived by hand, matrix form). With w = LB^-T c and Binv = B^-1,
     G_mn = Lm^-T [((w w^T - (I - Binv)) A) / s - w y^T / s2]                   (M x N)
     g_s2 = 1/2 [N - (M - tr Binv) - y'y/s2 + 2 c'c - w' A A^T w - tr Knn/s2 + tr(A A^T)]
 
-so each kernel parameter costs one O(N M) contraction with dKmn/dtheta_j (``cross_grads``).
+so each kernel parameter costs one O(N M) contraction with dKmn/dtheta_j (the kernel's own
+``Kernel.iter_cross_grads``).
 The Kmm jitter is relative to mean(diag Kmm), and its dependence on theta is differentiated too,
 so the gradient is that of the objective actually evaluated.
 """
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 
 import numpy as np
 from scipy import linalg
 
 from . import gp
-from .kernels import (
-    RBF,
-    SQRT3,
-    CubicPolynomial,
-    Kernel,
-    Matern32,
-    Sum,
-    White,
-    _r2_from_gram,
-)
+from .kernels import Kernel
 
 DEFAULT_JITTER = 1e-8  # relative to mean(diag Kmm), as in SparsePosterior.fit
 _JITTER_LADDER = (1e-10, 1e-8, 1e-6, 1e-4, 1e-2)
@@ -55,91 +46,19 @@ _JITTER_LADDER = (1e-10, 1e-8, 1e-6, 1e-4, 1e-2)
 # --------------------------------------------------------------------------------------------
 # Kernel gradients needed by the bound: cross-covariance K(Z, X) and diag K(X, X)
 # --------------------------------------------------------------------------------------------
-def _parts(kernel: Kernel) -> list[Kernel]:
-    parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
-    for p in parts:
-        if not isinstance(p, (Matern32, RBF, CubicPolynomial, White)):
-            raise TypeError(f"VFE gradients are not implemented for kernel type {type(p).__name__}")
-    return parts
-
-
-def _iter_cross_grads(kernel: Kernel, G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> Iterator[np.ndarray]:
-    """Yield dK(X1, X2)/dtheta_j for each log-parameter, in kernel order, from the Gram matrix.
-
-    Yields one (n1 x n2) array at a time so callers can contract and discard it (O(n1 n2) memory).
-    """
-    for p in _parts(kernel):
-        if isinstance(p, Matern32):
-            var, ls = np.exp(p.theta)
-            a = _r2_from_gram(G, sq1, sq2)
-            np.sqrt(a, out=a)
-            a *= SQRT3 / ls
-            e = np.exp(-a)
-            yield var * (1.0 + a) * e           # d/dlog var = K
-            a *= a
-            a *= e
-            a *= var
-            yield a                             # d/dlog l = var a^2 exp(-a)
-        elif isinstance(p, RBF):
-            var, ls = np.exp(p.theta)
-            r2 = _r2_from_gram(G, sq1, sq2)
-            r2 /= ls**2
-            K = np.exp(-0.5 * r2)
-            K *= var
-            yield K                             # d/dlog var = K
-            r2 *= K
-            yield r2                            # d/dlog l = K r^2 / l^2
-        elif isinstance(p, CubicPolynomial):
-            var, s, b = np.exp(p.theta)
-            H = G * s                           # s x.x'
-            P = H + b                           # s x.x' + b
-            P2 = P * P
-            yield var * P2 * P                  # d/dlog var = K
-            P2 *= 3.0 * var                     # 3 var (s x.x' + b)^2
-            H *= P2
-            yield H                             # d/dlog s = 3 var P^2 s x.x'
-            P2 *= b
-            yield P2                            # d/dlog b = 3 var P^2 b
-        else:  # White: zero between distinct input sets
-            yield np.zeros_like(G)
-
-
 def cross_grads(kernel: Kernel, Z: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-    """K(Z, X) and [dK(Z, X)/dtheta_j] for each log-parameter (same order as ``kernel.theta``).
-
-    Supports Matern32, RBF, CubicPolynomial, White (zero cross-covariance) and Sums of them.
-    """
+    """K(Z, X) and [dK(Z, X)/dtheta_j] for each log-parameter (same order as ``kernel.theta``), from the
+    kernel's own ``iter_cross_grads`` (Matern32, RBF, CubicPolynomial, White and Sums of them)."""
     G = Z @ X.T
     sq1 = np.einsum("ij,ij->i", Z, Z)
     sq2 = np.einsum("ij,ij->i", X, X)
     K = kernel.from_gram(G, sq1, sq2)
-    return K, list(_iter_cross_grads(kernel, G, sq1, sq2))
+    return K, list(kernel.iter_cross_grads(G, sq1, sq2))
 
 
 def diag_grads(kernel: Kernel, X: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-    """diag K(X, X) (N,) and [d diag/dtheta_j] for each log-parameter.
-
-    Stationary and white parts depend on their variance only; the cubic part is
-    var (s |x|^2 + b)^3.
-    """
-    n = X.shape[0]
-    q = np.einsum("ij,ij->i", X, X)
-    d = np.zeros(n)
-    grads: list[np.ndarray] = []
-    for p in _parts(kernel):
-        if isinstance(p, CubicPolynomial):
-            var, s, b = np.exp(p.theta)
-            P = s * q + b
-            dp = var * P**3
-            d += dp
-            grads += [dp, 3.0 * var * P**2 * (s * q), 3.0 * var * P**2 * b]
-        else:
-            var = float(np.exp(p.theta[0]))
-            d += var
-            grads.append(np.full(n, var))
-            if isinstance(p, (Matern32, RBF)):
-                grads.append(np.zeros(n))
-    return d, grads
+    """diag K(X, X) (N,) and [d diag/dtheta_j] for each log-parameter (``Kernel.diag_and_grads``)."""
+    return kernel.diag_and_grads(X)
 
 
 # --------------------------------------------------------------------------------------------
@@ -226,7 +145,7 @@ def vfe_nlml_and_grad(
     Gmm = np.ascontiguousarray(Gmm).ravel()
 
     g = np.empty(theta.size)
-    for j, (dmm, dmn) in enumerate(zip(dKmm, _iter_cross_grads(kernel, Gram, sqZ, sqX))):
+    for j, (dmm, dmn) in enumerate(zip(dKmm, kernel.iter_cross_grads(Gram, sqZ, sqX))):
         g_mm = float(np.dot(Gmm, np.ascontiguousarray(dmm).ravel()))
         if rel:  # Kmm jitter rel * mean(diag Kmm) also moves with theta
             g_mm += rel * float(np.mean(np.diag(dmm))) * tr_gmm

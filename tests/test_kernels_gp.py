@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from gpnarx.model.gp import NotPositiveDefiniteError, cholesky_jitter, fit_ml2, initial_theta, nlml_and_grad
-from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, Sum, White, kernel_from_dict, make_kernel
+from gpnarx.model.kernels import RBF, CubicPolynomial, Kernel, Matern32, Sum, White, kernel_from_dict, make_kernel
 
 
 def test_paper_kernel_equals_direct_evaluation():
@@ -166,3 +166,72 @@ def test_capped_cubic_kernel_only_replaces_the_constant_term():
         kernel_from_dict({"type": "CubicPolynomial", "theta": [0.0, 0.0, 0.0], "constant_cap": -1})
     with pytest.raises(ValueError, match="ML-II uses the uncapped"):
         capped.K_and_grads(X)
+
+
+class _Linear(Kernel):
+    """A kernel written outside the package: var x.x' with its own workspace and gradient formulas."""
+
+    param_names = ("variance",)
+    log_param_bounds = {"variance": (-5.0, 5.0)}
+    workspace_input = "gram"
+    workspace_ready = True
+
+    def __init__(self, variance=1.0):
+        self.theta = np.log([variance])
+
+    def __call__(self, X, X2=None):
+        return np.exp(self.theta[0]) * (X @ (X if X2 is None else X2).T)
+
+    def K_and_grads(self, X):
+        K = self(X)
+        return K, [K.copy()]
+
+    def from_gram(self, G, sq1, sq2):
+        return np.exp(self.theta[0]) * G
+
+    def iter_cross_grads(self, G, sq1, sq2):
+        yield np.exp(self.theta[0]) * G
+
+    def diag_and_grads(self, X, q=None):
+        d = np.exp(self.theta[0]) * np.einsum("ij,ij->i", X, X)
+        return d, [d.copy()]
+
+    def block_value(self, base, buf):
+        return np.exp(self.theta[0]) * base
+
+    def block_grad_sums(self, W, base, buf):
+        return np.array([np.einsum("ij,ij->", W, base)])
+
+    def grads_from_sums(self, sums, tr_w):
+        return [np.exp(self.theta[0]) * sums[0]]
+
+
+def test_a_new_kernel_brings_its_own_formulas_to_ml2_and_vfe():
+    """Kernels own their formulas: ML-II's workspace and the sparse bound use a kernel defined outside the
+    package through its methods alone (no list of known types), with the same numbers as the textbook path;
+    starting values, per-parameter bounds and redundant parameters come from the parts."""
+    from gpnarx.model.gp import NLMLWorkspace, _nlml_and_grad_generic, redundant_scale_indices
+    from gpnarx.model.vfe import vfe_nlml_and_grad
+
+    rng = np.random.default_rng(11)
+    X = rng.normal(size=(140, 3))
+    y = X[:, 0] - 0.5 * X[:, 2] + np.sin(X[:, 1]) + 0.1 * rng.normal(size=140)
+    k = make_kernel("matern32+cubic") + _Linear(0.5)
+    ws = NLMLWorkspace(k, X)
+    assert ws.fused
+    th = initial_theta(k, X, y) + rng.normal(0, 0.2, k.n_params + 1)
+    f, g = nlml_and_grad(th, k, X, y, ws)
+    f0, g0 = _nlml_and_grad_generic(th, k, X, y, float(np.exp(th[-1])))
+    assert abs(f - f0) <= 1e-9 * abs(f0) and np.max(np.abs(g - g0)) <= 1e-8 * np.max(np.abs(g0))
+    # the sparse bound's gradient (the kernel's iter_cross_grads / diag_and_grads) against finite differences
+    Z = X[::3].copy()
+    _, gv = vfe_nlml_and_grad(th, k, X, y, Z, jitter=0.0)
+    for j in range(th.size):
+        e = np.zeros_like(th)
+        e[j] = 1e-6
+        fd = (vfe_nlml_and_grad(th + e, k, X, y, Z, jitter=0.0)[0]
+              - vfe_nlml_and_grad(th - e, k, X, y, Z, jitter=0.0)[0]) / 2e-6
+        assert abs(gv[j] - fd) <= 1e-4 * max(abs(fd), 1.0), (j, gv[j], fd)
+    assert k.log_bounds()[-1] == (-5.0, 5.0) and k.log_bounds()[0] == (-12.0, 12.0)
+    assert redundant_scale_indices(k) == [3]  # the cubic part's log scale: Matern32 has 2 parameters first
+    assert initial_theta(k, X, y)[-2] == k.parts[-1].theta[0]  # no rule of its own: its current theta
