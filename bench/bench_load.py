@@ -274,7 +274,7 @@ def main(argv=None):
         registry = Path(args.registry)
         model = args.model
         if model is None:
-            from gpnarx.model.bundle import Registry
+            from gpnarx.model.registry import Registry
 
             reg = Registry(registry).scan()
             model = next((n for n in reg.names() if reg.get(n).fs == FS), None)

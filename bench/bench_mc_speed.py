@@ -50,7 +50,7 @@ def quick_model():
 def bert_model(registry, record):
     import bench_realtime as R
 
-    from gpnarx.model.bundle import Registry
+    from gpnarx.model.registry import Registry
     from gpnarx.training.records import read_record
 
     reg, note = R.bert_registry(registry)

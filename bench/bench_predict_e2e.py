@@ -129,8 +129,8 @@ def cached_registry(quick: bool, retrain: bool) -> tuple[Path, str]:
 
 def reference_child(registry: str, record: str, out: str, paths: int) -> None:
     """The equal-work baseline process: same tuning, same bundle, numpy evaluation of its sparse posterior."""
-    from gpnarx.model.bundle import Registry
     from gpnarx.model.metrics import summary
+    from gpnarx.model.registry import Registry
     from gpnarx.model.runtime import tune_for_free_run
 
     t0 = time.perf_counter()
@@ -199,7 +199,7 @@ def run(args, tmp: Path):
     predict = ("predict", "--registry", reg, "--model", "bouc-wen", rec, "--mc", P, "--out", out, "--json")
 
     # the equal-work reference computes the bundle's own posterior: check it on one regressor block
-    from gpnarx.model.bundle import Registry
+    from gpnarx.model.registry import Registry
 
     model = Registry(reg).scan().get("bouc-wen").model
     Zp = model.posterior_.X

@@ -106,7 +106,7 @@ def band_stats(y, run) -> tuple[float, float]:
 
 def accuracy(registry: Path, name: str, record: Path, quick: bool) -> dict:
     """Linearised and few-path MC bands against the reference MC on 4 s windows (quick: 300 samples)."""
-    from gpnarx.model.bundle import Registry
+    from gpnarx.model.registry import Registry
     from gpnarx.model.runtime import tune_for_free_run
     from gpnarx.training.records import read_record
 

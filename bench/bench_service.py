@@ -84,8 +84,8 @@ def main(argv=None):
 
     import httpx
 
-    from gpnarx.model.bundle import Registry
     from gpnarx.model.metrics import summary
+    from gpnarx.model.registry import Registry
     from gpnarx.service.app import limit_blas_threads, render_json, tune_malloc
     from gpnarx.service.settings import Settings
 

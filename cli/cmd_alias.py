@@ -51,7 +51,8 @@ def _registry(args) -> str:
 
 
 def _scan(reg: str, name: str | None):
-    from gpnarx.model.bundle import BundleError, Registry
+    from gpnarx.model.bundle import BundleError
+    from gpnarx.model.registry import Registry
 
     try:
         return Registry(reg, lazy=True).scan(only=name)
@@ -60,7 +61,8 @@ def _scan(reg: str, name: str | None):
 
 
 def _current(reg: str, name: str) -> dict:
-    from gpnarx.model.bundle import BundleError, read_aliases
+    from gpnarx.model.bundle import BundleError
+    from gpnarx.model.registry import read_aliases
 
     try:
         return read_aliases(reg, name)
@@ -69,14 +71,8 @@ def _current(reg: str, name: str) -> dict:
 
 
 def run_set(args):
-    from gpnarx.model.bundle import (
-        IMPLICIT_ALIASES,
-        BundleError,
-        check_alias,
-        check_name,
-        check_version_ref,
-        write_aliases,
-    )
+    from gpnarx.model.bundle import BundleError, check_name
+    from gpnarx.model.registry import IMPLICIT_ALIASES, check_alias, check_version_ref, write_aliases
 
     reg = _registry(args)
     try:
@@ -100,7 +96,8 @@ def run_set(args):
 
 
 def run_rm(args):
-    from gpnarx.model.bundle import BundleError, check_alias, check_name, write_aliases
+    from gpnarx.model.bundle import BundleError, check_name
+    from gpnarx.model.registry import check_alias, write_aliases
 
     reg = _registry(args)
     try:

@@ -24,7 +24,7 @@ def run(args):
     import os
 
     from gpnarx.cli.errors import CLIError
-    from gpnarx.model.bundle import Registry
+    from gpnarx.model.registry import Registry
     from gpnarx.model.storage import as_local
     from gpnarx.training.defaults import default_names, ensure_default_registry
 

@@ -36,7 +36,8 @@ def add_parser(sub):
 
 def run(args):
     from gpnarx.cli.cmd_predict import open_model, parse_window, resolve_registry
-    from gpnarx.model.bundle import BundleError, parse_model_ref
+    from gpnarx.model.bundle import BundleError
+    from gpnarx.model.registry import parse_model_ref
     from gpnarx.model.runtime import tune_for_free_run
     from gpnarx.training.calibrate import calibrate
     from gpnarx.training.records import read_record

@@ -105,7 +105,8 @@ def check_mc(mc) -> int:
 
 def load_model(args):
     """The bundle named by ``--registry`` and ``--model`` (after tuning BLAS for free runs)."""
-    from gpnarx.model.bundle import BundleError, parse_model_ref
+    from gpnarx.model.bundle import BundleError
+    from gpnarx.model.registry import parse_model_ref
     from gpnarx.model.runtime import tune_for_free_run
 
     if args.blas_threads is not None and args.blas_threads < 0:
@@ -123,7 +124,7 @@ def open_model(root, name: str, version: str | None):
     """Model ``name`` at ``version`` (a version, an alias such as production, or None: latest) from
     the registry ``root`` (a folder or an fsspec URL): that model's versions are verified, only the
     one asked for is built."""
-    from gpnarx.model.bundle import Registry
+    from gpnarx.model.registry import Registry
     from gpnarx.model.storage import as_local
 
     local = as_local(root)

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from fastapi import Request
 
-from gpnarx.model.bundle import BundleError, Registry, check_name, check_version_ref
+from gpnarx.model.bundle import BundleError, check_name
+from gpnarx.model.registry import Registry, check_version_ref
 from gpnarx.model.storage import StorageError
 
 from .metrics import ServiceMetrics

@@ -23,13 +23,8 @@ import pytest
 from fastapi.testclient import TestClient
 from test_service_support import FS, built_registry, copy_registry
 
-from gpnarx.model.bundle import (
-    STALE_TMP_SECONDS,
-    Registry,
-    next_version,
-    remove_stale_temps,
-    save_bundle,
-)
+from gpnarx.model.bundle import STALE_TMP_SECONDS, next_version, remove_stale_temps, save_bundle
+from gpnarx.model.registry import Registry
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
 

@@ -205,7 +205,8 @@ def test_verdict_with_probe_mismatch_is_not_from_the_score():
 
 # ------------------------------------------------------------------------------------------ derive / calibrate
 def test_derive_bundle_keeps_the_gp(tmp_path):
-    from gpnarx.model.bundle import BundleError, Registry, derive_bundle, load_bundle
+    from gpnarx.model.bundle import BundleError, derive_bundle, load_bundle
+    from gpnarx.model.registry import Registry
 
     root = copy_registry(tmp_path / "reg")
     src = Registry(root).scan().get("boucwen", "2")
@@ -249,7 +250,7 @@ def _cli_json(capsys, argv):
 
 
 def test_calibrate_cli_http_and_novelty(calibrated, capsys):
-    from gpnarx.model.bundle import Registry
+    from gpnarx.model.registry import Registry
     from gpnarx.service.app import create_app
     from gpnarx.service.settings import Settings
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from gpnarx.cli.main import main
-from gpnarx.model.bundle import BundleError, Registry, load_bundle, save_bundle
+from gpnarx.model.bundle import BundleError, load_bundle, save_bundle
+from gpnarx.model.registry import Registry
 
 SMALL_CONFIG = """
 name = "bw-small"

@@ -26,7 +26,8 @@ import httpx
 import numpy as np
 import pytest
 
-from gpnarx.model.bundle import BundleError, Registry, parse_model_ref, save_bundle, write_aliases
+from gpnarx.model.bundle import BundleError, save_bundle
+from gpnarx.model.registry import Registry, parse_model_ref, write_aliases
 
 ROOT = Path(__file__).resolve().parents[1]
 POLL = 1.0  # GPNARX_REGISTRY_POLL of the replicas [s]

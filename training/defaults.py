@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 from gpnarx.configs import CONFIG_DIR, shipped_config, shipped_config_names
-from gpnarx.model.bundle import Registry
+from gpnarx.model.registry import Registry
 from gpnarx.training.config import bert_data_dir
 from gpnarx.training.pipeline import train
 

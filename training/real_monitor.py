@@ -18,8 +18,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from gpnarx.model.bundle import Registry
 from gpnarx.model.records import Record
+from gpnarx.model.registry import Registry
 from gpnarx.training.calibrate import calibrate
 from gpnarx.training.records import read_record
 
