@@ -1,0 +1,59 @@
+"""Covariance functions as small composable objects (GPflow style), one family per module.
+
+Every kernel holds its hyperparameters in log space (``theta``), so ML-II (eq. 13) optimises an
+unconstrained vector. Each kernel returns its covariance matrix, the analytic gradient of that
+matrix with respect to each log-hyperparameter, its diagonal, and the gradient of k(x*, X) with
+respect to the test point x* (used by the linearised uncertainty propagation).
+
+Inputs are standardised NARX regressors (dimensionless). Kernels of the paper:
+
+* ``Matern32``: eq. (10), k1 = sigma_m^2 (1 + sqrt(3) r / l) exp(-sqrt(3) r / l)
+* ``CubicPolynomial``: eq. (11), k2 = sigma_p^2 (s x.x' + b)^3
+* ``Sum``: eq. (12), k = k1 + k2 (also built by ``k1 + k2``)
+
+plus ``RBF`` and ``White``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .base import DEFAULT_LOG_BOUNDS, SQRT3, Kernel, Sum, squared_distances
+from .cubic import DEFAULT_CONSTANT_CAP, CubicPolynomial, check_constant_cap
+from .stationary import RBF, Matern32
+from .white import White
+
+KERNEL_TYPES = {c.__name__: c for c in (Matern32, RBF, CubicPolynomial, White)}
+
+
+def kernel_from_dict(d: dict) -> Kernel:
+    """Rebuild a kernel from ``to_dict`` output (bundle manifests). Only known types are accepted."""
+    if not isinstance(d, dict) or "type" not in d:
+        raise ValueError("kernel description must be a dict with a 'type'")
+    if d["type"] == "Sum":
+        return Sum(*[kernel_from_dict(p) for p in d["parts"]])
+    cls = KERNEL_TYPES.get(d["type"])
+    if cls is None:
+        raise ValueError(f"unknown kernel type {d['type']!r}; known: Sum, {', '.join(KERNEL_TYPES)}")
+    k = cls.__new__(cls)
+    theta = np.asarray(d["theta"], dtype=float)
+    if theta.shape != (len(cls.param_names),) or not np.all(np.isfinite(theta)):
+        raise ValueError(f"kernel {d['type']} needs {len(cls.param_names)} finite log-parameters")
+    k.theta = theta
+    if cls is CubicPolynomial:
+        k.constant_cap = check_constant_cap(d.get("constant_cap"), "kernel CubicPolynomial constant_cap")
+    return k
+
+
+def make_kernel(spec: str = "matern32+cubic") -> Kernel:
+    """Kernel from a short name: 'matern32+cubic' (the paper's eq. 12), 'rbf', 'matern32', 'rbf+cubic', ..."""
+    names = {"matern32": Matern32, "rbf": RBF, "cubic": CubicPolynomial, "white": White}
+    parts = []
+    for tok in spec.lower().replace(" ", "").split("+"):
+        if tok not in names:
+            raise ValueError(f"kernel: unknown part {tok!r} in {spec!r}; use parts of {sorted(names)} joined by '+'")
+        parts.append(names[tok]())
+    return parts[0] if len(parts) == 1 else Sum(*parts)
+
+
+__all__ = ["DEFAULT_CONSTANT_CAP", "DEFAULT_LOG_BOUNDS", "KERNEL_TYPES", "RBF", "SQRT3", "CubicPolynomial", "Kernel",
+           "Matern32", "Sum", "White", "check_constant_cap", "kernel_from_dict", "make_kernel", "squared_distances"]

@@ -1,0 +1,337 @@
+"""The kernel protocol (``Kernel``), the sum of kernels (``Sum``, eq. 12) and shared distance helpers.
+
+Every kernel holds its hyperparameters in log space (``theta``), so ML-II (eq. 13) optimises an
+unconstrained vector. Each kernel owns its formulas: its covariance matrix, the analytic gradient of
+that matrix with respect to each log-hyperparameter (whole, by blocks for ``gp.NLMLWorkspace``, and
+for cross-covariances and diagonals for the sparse bound of ``vfe``), its diagonal, the gradient of
+k(x*, X) with respect to the test point x* (the linearised propagation), the second-order local
+terms of the Monte Carlo free run, its starting values and bounds. Inputs are standardised NARX
+regressors (dimensionless).
+"""
+from __future__ import annotations
+
+import copy
+from collections.abc import Iterator
+
+import numpy as np
+
+SQRT3 = np.sqrt(3.0)
+DEFAULT_LOG_BOUNDS = (-12.0, 12.0)  # every log-parameter unless a kernel's ``log_param_bounds`` says otherwise
+
+
+def squared_distances(X: np.ndarray, X2: np.ndarray | None = None) -> np.ndarray:
+    """Pairwise squared Euclidean distances by the expanded-norm identity |x|^2 + |x'|^2 - 2 x.x'.
+
+    One BLAS-3 product; negatives from round-off are clipped to 0 and the diagonal of a
+    self-distance matrix is set to exactly 0.
+    """
+    if X2 is None:
+        sq = np.einsum("ij,ij->i", X, X)
+        r2 = sq[:, None] + sq[None, :] - 2.0 * (X @ X.T)
+        np.maximum(r2, 0.0, out=r2)
+        np.fill_diagonal(r2, 0.0)
+        return r2
+    sq1 = np.einsum("ij,ij->i", X, X)
+    sq2 = np.einsum("ij,ij->i", X2, X2)
+    r2 = X @ X2.T
+    r2 *= -2.0
+    r2 += sq1[:, None]
+    r2 += sq2[None, :]
+    np.maximum(r2, 0.0, out=r2)
+    return r2
+
+
+def _r2_from_gram(G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> np.ndarray:
+    r2 = G * -2.0
+    r2 += sq1[:, None]
+    r2 += sq2[None, :]
+    np.maximum(r2, 0.0, out=r2)
+    return r2
+
+
+def _gram_parts(X1, X2, G=None, sq1=None, sq2=None):
+    """(X1 X2^T, |x1|^2, |x2|^2), computing whichever was not given."""
+    if G is None:
+        G = X1 @ X2.T
+    if sq1 is None:
+        sq1 = np.einsum("ij,ij->i", X1, X1)
+    if sq2 is None:
+        sq2 = np.einsum("ij,ij->i", X2, X2)
+    return G, sq1, sq2
+
+
+class Kernel:
+    """Base class. Subclasses define ``param_names``, ``theta`` (log-parameters) and the methods."""
+
+    param_names: tuple[str, ...] = ()
+    log_param_bounds: dict[str, tuple[float, float]] = {}  # per-parameter L-BFGS-B bounds in log space
+    redundant: tuple[str, ...] = ()  # parameters another combination of the others can stand in for
+
+    def __init__(self) -> None:
+        self.theta = np.zeros(len(self.param_names))
+
+    # --- parameters -------------------------------------------------------------------------
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    def get_theta(self) -> np.ndarray:
+        return np.array(self.theta, dtype=float)
+
+    def set_theta(self, theta) -> None:
+        theta = np.asarray(theta, dtype=float)
+        if theta.shape != (self.n_params,):
+            raise ValueError(f"theta must have {self.n_params} entries, got shape {theta.shape}")
+        self.theta = theta.copy()
+
+    @property
+    def params(self) -> dict:
+        """Hyperparameters in natural (not log) units, by name."""
+        return {n: float(np.exp(t)) for n, t in zip(self.param_names, self.theta)}
+
+    def log_bounds(self) -> list[tuple[float, float]]:
+        """Bounds on each log-parameter for L-BFGS-B, by name from ``log_param_bounds`` (default (-12, 12))."""
+        return [tuple(self.log_param_bounds.get(n, DEFAULT_LOG_BOUNDS)) for n in self.param_names]
+
+    def initial_theta(self, var_y: float, median_distance: float, n_dims: int) -> np.ndarray:
+        """Data-scaled starting log-parameters for ML-II (eq. 13) on standardised regressors: ``var_y``
+        is the target variance, ``median_distance`` the median pairwise regressor distance and ``n_dims``
+        the regressor dimension. Kernels without a rule start from their current theta."""
+        return self.get_theta()
+
+    def redundant_indices(self) -> list[int]:
+        """Positions in theta of the parameters named in ``redundant`` (held fixed by ML-II on request)."""
+        return [i for i, n in enumerate(self.param_names) if n in self.redundant]
+
+    # --- maths --------------------------------------------------------------------------------
+    def __call__(self, X: np.ndarray, X2: np.ndarray | None = None) -> np.ndarray:
+        raise NotImplementedError
+
+    def K_and_grads(self, X: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        """K(X, X) and [dK/dtheta_j] for each log-parameter."""
+        raise NotImplementedError
+
+    def from_gram(self, G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> np.ndarray:
+        """Cross-covariance K(X1, X2) from the Gram matrix G = X1 X2^T and squared norms.
+
+        Lets a sum of kernels share one BLAS-3 product per prediction step.
+        """
+        raise NotImplementedError
+
+    def cross(self, X1: np.ndarray, X2: np.ndarray) -> np.ndarray:
+        """K(X1, X2) through one shared Gram matrix."""
+        return self.from_gram(X1 @ X2.T, np.einsum("ij,ij->i", X1, X1), np.einsum("ij,ij->i", X2, X2))
+
+    def diag(self, X: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def grad_x(self, xs: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """d k(xs, X_n) / d xs for one test point xs (D,), returned as (N, D)."""
+        raise NotImplementedError
+
+    def grad_dot(self, Xs: np.ndarray, X: np.ndarray, w: np.ndarray, G: np.ndarray | None = None,
+                 sq1: np.ndarray | None = None, sq2: np.ndarray | None = None) -> np.ndarray:
+        """sum_n w_n d k(xs_r, X_n) / d xs_r for every row xs_r of Xs, as (rows, D): the gradient of a
+        posterior mean K(xs, X) w (eq. 8) at many points at once. G = Xs X^T and the squared norms may
+        be passed when already computed. This generic version loops over rows (``grad_x``)."""
+        return np.stack([self.grad_x(x, X).T @ w for x in Xs]) if len(Xs) else np.zeros((0, X.shape[1]))
+
+    def value_and_grad_dot(self, Xs, X, w, G, sq1, sq2):
+        """(K(Xs, X), ``grad_dot``) from one Gram product; kernels that share work override it."""
+        return self.from_gram(G, sq1, sq2), self.grad_dot(Xs, X, w, G, sq1, sq2)
+
+    def local_terms(self, x: np.ndarray, X: np.ndarray, ny: int):
+        """Second-order terms of k(x, X_n) in the first ``ny`` coordinates of one point x (D,).
+
+        Returns (k, J, hess): k = K(x, X) (N,), J = d k / d x[:ny] (N, ny), and hess(beta), the
+        (ny, ny) matrix sum_n beta_n d^2 k(x, X_n) / d x[:ny]^2. Used by the Monte Carlo free run's
+        local model (``gp.local_model``). Kernels without it raise NotImplementedError.
+        """
+        raise NotImplementedError
+
+    def diag_local(self, x: np.ndarray, ny: int):
+        """k(x, x), its gradient and Hessian in x[:ny] (float, (ny,), (ny, ny))."""
+        raise NotImplementedError
+
+    # --- hyperparameter gradients of the bounds ML-II maximises --------------------------------
+    def iter_cross_grads(self, G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> Iterator[np.ndarray]:
+        """dK(X1, X2)/dtheta_j for each log-parameter in order, from G = X1 X2^T and the squared norms.
+
+        One (n1 x n2) array at a time, so the sparse bound (``vfe``) contracts and discards each."""
+        raise NotImplementedError(f"cross-covariance gradients are not implemented for {type(self).__name__}")
+
+    def diag_and_grads(self, X: np.ndarray, q: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+        """diag K(X, X) (N,) and [d diag / dtheta_j] for each log-parameter; q = |x|^2 when known."""
+        raise NotImplementedError(f"diagonal gradients are not implemented for {type(self).__name__}")
+
+    # --- blocks of K for the ML-II workspace (``gp.NLMLWorkspace``) --------------------------------
+    # The workspace precomputes, once per training set, what a kernel's blocks are a function of:
+    # ``workspace_input`` "distance" (r = |x - x'|) or "gram" (x.x'); None means the kernel only adds
+    # ``block_diagonal()`` to the diagonal. ``workspace_buffer`` asks for an N x N buffer the kernel
+    # fills in ``block_value`` and reads back in ``block_grad_sums`` (e.g. exp(-a)).
+    workspace_input: str | None = None
+    workspace_buffer: bool = False
+    workspace_ready: bool = False  # the four methods below are implemented
+
+    def block_value(self, base: np.ndarray, buf: np.ndarray | None) -> np.ndarray:
+        """One row block of K from the block ``base`` of the workspace input (a new array)."""
+        raise NotImplementedError
+
+    def block_diagonal(self) -> float:
+        """Constant added to the diagonal of K(X, X) beyond ``block_value`` (White's variance)."""
+        return 0.0
+
+    def block_grad_sums(self, W: np.ndarray, base: np.ndarray, buf: np.ndarray | None) -> np.ndarray:
+        """Partial sums over one block of W' (K^-1 - alpha alpha^T, lower triangle weighted) that
+        ``grads_from_sums`` turns into gradients; one entry per sum the kernel needs."""
+        return np.zeros(0)
+
+    def grads_from_sums(self, sums: np.ndarray, tr_w: float) -> list[float]:
+        """0.5 tr(W' dK/dtheta_j) per log-parameter from the summed block sums (lower triangle, so the
+        full trace is twice the sum) and tr_w = tr(W')."""
+        raise NotImplementedError
+
+    def __add__(self, other: "Kernel") -> "Sum":
+        return Sum(self, other)
+
+    # --- serialisation ----------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {"type": type(self).__name__, "theta": [float(t) for t in self.theta]}
+
+    def clone(self) -> "Kernel":
+        return copy.deepcopy(self)
+
+    def for_posterior(self, constant_cap: float | None = None) -> "Kernel":
+        """A copy with any constant term capped at ``constant_cap`` (see ``CubicPolynomial``);
+        kernels without one return a plain copy. Posteriors take their variance from it."""
+        return self.clone()
+
+    def cap_shift(self) -> float:
+        """How far the capped kernel lies below the uncapped one (a constant, >= 0; 0 if uncapped)."""
+        return 0.0
+
+    def __repr__(self) -> str:
+        ps = ", ".join(f"{k}={v:.4g}" for k, v in self.params.items())
+        return f"{type(self).__name__}({ps})"
+
+
+class Sum(Kernel):
+    """Sum of kernels, eq. (12): k = k1 + k2 (+ ...). Parameters are concatenated in order."""
+
+    def __init__(self, *parts: Kernel) -> None:
+        flat: list[Kernel] = []
+        for p in parts:
+            flat.extend(p.parts if isinstance(p, Sum) else [p])
+        self.parts = flat
+
+    @property
+    def param_names(self):  # type: ignore[override]
+        return tuple(f"{i}.{type(p).__name__}.{n}" for i, p in enumerate(self.parts) for n in p.param_names)
+
+    @property
+    def theta(self):  # type: ignore[override]
+        return np.concatenate([p.theta for p in self.parts])
+
+    @theta.setter
+    def theta(self, value):
+        self.set_theta(value)
+
+    def set_theta(self, theta) -> None:
+        theta = np.asarray(theta, dtype=float)
+        if theta.shape != (self.n_params,):
+            raise ValueError(f"theta must have {self.n_params} entries, got shape {theta.shape}")
+        i = 0
+        for p in self.parts:
+            p.set_theta(theta[i : i + p.n_params])
+            i += p.n_params
+
+    def log_bounds(self):
+        return [b for p in self.parts for b in p.log_bounds()]
+
+    def __call__(self, X, X2=None):
+        K = self.parts[0](X, X2)
+        for p in self.parts[1:]:
+            K += p(X, X2)
+        return K
+
+    def K_and_grads(self, X):
+        K = None
+        grads: list[np.ndarray] = []
+        for p in self.parts:
+            Kp, gp = p.K_and_grads(X)
+            K = Kp if K is None else K + Kp
+            grads.extend(gp)
+        return K, grads
+
+    def diag(self, X):
+        return sum(p.diag(X) for p in self.parts)
+
+    def from_gram(self, G, sq1, sq2):
+        K = self.parts[0].from_gram(G, sq1, sq2)
+        for p in self.parts[1:]:
+            K += p.from_gram(G, sq1, sq2)
+        return K
+
+    def grad_x(self, xs, X):
+        return sum(p.grad_x(xs, X) for p in self.parts)
+
+    def grad_dot(self, Xs, X, w, G=None, sq1=None, sq2=None):
+        G, sq1, sq2 = _gram_parts(Xs, X, G, sq1, sq2)
+        out = self.parts[0].grad_dot(Xs, X, w, G, sq1, sq2)
+        for p in self.parts[1:]:
+            out += p.grad_dot(Xs, X, w, G, sq1, sq2)
+        return out
+
+    def value_and_grad_dot(self, Xs, X, w, G, sq1, sq2):
+        K, out = self.parts[0].value_and_grad_dot(Xs, X, w, G, sq1, sq2)
+        for p in self.parts[1:]:
+            k, g = p.value_and_grad_dot(Xs, X, w, G, sq1, sq2)
+            K += k
+            out += g
+        return K, out
+
+    def local_terms(self, x, X, ny):
+        terms = [p.local_terms(x, X, ny) for p in self.parts]
+        k = sum(t[0] for t in terms)
+        J = sum(t[1] for t in terms)
+        return k, J, lambda beta: sum(t[2](beta) for t in terms)
+
+    def diag_local(self, x, ny):
+        terms = [p.diag_local(x, ny) for p in self.parts]
+        return sum(t[0] for t in terms), sum(t[1] for t in terms), sum(t[2] for t in terms)
+
+    def to_dict(self):
+        return {"type": "Sum", "parts": [p.to_dict() for p in self.parts]}
+
+    def for_posterior(self, constant_cap: float | None = None) -> "Sum":
+        return Sum(*[p.for_posterior(constant_cap) for p in self.parts])
+
+    def cap_shift(self) -> float:
+        return float(sum(p.cap_shift() for p in self.parts))
+
+    def __repr__(self):
+        return " + ".join(repr(p) for p in self.parts)
+
+    def redundant_indices(self):
+        out, i = [], 0
+        for p in self.parts:
+            out += [i + j for j in p.redundant_indices()]
+            i += p.n_params
+        return out
+
+    def initial_theta(self, var_y, median_distance, n_dims):
+        return np.concatenate([p.initial_theta(var_y, median_distance, n_dims) for p in self.parts])
+
+    def iter_cross_grads(self, G, sq1, sq2):
+        for p in self.parts:
+            yield from p.iter_cross_grads(G, sq1, sq2)
+
+    def diag_and_grads(self, X, q=None):
+        q = np.einsum("ij,ij->i", X, X) if q is None else q
+        d = np.zeros(X.shape[0])
+        grads: list[np.ndarray] = []
+        for p in self.parts:
+            dp, gp = p.diag_and_grads(X, q)
+            d += dp
+            grads += gp
+        return d, grads
