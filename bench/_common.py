@@ -30,8 +30,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from gpnarx.model.gp import ExactPosterior, fit_ml2  # noqa: E402
+from gpnarx.model.gp import ExactPosterior  # noqa: E402
 from gpnarx.model.kernels import make_kernel  # noqa: E402
+from gpnarx.model.ml2 import fit_ml2  # noqa: E402
 from gpnarx.model.regressors import stack_regressors  # noqa: E402
 from gpnarx.model.scaling import Standardizer  # noqa: E402
 from gpnarx.model.selection import select_rows  # noqa: E402

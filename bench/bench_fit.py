@@ -4,7 +4,7 @@ Both sides work on the same standardised Bouc-Wen training rows (stride selectio
 kernel, in the same process (same BLAS threads and malloc), float64.
 
 Equal work (``ratio=``): one NLML + gradient evaluation, the unit of every ML-II iteration, at the
-largest N, from the same data-scaled hyperparameters. Ours: ``model.gp.nlml_and_grad`` with the
+largest N, from the same data-scaled hyperparameters. Ours: ``model.ml2.nlml_and_grad`` with the
 reused ``NLMLWorkspace`` (one Cholesky, one potri, analytic gradient traces), as ``fit_ml2`` calls
 it; baseline: ``GaussianProcessRegressor.log_marginal_likelihood(theta, eval_gradient=True)``, as
 scikit-learn's optimiser calls it, with the same kernel written ``C*Matern(nu=1.5) +
@@ -40,8 +40,8 @@ import numpy as np
 from scipy.optimize import minimize
 
 import _common as C
-from gpnarx.model.gp import NLMLWorkspace, default_warm_start_subset, fit_ml2, initial_theta, nlml_and_grad
 from gpnarx.model.kernels import make_kernel
+from gpnarx.model.ml2 import NLMLWorkspace, default_warm_start_subset, fit_ml2, initial_theta, nlml_and_grad
 
 EVALS = {"sklearn": 0}
 

@@ -1,7 +1,7 @@
 """Cost growth: log-log slopes against training points N, Monte Carlo paths and record length.
 
 Measured (best of a few repeats each, Bouc-Wen protocol, D=37, eq. 12 kernel, fixed hyperparameters):
-  * fit vs N: one NLML + analytic-gradient evaluation (``model.gp.nlml_and_grad``), the unit cost of
+  * fit vs N: one NLML + analytic-gradient evaluation (``model.ml2.nlml_and_grad``), the unit cost of
     every ML-II iteration (iteration counts vary with the data, so the whole fit is not used here);
   * step vs N: one Monte Carlo step, ``ExactPosterior.predict`` on a (P, D) block (P=1024);
   * paths: one step at fixed N against P;
@@ -20,8 +20,8 @@ import numpy as np
 import _common as C
 from gpnarx.model import freerun
 from gpnarx.model.freerun import simulate_mc
-from gpnarx.model.gp import nlml_and_grad
 from gpnarx.model.kernels import make_kernel
+from gpnarx.model.ml2 import nlml_and_grad
 
 # equal work with the exact baselines: the product's Monte Carlo evaluates eq. 8-9 at every path
 # (its default checked local model is compared like for like in bench_mc_speed.py)

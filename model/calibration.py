@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .gp import NOISE_LOG_BOUNDS
+from .ml2 import NOISE_LOG_BOUNDS
 
 NOISE_CEILING = float(np.exp(NOISE_LOG_BOUNDS[1]))  # standardised units; ML-II's upper bound
 

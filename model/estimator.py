@@ -13,8 +13,9 @@ from sklearn.base import BaseEstimator
 from . import freerun
 from .discrepancy import widen
 from .envelope import check_envelope, divergence_limit, training_envelope
-from .gp import ExactPosterior, SparsePosterior, choose_inducing, default_warm_start_subset, fit_ml2
+from .gp import ExactPosterior, SparsePosterior, choose_inducing
 from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, make_kernel
+from .ml2 import default_warm_start_subset, fit_ml2
 from .records import Record, RecordError
 from .regressors import check_lags, first_index, narx_regressors, stack_regressors
 from .scaling import Standardizer

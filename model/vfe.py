@@ -36,8 +36,9 @@ import time
 import numpy as np
 from scipy import linalg
 
-from . import gp
+from . import ml2
 from .kernels import Kernel
+from .linalg import LOG_2PI, NotPositiveDefiniteError, chol_inverse, cholesky_jitter
 
 DEFAULT_JITTER = 1e-8  # relative to mean(diag Kmm), as in SparsePosterior.fit
 _JITTER_LADDER = (1e-10, 1e-8, 1e-6, 1e-4, 1e-2)
@@ -76,7 +77,7 @@ def _chol_kmm(Kmm: np.ndarray, jitter: float) -> tuple[np.ndarray, float]:
             continue
         if np.all(np.isfinite(L)):
             return L, rel
-    raise gp.NotPositiveDefiniteError(
+    raise NotPositiveDefiniteError(
         f"Kmm (M={m}) is not positive definite even with jitter {ladder[-1]:g} x mean diagonal; "
         "check for duplicated inducing inputs or extreme hyperparameters"
     )
@@ -90,7 +91,7 @@ def vfe_nlml_and_grad(
 
     theta = [kernel log-parameters..., log s2]; Z (M x D) fixed inducing inputs.
     Cost O(N M^2 + n_params N M); memory O(N M). Sets the kernel's theta as a side effect
-    (like ``gp.nlml_and_grad``). ``jitter`` is the starting relative jitter on Kmm.
+    (like ``ml2.nlml_and_grad``). ``jitter`` is the starting relative jitter on Kmm.
     """
     theta = np.asarray(theta, dtype=float)
     y = np.asarray(y, dtype=float).ravel()
@@ -111,7 +112,7 @@ def vfe_nlml_and_grad(
     A /= s                                                     # A = Lm^-1 Kmn / s   (M x N)
     AAT = A @ A.T
     B = AAT + np.eye(m)
-    LB, _ = gp.cholesky_jitter(B, overwrite=False)
+    LB, _ = cholesky_jitter(B, overwrite=False)
     Ay = A @ y
     c = linalg.solve_triangular(LB, Ay, lower=True, check_finite=False) / s
     knn_diag, ddiag = diag_grads(kernel, X)
@@ -119,12 +120,12 @@ def vfe_nlml_and_grad(
     tr_aat = float(np.trace(AAT))
     yy = float(y @ y)
     cc = float(c @ c)
-    neg_bound = (0.5 * n * (gp.LOG_2PI + np.log(s2)) + float(np.sum(np.log(np.diag(LB))))
+    neg_bound = (0.5 * n * (LOG_2PI + np.log(s2)) + float(np.sum(np.log(np.diag(LB))))
                  + 0.5 * yy / s2 - 0.5 * cc + 0.5 * (tr_knn / s2 - tr_aat))
 
     # --- reverse -------------------------------------------------------------------------------
     w = linalg.solve_triangular(LB, c, lower=True, trans="T", check_finite=False)   # LB^-T c
-    Binv = gp.chol_inverse(LB)
+    Binv = chol_inverse(LB)
     IminusBinv = np.eye(m) - Binv                                # = Binv A A^T
     # G_mm = 1/2 Lm^-T [(I - Binv) A A^T + w w^T] Lm^-1
     Mid = IminusBinv @ AAT
@@ -169,13 +170,13 @@ def fit_vfe(
     max_iter: int = 200,
     agree_tol: float = 0.5,
     warm_start_rows: int | None = 500,
-) -> gp.MLIIResult:
+) -> ml2.MLIIResult:
     """Sparse ML-II: minimise the negative VFE bound by L-BFGS-B with Z fixed.
 
-    Same bounds, starting point (``gp.initial_theta``), restart scheme and result type as
-    ``gp.fit_ml2``; ``MLIIResult.nlml`` holds the negative bound (an upper bound on the NLML).
+    Same bounds, starting point (``ml2.initial_theta``), restart scheme and result type as
+    ``ml2.fit_ml2``; ``MLIIResult.nlml`` holds the negative bound (an upper bound on the NLML).
 
-    Starts: ``theta0`` if given; otherwise ``gp.initial_theta`` and, when ``warm_start_rows``
+    Starts: ``theta0`` if given; otherwise ``ml2.initial_theta`` and, when ``warm_start_rows``
     is set, also the exact ML-II optimum on that many evenly strided rows (O(rows^3), cheap).
     The second start matters on high-dimensional NARX regressors: from the data-scaled start
     the trace term tr(Knn - Qnn)/s2 is huge and L-BFGS-B can slide into the degenerate
@@ -186,26 +187,26 @@ def fit_vfe(
     """
     t0 = time.perf_counter()
     y = np.asarray(y, dtype=float).ravel()
-    bounds = kernel.log_bounds() + [gp.NOISE_LOG_BOUNDS]
+    bounds = kernel.log_bounds() + [ml2.NOISE_LOG_BOUNDS]
     if theta0 is not None:
         starts = [np.asarray(theta0, float)]
     else:
-        starts = [gp.initial_theta(kernel, X, y)]
+        starts = [ml2.initial_theta(kernel, X, y)]
         if warm_start_rows:
             rows = np.unique(np.linspace(0, X.shape[0] - 1, min(int(warm_start_rows), X.shape[0])).astype(int))
             try:
-                warm = gp.fit_ml2(kernel.clone(), X[rows], y[rows], n_restarts=0, theta0=starts[0],
+                warm = ml2.fit_ml2(kernel.clone(), X[rows], y[rows], n_restarts=0, theta0=starts[0],
                                   max_iter=max_iter)
                 starts.append(warm.theta)
-            except gp.NotPositiveDefiniteError:
+            except NotPositiveDefiniteError:
                 pass
-    best, history, n_evals = gp.multistart_lbfgsb(
+    best, history, n_evals = ml2.multistart_lbfgsb(
         vfe_nlml_and_grad, (kernel, X, y, Z), starts, bounds, n_restarts=n_restarts, seed=seed,
         max_iter=max_iter, agree_tol=agree_tol)
     if best is None:
-        raise gp.NotPositiveDefiniteError("VFE ML-II failed from every start: Kmm/B never positive definite")
+        raise NotPositiveDefiniteError("VFE ML-II failed from every start: Kmm/B never positive definite")
     kernel.set_theta(best.x[:-1])
-    return gp.MLIIResult(theta=best.x.copy(), nlml=float(best.fun), restarts=history,
+    return ml2.MLIIResult(theta=best.x.copy(), nlml=float(best.fun), restarts=history,
                          seconds=time.perf_counter() - t0, n_evals=n_evals)
 
 

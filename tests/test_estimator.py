@@ -363,7 +363,7 @@ def test_sparse_bundle_with_the_single_matrix_variance_loads_and_warns(sdof_data
 def _default_path_fit(sdof_data, monkeypatch):
     """GPNARX.fit on 2000 ML-II rows (ny = nu = 2), recording what it passed to fit_ml2."""
     import gpnarx.model.estimator as est
-    from gpnarx.model.gp import fit_ml2
+    from gpnarx.model.ml2 import fit_ml2
 
     calls = []
 
@@ -379,13 +379,14 @@ def _default_path_fit(sdof_data, monkeypatch):
 
 
 def test_default_warm_start_ml2_reaches_the_cold_optimum(sdof_data, monkeypatch):
-    """From 2000 ML-II rows GPNARX.fit warm-starts ML-II (model.gp.default_warm_start_subset: N/4 rows
+    """From 2000 ML-II rows GPNARX.fit warm-starts ML-II (model.ml2.default_warm_start_subset: N/4 rows
     first, with the cubic part's redundant scale held); on this small problem it lands within a
     tolerance of the cold ML-II optimum of the same problem (same rows, the same scale held): NLML
     within 0.01 %, sigma_y^2 within 5 %, one-step means within 1 % of the output RMS, in fewer full-N
     evaluations."""
-    from gpnarx.model.gp import ExactPosterior, default_warm_start_subset, fit_ml2
+    from gpnarx.model.gp import ExactPosterior
     from gpnarx.model.kernels import make_kernel
+    from gpnarx.model.ml2 import default_warm_start_subset, fit_ml2
 
     m, X, Y, kw, warm = _default_path_fit(sdof_data, monkeypatch)
     assert X.shape[0] == 2000 and kw["warm_start_subset"] == default_warm_start_subset(2000) == 500
@@ -410,10 +411,10 @@ def test_default_warm_start_ml2_reaches_the_cold_optimum(sdof_data, monkeypatch)
                    "(NLML -1393.74 vs -1406.99; the warm start without the hold reaches -1406.99): the free optimum "
                    "has log s = -8.27, log sigma_p^2 = -4.27, log b = 5.53; with log s held at -1.39 the same kernel "
                    "needs log sigma_p^2 = -24.9 and log b = 12.4, outside the +/-12 bounds, so ML-II stops with the "
-                   "cubic variance at its bound (model.gp.fit_ml2's 'inside the bounds' does not hold here)")
+                   "cubic variance at its bound (model.ml2.fit_ml2's 'inside the bounds' does not hold here)")
 def test_default_warm_start_ml2_reaches_the_free_cold_optimum(sdof_data, monkeypatch):
-    from gpnarx.model.gp import fit_ml2
     from gpnarx.model.kernels import make_kernel
+    from gpnarx.model.ml2 import fit_ml2
 
     m, X, Y, kw, warm = _default_path_fit(sdof_data, monkeypatch)
     cold = fit_ml2(make_kernel(m.kernel), X, Y, n_restarts=0)

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from gpnarx.model.gp import NotPositiveDefiniteError, cholesky_jitter, fit_ml2, initial_theta, nlml_and_grad
 from gpnarx.model.kernels import RBF, CubicPolynomial, Kernel, Matern32, Sum, White, kernel_from_dict, make_kernel
+from gpnarx.model.linalg import NotPositiveDefiniteError, cholesky_jitter
+from gpnarx.model.ml2 import fit_ml2, initial_theta, nlml_and_grad
 
 
 def test_paper_kernel_equals_direct_evaluation():
@@ -75,7 +76,7 @@ def test_nlml_gradient_matches_finite_differences():
 @pytest.mark.parametrize("spec", ["matern32+cubic", "rbf+cubic+white", "matern32"])
 def test_workspace_nlml_equals_materialised_gradients(spec):
     """The fused lower-triangle workspace path equals the textbook one (every dK materialised)."""
-    from gpnarx.model.gp import NLMLWorkspace, _nlml_and_grad_generic
+    from gpnarx.model.ml2 import NLMLWorkspace, _nlml_and_grad_generic
 
     rng = np.random.default_rng(5)
     X = rng.normal(size=(150, 4))  # 150 rows: several row blocks of the workspace (chunk 64)
@@ -210,7 +211,7 @@ def test_a_new_kernel_brings_its_own_formulas_to_ml2_and_vfe():
     """Kernels own their formulas: ML-II's workspace and the sparse bound use a kernel defined outside the
     package through its methods alone (no list of known types), with the same numbers as the textbook path;
     starting values, per-parameter bounds and redundant parameters come from the parts."""
-    from gpnarx.model.gp import NLMLWorkspace, _nlml_and_grad_generic, redundant_scale_indices
+    from gpnarx.model.ml2 import NLMLWorkspace, _nlml_and_grad_generic, redundant_scale_indices
     from gpnarx.model.vfe import vfe_nlml_and_grad
 
     rng = np.random.default_rng(11)

@@ -6,9 +6,9 @@ import time
 import numpy as np
 import pytest
 
-from gpnarx.model import gp
-from gpnarx.model.gp import SparsePosterior, choose_inducing, initial_theta, nlml_and_grad
+from gpnarx.model.gp import SparsePosterior, choose_inducing
 from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, White, make_kernel
+from gpnarx.model.ml2 import MLIIResult, initial_theta, nlml_and_grad
 from gpnarx.model.vfe import cross_grads, diag_grads, fit_vfe, vfe_nlml_and_grad
 
 
@@ -126,12 +126,12 @@ def test_fit_vfe_recovers_noise_on_1d_toy():
     Z = choose_inducing(X, 30, seed=0)
     k = make_kernel("matern32+cubic")
     t0 = time.perf_counter()
-    res = fit_vfe(k, X, y, Z, warm_start_rows=None)  # the plain gp.initial_theta start
+    res = fit_vfe(k, X, y, Z, warm_start_rows=None)  # the plain ml2.initial_theta start
     secs = time.perf_counter() - t0
     s2 = float(np.exp(res.theta[-1]))
     print(f"\nfit_vfe 1-D toy N={N} M=30: s2={s2:.5f} (true {noise_sd**2:.5f}), -F={res.nlml:.2f}, "
           f"iters={res.restarts}, {secs:.2f} s")
-    assert isinstance(res, gp.MLIIResult)
+    assert isinstance(res, MLIIResult)
     assert np.allclose(k.get_theta(), res.theta[:-1])
     assert 0.8 * noise_sd**2 < s2 < 1.25 * noise_sd**2
     # at the optimum the bound is tight: close to the exact NLML at the same hyperparameters

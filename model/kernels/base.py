@@ -2,7 +2,7 @@
 
 Every kernel holds its hyperparameters in log space (``theta``), so ML-II (eq. 13) optimises an
 unconstrained vector. Each kernel owns its formulas: its covariance matrix, the analytic gradient of
-that matrix with respect to each log-hyperparameter (whole, by blocks for ``gp.NLMLWorkspace``, and
+that matrix with respect to each log-hyperparameter (whole, by blocks for ``ml2.NLMLWorkspace``, and
 for cross-covariances and diagonals for the sparse bound of ``vfe``), its diagonal, the gradient of
 k(x*, X) with respect to the test point x* (the linearised propagation), the second-order local
 terms of the Monte Carlo free run, its starting values and bounds. Inputs are standardised NARX
@@ -164,7 +164,7 @@ class Kernel:
         """diag K(X, X) (N,) and [d diag / dtheta_j] for each log-parameter; q = |x|^2 when known."""
         raise NotImplementedError(f"diagonal gradients are not implemented for {type(self).__name__}")
 
-    # --- blocks of K for the ML-II workspace (``gp.NLMLWorkspace``) --------------------------------
+    # --- blocks of K for the ML-II workspace (``ml2.NLMLWorkspace``) --------------------------------
     # The workspace precomputes, once per training set, what a kernel's blocks are a function of:
     # ``workspace_input`` "distance" (r = |x - x'|) or "gram" (x.x'); None means the kernel only adds
     # ``block_diagonal()`` to the diagonal. ``workspace_buffer`` asks for an N x N buffer the kernel
