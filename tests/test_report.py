@@ -8,6 +8,8 @@ import pytest
 
 from gpnarx.model.restoring import loop_area, restoring_force
 from gpnarx.training import report as rp
+from gpnarx.training import report_figures as rf
+from gpnarx.training import report_metrics as rmet
 
 FS = 256.0
 
@@ -33,7 +35,7 @@ def _surface():
 
 def test_record_metrics_values():
     rec = _sine_record(perfect=True)
-    m = rp.record_metrics(rec, None)
+    m = rmet.record_metrics(rec, None)
     assert m["fit"] == pytest.approx(100.0)
     assert m["rmse"] == pytest.approx(0.0, abs=1e-15)
     assert m["coverage"] == pytest.approx(100.0)
@@ -48,7 +50,7 @@ def test_record_metrics_values():
     rec2["upper"] = rec2["mean"] + 1e-4
     rec2["lower"] = rec2["mean"] - 1e-4
     rec2["upper"][::2] = rec2["y"][::2] - 1e-6  # every other sample above the band
-    m2 = rp.record_metrics(rec2, None)
+    m2 = rmet.record_metrics(rec2, None)
     assert m2["coverage"] == pytest.approx(50.0)
     expect_fit = 100 * (1 - np.linalg.norm(rec2["y"] - rec2["mean"]) / np.linalg.norm(rec2["y"]))
     assert m2["fit"] == pytest.approx(expect_fit)
@@ -58,7 +60,7 @@ def test_record_metrics_values():
 def test_harmonics_and_physics_metrics():
     rec = _sine_record(drive_freq=18.0, n=2048)
     phys = {"mass": 2.0, "input_gain": 1.0, "output": "displacement"}
-    m = rp.record_metrics(rec, phys)
+    m = rmet.record_metrics(rec, phys)
     hm, hp = m["harmonics_db_measured"], m["harmonics_db_predicted"]
     assert len(hm) == 3 and len(hp) == 3
     assert hm[0] > hm[2] > hm[1]  # 3rd harmonic present, 2nd absent (only noise)
@@ -149,12 +151,12 @@ def test_velocity_physics_and_prediction_only(tmp_path):
              "lower": 0.98 * vel - 1e-3, "upper": 0.98 * vel + 1e-3, "units": {"u": "N", "y": "m/s"},
              "drive_freq": f0}
     phys = {"mass": 0.5, "output": "velocity"}
-    m = rp.record_metrics(rec_v, phys)
+    m = rmet.record_metrics(rec_v, phys)
     assert m["fit"] == pytest.approx(98.0)
     assert m["loop_area_measured"] > 0 and m["loop_area_predicted"] > 0
     rec_p = {"name": "pred_only", "role": "prediction", "fs": FS, "u": u, "y": None, "mean": vel,
              "lower": vel - 1e-3, "upper": vel + 1e-3, "units": {"u": "N", "y": "m/s"}}
-    mp = rp.record_metrics(rec_p, phys)
+    mp = rmet.record_metrics(rec_p, phys)
     assert "fit" not in mp and "coverage" not in mp
     assert mp["band_width"] == pytest.approx(2e-3)
     assert "loop_area_predicted" in mp and "loop_area_measured" not in mp
@@ -169,15 +171,15 @@ def test_velocity_physics_and_prediction_only(tmp_path):
     assert "vel" in html_text and "pred_only" in html_text
     # no physics: the loop panel falls back to y vs u; short record (< 512 samples) PSD over the whole record
     short = _sine_record("short", n=200)
-    p = rp.record_figure(short, None, tmp_path / "short.png")
+    p = rf.record_figure(short, None, tmp_path / "short.png")
     assert p.exists()
 
 
 def test_lag_surface_figure(tmp_path):
-    p = rp.lag_surface_figure(_surface(), (8, 6), (20, 17, 92.4), tmp_path / "sub" / "lag.png")
+    p = rf.lag_surface_figure(_surface(), (8, 6), (20, 17, 92.4), tmp_path / "sub" / "lag.png")
     assert p.exists() and p.stat().st_size > 1000
     rows = [{"ny": 4, "nu": 4, "fit": float("nan")}, {"ny": 4, "nu": 6, "fit": 50.0}]
-    p2 = rp.lag_surface_figure(rows, {"ny": 4, "nu": 6}, {"ny": 4, "nu": 4, "fit": 60.0}, tmp_path / "lag2.png")
+    p2 = rf.lag_surface_figure(rows, {"ny": 4, "nu": 6}, {"ny": 4, "nu": 4, "fit": 60.0}, tmp_path / "lag2.png")
     assert p2.exists()
     # training.lags output layout ("cells", chosen as a dict, NaN fits with an error message)
     rows.append({"ny": 6, "nu": 4, "fit": float("nan"), "error": "singular"})
@@ -191,7 +193,7 @@ def test_lag_surface_figure(tmp_path):
 
 
 def test_json_sanitiser():
-    out = rp._jsonable({"a": np.float64("nan"), "b": np.arange(3), "c": np.zeros(1000), "d": (1, np.int64(2)),
+    out = rmet.to_report_json({"a": np.float64("nan"), "b": np.arange(3), "c": np.zeros(1000), "d": (1, np.int64(2)),
                         "e": math.inf})
     assert out == {"a": None, "b": [0, 1, 2], "c": {"omitted_array_shape": [1000]}, "d": [1, 2], "e": None}
     json.dumps(out, allow_nan=False)
@@ -205,7 +207,7 @@ def test_coverage_two_ways_predictive_vs_measured_and_latent_vs_noise_free(tmp_p
     clean = rec["y_clean"]
     rec["latent_lower"], rec["latent_upper"] = rec["mean"] - 1e-5, rec["mean"] + 1e-5
     rec["latent_lower"][::4] = clean[::4] + 1e-9  # a quarter of the noise-free samples below the latent band
-    m = rp.record_metrics(rec, None)
+    m = rmet.record_metrics(rec, None)
     inside = (rec["y"] >= rec["lower"]) & (rec["y"] <= rec["upper"])
     assert m["coverage"] == pytest.approx(100 * inside.mean()) and m["coverage"] < 100
     assert m["coverage_latent"] == pytest.approx(75.0)
@@ -222,4 +224,4 @@ def test_coverage_two_ways_predictive_vs_measured_and_latent_vs_noise_free(tmp_p
                                        (["healthy"], "calibration"), (["validate"], "held-out"),
                                        (["verify"], "held-out"), (["damaged"], "held-out"), (None, None)])
 def test_record_use_from_config_roles(roles, use):
-    assert rp.record_use(roles) == use
+    assert rmet.record_use(roles) == use

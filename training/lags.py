@@ -168,7 +168,7 @@ def write_surface(surface: dict, out) -> list[Path]:
     try:
         # the report module imports matplotlib and selects its Agg backend: imported only here, when a
         # figure is drawn, not in every lag-surface worker process that imports this module
-        from gpnarx.training.report import lag_surface_figure
+        from gpnarx.training.report_figures import lag_surface_figure
 
         png = out.with_suffix(".png")
         lag_surface_figure(surface["cells"], (surface["chosen"]["ny"], surface["chosen"]["nu"]),

@@ -9,7 +9,7 @@ Bouc-Wen 10 N investigation, the stand-in's calibration and scatter) live on the
 """
 from __future__ import annotations
 
-from gpnarx.training.report import USES
+from gpnarx.training.report_metrics import USES
 
 # the order records are listed in: what trained the model, what chose the lags, then held-out records
 USE_ORDER = ("training", "lag-selection", "calibration", "held-out")

@@ -1,0 +1,244 @@
+"""Paper-style figures of a validation report (Teloli et al., MSSP 2021, Figs. 2-10 and 15-20): the time
+response with the model mean and band, a zoom, the PSDs and the hysteresis loop of one record; and the lag
+surface heat map (Figs. 1 / 14)."""
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from gpnarx.model import metrics as _metrics  # noqa: E402
+from gpnarx.model import psd as _psd  # noqa: E402
+from gpnarx.model.restoring import loop_units  # noqa: E402
+from gpnarx.training.report_metrics import (  # noqa: E402
+    N_HARMONICS,
+    finite_or_none,
+    loop_of,
+    psd_options,
+    unpack_record,
+)
+
+ZOOM_SECONDS = 0.25
+PSD_RANGE_DB = 120.0  # dynamic range shown in the PSD panel
+_C_MEAS = "0.15"
+_C_CLEAN = "tab:green"
+_C_MEAN = "tab:red"
+_C_BAND = "tab:blue"
+
+
+def _lab(name: str, unit: str) -> str:
+    return f"{name} [{unit}]" if unit else name
+
+
+def _db(p):
+    return 10.0 * np.log10(np.maximum(np.asarray(p, float), 1e-300))
+
+
+def _zoom_window(rec: dict, d: dict) -> tuple[float, float]:
+    t = d["t"]
+    if rec.get("zoom") is not None:
+        t0, t1 = (float(v) for v in rec["zoom"])
+        if t1 <= t0:
+            raise ValueError(f"record {rec.get('name')!r}: zoom must be (t0, t1) with t1 > t0")
+        return t0, t1
+    ref = d["y"] if d["y"] is not None else d["mean"]
+    ipk = int(np.nanargmax(np.abs(ref)))
+    half = ZOOM_SECONDS / 2
+    t0, t1 = t[ipk] - half, t[ipk] + half
+    if t0 < t[0]:
+        t0, t1 = t[0], t[0] + ZOOM_SECONDS
+    if t1 > t[-1]:
+        t0, t1 = max(t[0], t[-1] - ZOOM_SECONDS), t[-1]
+    return float(t0), float(t1)
+
+
+def _time_panel(ax, d, sel, band_label, dots):
+    t = d["t"][sel]
+    if d["lower"] is not None and d["upper"] is not None:
+        ax.fill_between(t, d["lower"][sel], d["upper"][sel], color=_C_BAND, alpha=0.3, lw=0, label=band_label)
+    if d["y"] is not None:
+        if dots:
+            ax.plot(t, d["y"][sel], ".", color=_C_MEAS, ms=2.5 if t.size < 2000 else 1.0, label="measured")
+        else:
+            ax.plot(t, d["y"][sel], "-", color=_C_MEAS, lw=0.5, label="measured")
+    if d["y_clean"] is not None:
+        ax.plot(t, d["y_clean"][sel], "-", color=_C_CLEAN, lw=0.6, alpha=0.8, label="noise-free")
+    ax.plot(t, d["mean"][sel], "-", color=_C_MEAN, lw=0.8, label="model mean")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(_lab("y", d["uy"]))
+
+
+def record_figure(rec: dict, physics: dict | None, path: Path) -> Path:
+    """Four-panel PNG of one record (time, zoom, PSD, hysteresis loop); returns ``path``."""
+    d = unpack_record(rec)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fs, n = d["fs"], d["n"]
+    band_label = rec.get("band_label", "99% band")
+    fig, axs = plt.subplots(2, 2, figsize=(11, 7.5))
+    (a, b), (c, e) = axs
+    title = f"{rec.get('name', '')}" + (f" ({rec['role']})" if rec.get("role") else "")
+    m = rec.get("metrics") or {}
+    fit = m.get("fit")
+    if fit is None and d["y"] is not None:
+        fit = _metrics.fit_percent(d["y"], d["mean"])
+    if finite_or_none(fit) is not None:
+        title += f" - fit {float(fit):.1f} %"
+    fig.suptitle(title)
+
+    # (a) full record
+    _time_panel(a, d, slice(None), band_label, dots=n <= 20000)
+    a.set_title("(a) time response")
+    a.legend(loc="upper right", fontsize=7)
+
+    # (b) zoom
+    t0, t1 = _zoom_window(rec, d)
+    sel = (d["t"] >= t0) & (d["t"] <= t1)
+    if sel.sum() < 2:
+        sel = slice(None)
+    _time_panel(b, d, sel, band_label, dots=True)
+    b.set_title(f"(b) zoom {t0:.3g}-{t1:.3g} s")
+
+    # (c) PSD
+    nperseg, window = psd_options(rec, n)
+    if n >= 8:
+        if d["y"] is not None:
+            f, p = _psd.psd(d["y"], fs, nperseg=nperseg, window=window)
+            c.plot(f, _db(p), "-", color=_C_MEAS, lw=0.9, label="measured")
+        if d["y_clean"] is not None:
+            f, p = _psd.psd(d["y_clean"], fs, nperseg=nperseg, window=window)
+            c.plot(f, _db(p), "-", color=_C_CLEAN, lw=0.7, alpha=0.8, label="noise-free")
+        f, p = _psd.psd(d["mean"], fs, nperseg=nperseg, window=window)
+        c.plot(f, _db(p), "--", color=_C_MEAN, lw=0.9, label="model mean")
+        if rec.get("freq_range"):
+            c.set_xlim(*rec["freq_range"])
+        levels = np.concatenate([np.asarray(ln.get_ydata(), float) for ln in c.lines
+                                 if ln.get_label() in ("measured", "noise-free", "model mean")])
+        levels = levels[np.isfinite(levels)]
+        if levels.size:  # a noise-free mean can reach -300 dB: keep a 120 dB dynamic range
+            top = float(levels.max())
+            c.set_ylim(max(float(levels.min()), top - PSD_RANGE_DB) - 5.0, top + 5.0)
+        if rec.get("drive_freq"):
+            for k in range(1, N_HARMONICS + 1):
+                if k * float(rec["drive_freq"]) < fs / 2:
+                    c.axvline(k * float(rec["drive_freq"]), color="0.6", lw=0.5, ls=":")
+        c.legend(loc="upper right", fontsize=7)
+    seg = "whole record" if nperseg is None else f"{nperseg}-sample segments"
+    c.set_title(f"(c) PSD ({window}, {seg})")
+    c.set_xlabel("frequency [Hz]")
+    c.set_ylabel(f"PSD [dB re {d['uy'] or 'unit'}$^2$/Hz]")
+
+    # (d) hysteresis loop: against the noise-free response when it is known (the paper's Figs. 2-10
+    # compare with the numerically integrated loop; R = g u - m y'' from a noisy y is mostly noise)
+    if physics and physics.get("mass") and d["u"] is not None:
+        if d["y_clean"] is not None:
+            x, r = loop_of(d["u"], d["y_clean"], fs, physics)
+            e.plot(x, r, "-", color=_C_CLEAN, lw=0.6, label="noise-free")
+        elif d["y"] is not None:
+            x, r = loop_of(d["u"], d["y"], fs, physics)
+            e.plot(x, r, ".", color=_C_MEAS, ms=1.0, label="measured")
+        x, r = loop_of(d["u"], d["mean"], fs, physics)
+        e.plot(x, r, "-", color=_C_MEAN, lw=0.5, label="model mean")
+        lu = loop_units({"y": d["uy"]}, physics)  # R = g u - m x'' is a force [N] whatever u's unit (V)
+        e.set_xlabel(_lab("displacement", lu["x"]))
+        e.set_ylabel(_lab("restoring force", lu["force"]))
+        e.set_title("(d) restoring force x displacement")
+    elif d["u"] is not None:
+        if d["y"] is not None:
+            e.plot(d["y"], d["u"], ".", color=_C_MEAS, ms=1.0, label="measured")
+        e.plot(d["mean"], d["u"], "-", color=_C_MEAN, lw=0.5, label="model mean")
+        e.set_xlabel(_lab("y", d["uy"]))
+        e.set_ylabel(_lab("u", d["uu"]))
+        e.set_title("(d) input x output")
+    else:
+        e.text(0.5, 0.5, "no input signal", ha="center", va="center", transform=e.transAxes)
+        e.set_title("(d) loop")
+    if e.lines:
+        e.legend(loc="upper left", fontsize=7)
+
+    for ax in (a, b, c, e):
+        ax.grid(True, lw=0.3, alpha=0.5)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _edges(v: np.ndarray) -> np.ndarray:
+    if v.size == 1:
+        return np.array([v[0] - 0.5, v[0] + 0.5])
+    mid = (v[1:] + v[:-1]) / 2
+    return np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
+
+
+def lag_surface_figure(surface: list[dict], chosen: tuple | None, paper: tuple | None, path: Path) -> Path:
+    """Heat map of fit % over ny x nu (paper Figs. 1 / 14) with the chosen (and paper's) lags marked.
+
+    ``surface``: list of {"ny", "nu", "fit"}; ``chosen``: (ny, nu) or {"ny", "nu"}; ``paper``: (ny, nu, fit),
+    {"ny", "nu", "fit"} or None.
+    Colour range: max(min fit, best - 30) .. best.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(paper, dict):
+        paper = (paper.get("ny"), paper.get("nu"), paper.get("fit"))
+    if isinstance(chosen, dict):
+        chosen = (chosen["ny"], chosen["nu"])
+    if not surface:
+        raise ValueError("lag surface is empty")
+    ny = np.array(sorted({int(r["ny"]) for r in surface}), float)
+    nu = np.array(sorted({int(r["nu"]) for r in surface}), float)
+    Z = np.full((ny.size, nu.size), np.nan)
+    iy = {v: i for i, v in enumerate(ny)}
+    iu = {v: i for i, v in enumerate(nu)}
+    for r in surface:
+        f = finite_or_none(r.get("fit"))
+        if f is not None:
+            Z[iy[float(int(r["ny"]))], iu[float(int(r["nu"]))]] = f
+    fig, ax = plt.subplots(figsize=(7, 5.5))
+    if np.isfinite(Z).any():
+        best, worst = float(np.nanmax(Z)), float(np.nanmin(Z))
+        vmin = max(worst, best - 30.0)
+        vmax = best if best > vmin else vmin + 1.0
+    else:
+        vmin, vmax = 0.0, 100.0
+    mesh = ax.pcolormesh(_edges(nu), _edges(ny), np.ma.masked_invalid(Z), cmap="viridis", vmin=vmin, vmax=vmax,
+                         shading="flat")
+    fig.colorbar(mesh, ax=ax, label="fit [%]")
+    if Z.size <= 144:
+        for i in range(ny.size):
+            for j in range(nu.size):
+                if np.isfinite(Z[i, j]):
+                    ax.text(nu[j], ny[i], f"{Z[i, j]:.1f}", ha="center", va="center", fontsize=6,
+                            color="w" if Z[i, j] < (vmin + vmax) / 2 else "k")
+    if chosen is not None:
+        cy, cu = chosen[0], chosen[1]
+        cf = next((r.get("fit") for r in surface if int(r["ny"]) == int(cy) and int(r["nu"]) == int(cu)), None)
+        lab = f"chosen ny={cy}, nu={cu}" + (f" ({float(cf):.1f} %)" if finite_or_none(cf) is not None else "")
+        ax.plot([cu], [cy], "o", ms=11, mfc="none", mec="red", mew=2, label=lab)
+    if paper is not None and paper[0] is not None and paper[1] is not None:
+        py, pu = paper[0], paper[1]
+        pf = paper[2] if len(paper) > 2 else None
+        lab = f"paper ny={py}, nu={pu}" + (f" ({float(pf):.1f} %)" if finite_or_none(pf) is not None else "")
+        ax.plot([pu], [py], "X", ms=10, mfc="white", mec="k", label=lab)
+    ax.set_xlabel("nu (input lags)")
+    ax.set_ylabel("ny (output lags)")
+    ax.set_title("Lag selection surface ny x nu x fit")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="lower right", fontsize=8, framealpha=0.85)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# report
+
+
+FIGURE_LOCK = threading.Lock()  # pyplot's state is per process: one figure at a time per worker process
