@@ -11,7 +11,7 @@ falls below the noise there while the paths are still spread, the hardest case f
 Product: ``model.freerun.simulate_mc`` (default ``local=True``): each step a second-order model of
 eq. 8-9 around the paths' mean regressor in the 16 output-lag coordinates, checked against eq. 8-9
 at 12 paths (the farthest and random ones), with exact evaluation of the farthest 1/16 or 1/4 or of
-all paths when the check fails. Baseline, equal work (``ratio=``): ``_simulate_mc_reference``, the code
+all paths when the check fails. Baseline, equal work (``ratio=``): ``freerun_reference.simulate_mc_reference``, the code
 path before this change (eq. 8-9 at every path, every step: one (P x M) kernel block and one
 (P x M x M) product), same posterior, paths, seed, segments, BLAS threads, in this process.
 Repetitions interleave product and baseline; ratio = median over repetitions of (baseline seconds /
@@ -36,7 +36,8 @@ from pathlib import Path
 import numpy as np
 
 import _common as C
-from gpnarx.model.freerun import _simulate_mc_reference, simulate_mc
+from gpnarx.model.freerun import simulate_mc
+from gpnarx.model.freerun_reference import simulate_mc_reference
 
 
 def quick_model():
@@ -91,7 +92,7 @@ def main():
 
     for seg in segs:  # warm-up
         run(simulate_mc, (seg[0], seg[1][:40], None, seg[3]))
-        run(_simulate_mc_reference, (seg[0], seg[1][:40], None, seg[3]))
+        run(simulate_mc_reference, (seg[0], seg[1][:40], None, seg[3]))
     load0 = C.load()
     t_new = [[0.0] * len(segs) for _ in range(reps)]
     t_ref = [[0.0] * len(segs) for _ in range(reps)]
@@ -100,7 +101,7 @@ def main():
     for r in range(reps):
         for j, seg in enumerate(segs):
             a = run(simulate_mc, seg)
-            b = run(_simulate_mc_reference, seg)
+            b = run(simulate_mc_reference, seg)
             t_new[r][j], t_ref[r][j] = a.seconds, b.seconds
             last_new[j], last_ref[j] = a, b
             local[j] = a.local_steps
@@ -125,7 +126,7 @@ def main():
     rows = []
     for j, seg in enumerate(segs):
         a, b = last_new[j], last_ref[j]
-        b1 = run(_simulate_mc_reference, seg, seed=1)
+        b1 = run(simulate_mc_reference, seg, seed=1)
         k0 = 0 if seg[3] is None else model.ny
         sl = slice(k0 + 1, None)
         se = np.median(np.concatenate([np.abs(b.lower[sl] - b1.lower[sl]), np.abs(b.upper[sl] - b1.upper[sl])])) \

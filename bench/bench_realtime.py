@@ -10,14 +10,14 @@ sine, the held-out record nearest the first resonance). Real-time factor = recor
 (``[predict] method``); the CLI's own default is Monte Carlo (see the notes printed below).
 
 Baseline, equal work (``ratio=``): the same command in a process that first replaces
-``model.freerun.simulate_linear`` with ``_simulate_linear_reference`` (the code path before this
+``model.freerun.simulate_linear`` with ``freerun_reference.simulate_linear_reference`` (the code path before this
 change: one ``posterior.mean_grad`` call per step), then runs the same CLI entry point with the same
 arguments: same bundle, record, tuning and output. Product and baseline processes alternate
 (A, B, A, B, ...); ratio = median over repetitions of baseline wall / product wall.
 
 Accuracy (in this process, same bundle): on 4 s windows of the record (from rest at 0 s, and from
 the measured outputs at 20 s) the linearised band against the 1024-path Monte Carlo band
-(``_simulate_mc_reference``: eq. 8-9 exactly at every path, seed 0; seed 1 shows its own Monte Carlo
+(``freerun_reference.simulate_mc_reference``: eq. 8-9 exactly at every path, seed 0; seed 1 shows its own Monte Carlo
 spread): coverage of the measured output by each band (points), and the mean width ratio linear /
 MC. Also a faster Monte Carlo as a candidate default: 128 paths on the same
 windows (coverage, width) and its real-time factor extrapolated from the window's simulate time
@@ -44,7 +44,8 @@ import numpy as np
 import _common as C
 
 BASELINE_CODE = (
-    "import sys; import gpnarx.model.freerun as F; F.simulate_linear = F._simulate_linear_reference; "
+    "import sys; import gpnarx.model.freerun as F; import gpnarx.model.freerun_reference as R; "
+    "F.simulate_linear = R.simulate_linear_reference; "
     "from gpnarx.cli.main import main; sys.argv = ['gpnarx'] + sys.argv[1:]; sys.exit(main())"
 )
 
@@ -115,7 +116,7 @@ def accuracy(registry: Path, name: str, record: Path, quick: bool) -> dict:
     model = bundle.model
     rec = read_record(str(record), fs_default=bundle.fs)
     from gpnarx.model.discrepancy import widen
-    from gpnarx.model.freerun import _simulate_mc_reference
+    from gpnarx.model.freerun_reference import simulate_mc_reference
 
     args = (model.posterior_, model.x_scaler_, model.y_scaler_, model.ny, model.nu)
     disc = getattr(model, "band_discrepancy_", None)
@@ -127,8 +128,8 @@ def accuracy(registry: Path, name: str, record: Path, quick: bool) -> dict:
     for s0 in starts:
         u, y = rec.u[s0: s0 + win], rec.y[s0: s0 + win]
         y0 = None if s0 == 0 else y[: model.ny]
-        ref = _simulate_mc_reference(*args, u, n_paths=P_ref, seed=0, y0=y0, include_noise=model.include_noise)
-        ref1 = _simulate_mc_reference(*args, u, n_paths=P_ref, seed=1, y0=y0, include_noise=model.include_noise)
+        ref = simulate_mc_reference(*args, u, n_paths=P_ref, seed=0, y0=y0, include_noise=model.include_noise)
+        ref1 = simulate_mc_reference(*args, u, n_paths=P_ref, seed=1, y0=y0, include_noise=model.include_noise)
         if disc:  # model.simulate widens the product's bands by the calibrated discrepancy term: the same here
             ref, ref1 = (widen(r, float(disc["scale"]), int(disc["window"])) for r in (ref, ref1))
         lin = model.simulate(u, y0=y0, method="linear")

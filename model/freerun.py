@@ -6,12 +6,12 @@ lagged regressor. Two propagation methods:
 * ``simulate_mc``: Monte Carlo. n paths advance together; at each step every path gets its mean
   (eq. 8) and latent variance (eq. 9), samples y ~ N(mu, sigma^2) and feeds it back. Seeded. By
   default eq. 8-9 come from a second-order local model around the paths' mean regressor, checked
-  each step against eq. 8-9 at the farthest paths (exact fallback); ``_simulate_mc_reference``
+  each step against eq. 8-9 at the farthest paths (exact fallback); ``freerun_reference.simulate_mc_reference``
   evaluates them at every path (one kernel block K(x_paths, X) and one BLAS-3 variance product).
 * ``simulate_linear``: first-order (Taylor) propagation of mean and covariance of the lagged
   outputs through the GP mean's Jacobian: var(y_i) = sigma_f^2(x_i) + sigma_y^2 + J S J^T (mean
   recursion, then eq. 9 and J batched over the record, then the covariance recursion;
-  ``_simulate_linear_reference`` is the one-call-per-step loop).
+  ``freerun_reference.simulate_linear_reference`` is the one-call-per-step loop).
 
 Both return a ``FreeRun`` with mean, std and the two-sided band at ``confidence`` (99% default:
 the 0.5% and 99.5% quantiles over Monte Carlo paths; mean -/+ 2.576 std for the linearised method).
@@ -26,73 +26,13 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import ndtri
 
+from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, check_confidence, lagged_inputs, start_index
+from .freerun_reference import simulate_linear_reference
 from .kernels import SQRT3
-
-LAG_CLIP = 1e3  # standardised lagged outputs are clipped to +/- this (diverging paths stay finite)
-VAR_CAP = LAG_CLIP**2  # linearised variance cap (standardised units)
-
-
-@dataclass
-class FreeRun:
-    mean: np.ndarray
-    std: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-    confidence: float
-    n_paths: int
-    method: str
-    seconds: float = 0.0
-    path_steps: int = 0
-    paths: np.ndarray | None = field(default=None, repr=False)
-    diverged_paths: int = 0  # Monte Carlo paths whose |y| passed ``diverge_limit`` (see model.envelope)
-    cov_band: np.ndarray | None = field(default=None, repr=False)  # linearised cov(y_i, y_{i-k}), (n, L)
-    local_steps: int = 0  # Monte Carlo steps evaluated by the checked local model (``simulate_mc``)
-    # the latent band: the same confidence for the noise-free output f (no sigma_y^2 term at the step
-    # reported; fed-back outputs keep their noise), to score against a noise-free output y_clean
-    latent_lower: np.ndarray | None = field(default=None, repr=False)
-    latent_upper: np.ndarray | None = field(default=None, repr=False)
-
-    @property
-    def band_width(self) -> np.ndarray:
-        return self.upper - self.lower
-
-
-def _check_confidence(confidence: float) -> float:
-    c = float(confidence)
-    if not 0.5 <= c < 1.0:
-        raise ValueError(f"confidence must be in [0.5, 1), got {confidence}")
-    return c
-
-
-def _lagged_inputs(u: np.ndarray, nu: int) -> np.ndarray:
-    """(n, nu) matrix of [u_i, u_{i-1}, ..., u_{i-nu+1}], zeros before the record (system at rest)."""
-    n = u.size
-    upad = np.concatenate([np.zeros(nu - 1), u])
-    cols = [upad[nu - 1 - j : nu - 1 - j + n] for j in range(nu)]
-    return np.stack(cols, axis=1)
-
-
-def _start(n: int, ny: int, y0) -> tuple[int, np.ndarray]:
-    """Index where free-run starts and the known initial outputs (empty when starting from rest)."""
-    if y0 is None:
-        return 0, np.zeros(0)
-    y0 = np.asarray(y0, dtype=float).ravel()
-    if y0.size == 0:
-        return 0, y0
-    if y0.size < ny:
-        raise ValueError(f"y0 must hold at least ny={ny} initial outputs, got {y0.size}")
-    if not np.all(np.isfinite(y0)):
-        raise ValueError("y0 holds non-finite values")
-    y0 = y0[:ny]
-    if n <= ny:
-        raise ValueError(f"u must be longer than ny={ny} samples when y0 is given, got {n}")
-    return ny, y0
-
 
 # Tolerances of the local model's check (``simulate_mc``), at the checked paths (the farthest from the
 # mean regressor: the model's error grows as |d|^3, so these bound it for all paths). The 0.5 % and
@@ -149,16 +89,16 @@ def simulate_mc(
     clipped lag, runs with fewer than ``LOCAL_MIN_PATHS`` paths and kernels without ``local_terms``
     are exact. ``FreeRun.local_steps`` counts the steps served (wholly or partly) by the local model.
     The random draws are the same as the exact evaluation's (same seed, same paths up to the model's
-    error). ``local=False``: every step exact (``_simulate_mc_reference``'s arithmetic).
+    error). ``local=False``: every step exact (``freerun_reference.simulate_mc_reference``'s arithmetic).
     ``latent``: also the latent band (``FreeRun.latent_lower``/``latent_upper``; see module docstring).
     """
     t_start = time.perf_counter()
-    confidence = _check_confidence(confidence)
+    confidence = check_confidence(confidence)
     if int(n_paths) < 1:
         raise ValueError(f"n_paths must be at least 1, got {n_paths}")
     P = int(n_paths)
     n = u.size
-    i0, y0v = _start(n, ny, y0)
+    i0, y0v = start_index(n, ny, y0)
     rng = np.random.default_rng(seed)
     q_lo, q_hi = (1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0
     mean = np.zeros(n)
@@ -173,7 +113,7 @@ def simulate_mc(
 
     xm, xs = x_scaler.mean_, x_scaler.scale_
     ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (_lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]  # standardised input part, shared by paths
+    Ulag = (lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]  # standardised input part, shared by paths
     ylag_raw = np.zeros((P, ny))
     if i0:
         ylag_raw[:] = y0v[::-1][None, :]  # [y_{i0-1}, ..., y_{i0-ny}]
@@ -341,7 +281,7 @@ def simulate_linear(
     cov(y_i, y_{i-k}) for k < L, shape (n, L): what a linear functional of a window of outputs
     (e.g. a cycle's energy, ``model.cycles``) needs for its variance.
 
-    Three passes, the same numbers as one ``mean_grad`` call per step (``_simulate_linear_reference``):
+    Three passes, the same numbers as one ``mean_grad`` call per step (``freerun_reference.simulate_linear_reference``):
     1. the mean recursion alone (eq. 8 at the mean regressor): it does not depend on the variances,
        and one step is a few numpy calls on (M,) vectors (``_MeanRecursion``);
     2. sigma_f^2 (eq. 9) and J at every mean regressor of the record in row blocks (BLAS-3, the
@@ -351,17 +291,17 @@ def simulate_linear(
     """
     fast = _MeanRecursion.build(posterior, x_scaler, ny, nu)
     if fast is None or not hasattr(posterior, "mean_var_grad"):
-        return _simulate_linear_reference(posterior, x_scaler, y_scaler, ny, nu, u, y0=y0, confidence=confidence,
+        return simulate_linear_reference(posterior, x_scaler, y_scaler, ny, nu, u, y0=y0, confidence=confidence,
                                           include_noise=include_noise, progress=progress, cov_window=cov_window)
     t_start = time.perf_counter()
-    confidence = _check_confidence(confidence)
+    confidence = check_confidence(confidence)
     z = float(ndtri(1.0 - (1.0 - confidence) / 2.0))
     u = np.asarray(u, dtype=float)
     n = u.size
-    i0, y0v = _start(n, ny, y0)
+    i0, y0v = start_index(n, ny, y0)
     xm, xs = x_scaler.mean_, x_scaler.scale_
     ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (_lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
+    Ulag = (lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
     # pass 1: hist[t + ny] = mean output at time t (output units); hist[:ny] = 0 (at rest)
     hist = np.zeros(n + ny)
     if i0:
@@ -597,197 +537,3 @@ class _MeanRecursion:
                     clip_until = i + ny
                 if progress is not None and (i % 4096 == 0):
                     progress(i + 1, n)
-
-
-def _simulate_linear_reference(
-    posterior,
-    x_scaler,
-    y_scaler,
-    ny: int,
-    nu: int,
-    u: np.ndarray,
-    y0=None,
-    confidence: float = 0.99,
-    include_noise: bool = True,
-    progress=None,
-    cov_window: int = 0,
-) -> FreeRun:
-    """Reference implementation of ``simulate_linear`` (one ``posterior.mean_grad`` call per step),
-    kept for posteriors without ``mean_var_grad``, for the equivalence tests and for
-    bench/bench_realtime.py. Same arguments and result.
-
-    First-order (linearised) propagation of mean and covariance through the lagged outputs.
-
-    State: mean m and covariance S (ny x ny) of [y_{i-1}, ..., y_{i-ny}] (output units). With
-    J = d mu / d y_lags at the mean regressor (chain rule through the standardisation):
-    var(y_i) = sigma_f^2 + sigma_y^2 + J S J^T, cov(y_i, y_{i-k}) = (S J^T)_k; the state shifts.
-
-    cov_window: when L = cov_window > ny, the covariance state covers the last L outputs (J is
-    zero beyond the ny lags, so mean and std are unchanged) and ``FreeRun.cov_band`` holds
-    cov(y_i, y_{i-k}) for k < L, shape (n, L): what a linear functional of a window of outputs
-    (e.g. a cycle's energy, ``model.cycles``) needs for its variance.
-    """
-    t_start = time.perf_counter()
-    confidence = _check_confidence(confidence)
-    z = float(ndtri(1.0 - (1.0 - confidence) / 2.0))
-    n = u.size
-    i0, y0v = _start(n, ny, y0)
-    mean = np.zeros(n)
-    std = np.zeros(n)
-    lstd = np.zeros(n)  # latent std: var(y_i) without the reporting step's sigma_y^2
-    if i0:
-        mean[:i0] = y0v
-    xm, xs = x_scaler.mean_, x_scaler.scale_
-    ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (_lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
-    m = np.zeros(ny)
-    if i0:
-        m[:] = y0v[::-1]
-    L = max(ny, int(cov_window or 0))
-    S = np.zeros((L, L))
-    band = np.zeros((n, L)) if L > ny else None
-    noise = posterior.noise_var if include_noise else 0.0
-    x = np.empty(ny + nu)
-    dscale = ys / xs[:ny]  # d y_out / d x_std for the lag columns
-    cap = VAR_CAP * ys * ys  # variance cap in output units
-    for i in range(i0, n):
-        x[:ny] = np.clip((m - xm[:ny]) / xs[:ny], -LAG_CLIP, LAG_CLIP)  # a diverging mean stays finite
-        x[ny:] = Ulag[i]
-        mu, var_f, grad = posterior.mean_grad(x)
-        J = grad[:ny] / xs[:ny] * ys  # d mu_out / d y_lag (output units)
-        SJ = S[:, :ny] @ J
-        if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
-            SJ = np.nan_to_num(SJ, nan=cap, posinf=cap, neginf=-cap)
-        np.clip(SJ, -cap, cap, out=SJ)
-        var_y = (var_f + noise) * ys * ys + float(J @ SJ[:ny])
-        var_y = min(var_y, cap) if np.isfinite(var_y) else cap
-        y_mean = mu * ys + ym
-        mean[i] = y_mean
-        std[i] = np.sqrt(max(var_y, 0.0))
-        var_f_out = var_f * ys * ys + float(J @ SJ[:ny])
-        lstd[i] = np.sqrt(max(min(var_f_out, var_y), 0.0)) if np.isfinite(var_f_out) else std[i]
-        # shift the state: new first element is y_i
-        S[1:, 1:] = S[:-1, :-1]
-        S[0, 1:] = SJ[:-1]
-        S[1:, 0] = SJ[:-1]
-        S[0, 0] = var_y
-        if band is not None:
-            band[i, 0] = var_y
-            band[i, 1:] = SJ[:-1]
-        m[1:] = m[:-1]
-        m[0] = y_mean
-        if progress is not None and (i % 256 == 0 or i == n - 1):
-            progress(i + 1, n)
-    del dscale
-    return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
-                   time.perf_counter() - t_start, n - i0, cov_band=band,
-                   latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)
-
-
-def _simulate_mc_reference(
-    posterior,
-    x_scaler,
-    y_scaler,
-    ny: int,
-    nu: int,
-    u: np.ndarray,
-    n_paths: int = 1024,
-    seed: int | None = 0,
-    y0=None,
-    confidence: float = 0.99,
-    include_noise: bool = True,
-    float32: bool = False,
-    keep_paths: bool = False,
-    progress=None,
-    diverge_limit: float | None = None,
-    latent: bool = True,
-) -> FreeRun:
-    """Reference implementation of ``simulate_mc``: every step evaluates eq. 8 and eq. 9 at every
-    path (``posterior.predict``). Kept for the equivalence tests and bench/bench_mc_speed.py.
-
-    Monte Carlo free-run over ``n_paths`` paths advanced together (see module docstring).
-
-    u: input record (input units, e.g. N or V). y0: optional first ny measured outputs (output
-    units) taken as known; otherwise the system starts from rest. ``progress``: optional callable
-    ``progress(done_steps, total_steps)``. ``diverge_limit``: peak |y| [output units] beyond which a
-    path counts in ``FreeRun.diverged_paths`` (``model.envelope.divergence_limit``); None: not counted.
-    ``latent``: also the latent band (``FreeRun.latent_lower``/``latent_upper``; see module docstring).
-    """
-    t_start = time.perf_counter()
-    confidence = _check_confidence(confidence)
-    if int(n_paths) < 1:
-        raise ValueError(f"n_paths must be at least 1, got {n_paths}")
-    P = int(n_paths)
-    n = u.size
-    i0, y0v = _start(n, ny, y0)
-    rng = np.random.default_rng(seed)
-    q_lo, q_hi = (1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0
-    mean = np.zeros(n)
-    std = np.zeros(n)
-    lower = np.zeros(n)
-    upper = np.zeros(n)
-    if i0:
-        mean[:i0] = lower[:i0] = upper[:i0] = y0v
-    paths = np.zeros((n, P)) if keep_paths else None
-    if keep_paths and i0:
-        paths[:i0] = y0v[:, None]
-
-    xm, xs = x_scaler.mean_, x_scaler.scale_
-    ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (_lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]  # standardised input part, shared by paths
-    # lagged outputs of every path, standardised per column; at rest = 0 in output units
-    ylag_raw = np.zeros((P, ny))
-    if i0:
-        ylag_raw[:] = y0v[::-1][None, :]  # [y_{i0-1}, ..., y_{i0-ny}]
-    Xs = np.empty((P, ny + nu))
-    noise = posterior.noise_var if include_noise else 0.0
-    # samples of a block of steps; band statistics are computed per block (one vectorised
-    # quantile call per block instead of one per step)
-    block = max(1, min(256, (1 << 22) // P))
-    buf = np.empty((block, P))
-    lat = latent and noise > 0.0  # without the noise term the latent band is the predictive band
-    lbuf = np.empty((block, P)) if lat else None
-    lat_lo = lower.copy() if lat else None
-    lat_hi = upper.copy() if lat else None
-    path_peak = np.zeros(P)  # running peak |y| of each path (output units)
-    b0 = i0
-    for i in range(i0, n):
-        np.subtract(ylag_raw, xm[:ny], out=Xs[:, :ny])
-        Xs[:, :ny] /= xs[:ny]
-        np.clip(Xs[:, :ny], -LAG_CLIP, LAG_CLIP, out=Xs[:, :ny])  # a diverging path cannot overflow
-        Xs[:, ny:] = Ulag[i]
-        mu, var = posterior.predict(Xs, float32=float32)
-        sd = np.sqrt(var + noise)
-        ysamp = buf[i - b0]
-        np.multiply(sd, rng.standard_normal(P), out=ysamp)
-        if lat:  # latent draw mu + sigma_f eps with the output draw's eps: f = mu + (y - mu) sigma_f / sd
-            fsamp = lbuf[i - b0]
-            np.multiply(ysamp, np.sqrt(var) / sd, out=fsamp)
-            fsamp += mu
-        ysamp += mu
-        ysamp *= ys
-        ysamp += ym  # back to output units
-        mean[i] = float(np.mean(mu)) * ys + ym
-        if keep_paths:
-            paths[i] = ysamp
-        ylag_raw[:, 1:] = ylag_raw[:, :-1]
-        ylag_raw[:, 0] = ysamp
-        if i - b0 + 1 == block or i == n - 1:
-            chunk = buf[: i - b0 + 1]
-            np.maximum(path_peak, np.max(np.abs(chunk), axis=0), out=path_peak)
-            std[b0 : i + 1] = np.std(chunk, axis=1)
-            lower[b0 : i + 1], upper[b0 : i + 1] = np.quantile(chunk, [q_lo, q_hi], axis=1)
-            if lat:
-                lat_lo[b0 : i + 1], lat_hi[b0 : i + 1] = np.quantile(lbuf[: i - b0 + 1], [q_lo, q_hi], axis=1)
-                lat_lo[b0 : i + 1] *= ys
-                lat_lo[b0 : i + 1] += ym
-                lat_hi[b0 : i + 1] *= ys
-                lat_hi[b0 : i + 1] += ym
-            b0 = i + 1
-        if progress is not None and (i % 256 == 0 or i == n - 1):
-            progress(i + 1, n)
-    diverged = 0 if diverge_limit is None else int(np.count_nonzero(~(path_peak <= diverge_limit)))
-    if latent and not lat:
-        lat_lo, lat_hi = lower.copy(), upper.copy()
-    return FreeRun(mean, std, lower, upper, confidence, P, "mc", time.perf_counter() - t_start,
-                   (n - i0) * P, paths, diverged, latent_lower=lat_lo, latent_upper=lat_hi)

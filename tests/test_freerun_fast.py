@@ -1,16 +1,16 @@
 """The fast free-run paths agree with their reference implementations.
 
 * ``simulate_linear`` (mean recursion, batched eq. 9 and gradients, covariance recursion) gives the
-  numbers of ``_simulate_linear_reference`` (one ``mean_grad`` per step), sparse and exact posteriors.
+  numbers of ``freerun_reference.simulate_linear_reference`` (one ``mean_grad`` per step), sparse and exact posteriors.
 * ``simulate_mc`` (checked local model per step) gives, with the same seed, the bands of
-  ``_simulate_mc_reference`` up to far less than their Monte Carlo error; ``local=False`` and a
+  ``freerun_reference.simulate_mc_reference`` up to far less than their Monte Carlo error; ``local=False`` and a
   check that always fails give the reference's numbers.
 * The kernels' batched gradient and second-order terms match finite differences.
 """
 import numpy as np
 import pytest
 
-from gpnarx.model import freerun
+from gpnarx.model import freerun, freerun_reference
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, Sum, White
 
@@ -42,7 +42,7 @@ def test_linear_matches_reference(which, kw, sparse_model, exact_model, sdof_dat
     if kw.get("y0") == "measured":
         kw["y0"] = sdof_data["y2"][:6]
     new = freerun.simulate_linear(*_args(m, u), **kw)
-    ref = freerun._simulate_linear_reference(*_args(m, u), **kw)
+    ref = freerun_reference.simulate_linear_reference(*_args(m, u), **kw)
     scale = np.abs(ref.mean).max()
     assert np.allclose(new.mean, ref.mean, rtol=0, atol=1e-9 * scale)
     assert np.allclose(new.std, ref.std, rtol=1e-7, atol=1e-12 * scale)
@@ -59,8 +59,8 @@ def test_mc_local_matches_reference_same_seed(sparse_model, sdof_data):
     m = sparse_model
     u = sdof_data["u2"][:400]
     new = freerun.simulate_mc(*_args(m, u), n_paths=256, seed=3)
-    ref = freerun._simulate_mc_reference(*_args(m, u), n_paths=256, seed=3)
-    other = freerun._simulate_mc_reference(*_args(m, u), n_paths=256, seed=4)
+    ref = freerun_reference.simulate_mc_reference(*_args(m, u), n_paths=256, seed=3)
+    other = freerun_reference.simulate_mc_reference(*_args(m, u), n_paths=256, seed=4)
     assert new.local_steps > 0.9 * u.size  # the local model served (nearly) every step
     # Monte Carlo standard error of the band edges, from the reference at two seeds
     se = np.median(np.abs(np.r_[ref.lower - other.lower, ref.upper - other.upper])) / np.sqrt(2)
@@ -78,7 +78,7 @@ def test_mc_local_matches_reference_same_seed(sparse_model, sdof_data):
 def test_mc_exact_paths_equal_reference(sparse_model, sdof_data, monkeypatch):
     m = sparse_model
     u = sdof_data["u2"][:120]
-    ref = freerun._simulate_mc_reference(*_args(m, u), n_paths=128, seed=1)
+    ref = freerun_reference.simulate_mc_reference(*_args(m, u), n_paths=128, seed=1)
     off = freerun.simulate_mc(*_args(m, u), n_paths=128, seed=1, local=False)
     assert off.local_steps == 0
     assert np.array_equal(off.mean, ref.mean) and np.array_equal(off.upper, ref.upper)
@@ -96,7 +96,7 @@ def test_mc_few_paths_and_measured_start(sparse_model, sdof_data):
     assert few.local_steps == 0  # below LOCAL_MIN_PATHS: exact
     y0 = sdof_data["y2"][:6]
     a = freerun.simulate_mc(*_args(m, u), n_paths=128, seed=0, y0=y0)
-    b = freerun._simulate_mc_reference(*_args(m, u), n_paths=128, seed=0, y0=y0)
+    b = freerun_reference.simulate_mc_reference(*_args(m, u), n_paths=128, seed=0, y0=y0)
     assert np.array_equal(a.mean[:6], b.mean[:6])
     assert np.allclose(a.upper, b.upper, rtol=0, atol=1e-3 * np.abs(b.upper).max())
 
