@@ -13,6 +13,9 @@ version served. A client pins a model with ``NAME:ALIAS`` (CLI ``--model``) or A
 (``GPNARX_REGISTRY_POLL``) or reload. ``set`` checks that VERSION is served (verified) first and
 stores the version number it resolves to. Two operators setting aliases of one model at the same
 moment: the last write wins whole (each write carries the full set it read).
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
 """
 from __future__ import annotations
 

@@ -3,6 +3,9 @@ bundles now (the missing ones, lightest first; ``--only`` or ``$GPNARX_DEFAULTS`
 
 Progress lines go to stderr (the bar only without ``--json``). ``gpnarx serve`` without
 ``--registry`` runs ``build-defaults --only NAME --json`` in a child process per missing bundle.
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
 """
 from __future__ import annotations
 

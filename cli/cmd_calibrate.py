@@ -3,6 +3,9 @@
 Writes a new version of the bundle whose novelty threshold, calibration envelope and probe contract
 come from the given healthy records; the GP is not refitted (its arrays are copied byte for byte).
 CLI only: the service never writes its registry (see ``gpnarx.training.calibrate``).
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
 """
 from __future__ import annotations
 

@@ -1,4 +1,8 @@
-"""``gpnarx lags CONFIG.toml --ny LO:HI --nu LO:HI [--jobs N] [--scheduler ADDRESS] --out FILE``."""
+"""``gpnarx lags CONFIG.toml --ny LO:HI --nu LO:HI [--jobs N] [--scheduler ADDRESS] --out FILE``.
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
+"""
 from __future__ import annotations
 
 import importlib.util

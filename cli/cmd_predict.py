@@ -1,4 +1,8 @@
-"""``gpnarx predict``, ``gpnarx loops`` and ``gpnarx novelty`` on record files."""
+"""``gpnarx predict``, ``gpnarx loops`` and ``gpnarx novelty`` on record files.
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
+"""
 from __future__ import annotations
 
 import os

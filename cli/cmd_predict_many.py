@@ -11,6 +11,9 @@ local cores with joblib; with ``--scheduler`` each record's arrays are sent to a
 with the model (sent once to every worker), so the workers need neither the record files nor the
 registry. ``--out`` is a folder, or an fsspec URL (``s3://bucket/prefix``, ``file://...``) when fsspec
 and the protocol's package are installed.
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
 """
 from __future__ import annotations
 

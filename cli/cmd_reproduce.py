@@ -1,4 +1,8 @@
-"""``gpnarx reproduce bouc-wen|bert-standin|bert-real [--quick] [--out DIR]``."""
+"""``gpnarx reproduce bouc-wen|bert-standin|bert-real [--quick] [--out DIR]``.
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
+"""
 from __future__ import annotations
 
 import sys

@@ -20,6 +20,9 @@ GPNARX_WORKERS/GPNARX_QUEUE_SIZE. SIGHUP rescans the registry (like ``POST /v1/a
 
 ``export-openapi`` writes the OpenAPI document (sorted keys, indent 2) of the app with default
 settings; ``--out -`` prints it.
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
 """
 from __future__ import annotations
 

@@ -40,6 +40,9 @@ Excitations (``--amplitude`` is the *peak* for sweep and sine, the *RMS* for mul
 
 ``--noise-fraction F`` adds Gaussian output noise of variance ``F * mean(y**2)`` (F = 0.1 is
 "10 % of the response energy"), seeded by ``--seed`` on a stream separate from the excitation's.
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
 """
 from __future__ import annotations
 

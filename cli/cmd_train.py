@@ -6,6 +6,9 @@ existing file of that name wins. ``--choose-lags`` computes the lag surface over
 ``--scheduler``: the lag surface, the verification/validation free runs and the report's figures
 run as tasks on that Dask cluster, with the config and record arrays sent to the workers; the
 bundle's metrics are those of the local run.
+
+Imports of the model and training packages sit inside the functions that use them: every command module is
+imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
 """
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ import numpy as np
 from sklearn.base import BaseEstimator
 
 from . import freerun
-from .discrepancy import widen
+from .discrepancy import calibrate_scale, widen
 from .envelope import check_envelope, divergence_limit, training_envelope
 from .gp import ExactPosterior, SparsePosterior, choose_inducing
 from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, make_kernel
@@ -236,7 +236,7 @@ class GPNARX(BaseEstimator):
             all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed)
             Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
             if self.hyper == "vfe" and theta is None:
-                from .vfe import fit_vfe
+                from .vfe import fit_vfe  # here: training-only, kept out of a predict process's start-up
 
                 res = fit_vfe(self.kernel_, Xs[all_rows], Ys[all_rows], Z, theta0=self.theta_)
                 self.theta_, self.nlml_ = res.theta, res.nlml
@@ -257,7 +257,7 @@ class GPNARX(BaseEstimator):
 
     def _calibrate_noise(self, pairs, build) -> None:
         """Raise sigma_y^2 to its held-out ML value (model.calibration) and rebuild the posterior."""
-        from .calibration import heldout_noise_var
+        from .calibration import heldout_noise_var  # here: training-only, kept out of a predict start-up
 
         X, Y, _ = stack_regressors(pairs, self.ny, self.nu)
         mu, var = self.posterior_.predict(self.x_scaler_.transform(X))
@@ -283,7 +283,6 @@ class GPNARX(BaseEstimator):
         method, n_paths: how the calibration records are predicted (the linearised method by default:
             seconds per whole record). Sets and returns ``band_discrepancy_``.
         """
-        from .discrepancy import calibrate_scale
 
         self._check_fitted()
         for name, _u, _y, start in records:

@@ -32,7 +32,8 @@ from scipy.special import ndtri
 
 from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, check_confidence, lagged_inputs, start_index
 from .freerun_reference import simulate_linear_reference
-from .kernels import SQRT3
+from .gp import local_model
+from .kernels import RBF, SQRT3, CubicPolynomial, Matern32, Sum, White
 
 # Tolerances of the local model's check (``simulate_mc``), at the checked paths (the farthest from the
 # mean regressor: the model's error grows as |d|^3, so these bound it for all paths). The 0.5 % and
@@ -204,7 +205,6 @@ def simulate_mc(
 
 def _has_local_model(posterior, D: int, ny: int) -> bool:
     """Whether ``gp.local_model`` covers this posterior (its kernel has ``local_terms``)."""
-    from .gp import local_model
 
     if getattr(posterior, "kind", None) not in ("sparse", "exact") or not hasattr(posterior, "mean_weights"):
         return False
@@ -222,7 +222,6 @@ def _local_step(posterior, Xs, ny, noise, n_check, rng, mu, var, tmp, n_exact: i
     n_exact: the n_exact paths farthest from the mean regressor are evaluated exactly (eq. 8-9) and
     the model serves the others, checked at the farthest of those and at random ones.
     """
-    from .gp import local_model
 
     P = Xs.shape[0]
     xbar = Xs.mean(axis=0)
@@ -427,7 +426,6 @@ class _MeanRecursion:
     @classmethod
     def build(cls, posterior, x_scaler, ny, nu):
         """A recursion for ``posterior``, or None when its kernel or type is not covered."""
-        from .kernels import RBF, CubicPolynomial, Matern32, Sum, White
 
         kernel = getattr(posterior, "kernel", None)
         Z = getattr(posterior, "X", None)

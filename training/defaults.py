@@ -26,6 +26,7 @@ from gpnarx.configs import CONFIG_DIR, shipped_config, shipped_config_names
 from gpnarx.model.registry import Registry
 from gpnarx.training.config import bert_data_dir
 from gpnarx.training.pipeline import train
+from gpnarx.training.real_monitor import build_real_monitor
 
 __all__ = ["CONFIG_DIR", "DEFAULT_BUNDLES", "DEFAULT_MC", "LIGHT_METHOD", "build_default", "default_names",
            "default_registry_dir", "ensure_default_registry", "plan_defaults", "shipped_config",
@@ -93,7 +94,6 @@ def build_default(name: str, root, progress: bool = False, log=None, mc_paths: i
     if name not in DEFAULT_BUNDLES:
         raise ValueError(f"{name!r} is not a default bundle; choose among {', '.join(DEFAULT_BUNDLES)}")
     if name in DERIVED:
-        from gpnarx.training.real_monitor import build_real_monitor
 
         return build_real_monitor(Path(root), bert_data_dir(), mc_paths=mc_paths, log=log)
     return train(shipped_config(name), Path(root), progress=progress, mc_paths=mc_paths, log=log,

@@ -15,6 +15,8 @@ from __future__ import annotations
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 
+from gpnarx.model.runtime import blas_threads_from_env, mmap_threshold_from_env, tune_malloc
+
 __all__ = ["DASK_HINT", "TaskRunner", "check_dask"]
 
 DASK_HINT = "a Dask scheduler needs dask.distributed: pip install 'gpnarx[dask]'"
@@ -201,7 +203,6 @@ def on_worker(fn: Callable, *args):
     so a worker computes what a local run computes, as fast."""
     from threadpoolctl import threadpool_limits
 
-    from gpnarx.model.runtime import blas_threads_from_env, mmap_threshold_from_env, tune_malloc
 
     if not _TUNED:
         tune_malloc(mmap_threshold_from_env())

@@ -21,8 +21,17 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnarx.model.novelty import RMS_METHOD
+from gpnarx.model.bundle import load_bundle
+from gpnarx.model.metrics import fit_percent
+from gpnarx.model.novelty import RMS_METHOD, calibrate_threshold, novelty_score, novelty_start
+from gpnarx.training.config import bert_data_dir, load_config, simulate_record
 from gpnarx.training.defaults import shipped_config
+from gpnarx.training.jsonsafe import to_json_safe
+from gpnarx.training.lags import edge_message, lag_surface, write_surface
+from gpnarx.training.pipeline import train
+from gpnarx.training.real_table import markdown, real_table, table_checks
+from gpnarx.training.results_pages import PAGES
+from gpnarx.training.simulators.bert_standin import BertStandin
 
 PAPER = {
     "bouc-wen": {"lags": {"ny": 20, "nu": 17, "fit": 92.4}, "records": {}},
@@ -62,9 +71,6 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
               mc_paths: int | None = None, novelty_n: int = 20, log=None, progress: bool = False,
               docs_page=None, table_mc: int | None = None) -> dict:
     """Run one protocol; returns the summary (also written to OUT/report.json with figures)."""
-    from gpnarx.training.config import load_config
-    from gpnarx.training.lags import edge_message, lag_surface, write_surface
-    from gpnarx.training.pipeline import train
 
     if system not in SYSTEMS:
         raise ValueError(f"system must be one of {SYSTEMS}, got {system!r}")
@@ -120,8 +126,6 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
                                            probe=probe, n_paths=0, seconds=1.0 if quick else 4.0, log=log,
                                            method=mon_cfg.novelty["method"])
     if system == "bert-real":
-        from gpnarx.training.config import bert_data_dir
-        from gpnarx.training.real_table import real_table, table_checks
 
         log(f"[{system}] every real record under {bert_data_dir()}: whole records from rest and steady windows, "
             f"linearised and {n_paths if table_mc is None else table_mc}-path Monte Carlo (0: linearised only), next "
@@ -146,7 +150,6 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
 def results_page(summary: dict, surface: dict | None = None) -> str:
     """The system's results page (docs/results-SYSTEM.md) from one run's figures only (``summary.json``
     and ``lag_surface.json``): Bouc-Wen and the stand-in by ``training.results_pages``, real BERT here."""
-    from gpnarx.training.results_pages import PAGES
 
     if summary.get("system") in PAGES:
         return PAGES[summary["system"]](summary, surface)
@@ -155,7 +158,6 @@ def results_page(summary: dict, surface: dict | None = None) -> str:
 
 def real_page(summary: dict, surface: dict | None = None) -> str:
     """docs/results-bert-real.md from one run's figures only (``summary.json`` and ``lag_surface.json``)."""
-    from gpnarx.training.real_table import markdown
 
     ch = summary["chosen_lags"]
     table = summary["real_table"]
@@ -199,9 +201,6 @@ def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=No
     """bert-real: score the finished run's own bundle on every real record again with ``table_mc``
     Monte Carlo paths (0: linearised only), replace the table in OUT/summary.json and re-render the
     page (OUT/results-bert-real.md and ``docs_page``). The model is the run's; only the table changes."""
-    from gpnarx.model.bundle import load_bundle
-    from gpnarx.training.config import bert_data_dir, load_config
-    from gpnarx.training.real_table import real_table, table_checks
 
     out = Path(out_dir)
     summary = json.loads((out / "summary.json").read_text())
@@ -236,7 +235,6 @@ def render_from_run(out_dir, docs_page=None, write_out: bool = True) -> str:
 
 
 def _clean(o):
-    from gpnarx.training.jsonsafe import to_json_safe
 
     return to_json_safe(o)
 
@@ -246,8 +244,6 @@ def standin_oracle(cfg, records: dict) -> dict:
     a seeded realization, the fit % (eq. 14) of the *nominal* stand-in (same input, ``seed=None``)
     against the record's clean output. No model trained on other realizations can be expected to do
     better than this on average, so it is reported beside the GP-NARX's fit."""
-    from gpnarx.model.metrics import fit_percent
-    from gpnarx.training.config import simulate_record
 
     out = {}
     for spec in cfg.records:
@@ -262,7 +258,6 @@ def standin_oracle(cfg, records: dict) -> dict:
                 raise RuntimeError(f"{spec.name}: the nominal run's input differs from the record's")
             y_nom = nominal.y
         else:  # from rest on the record's own input (the seed also drew a noise excitation)
-            from gpnarx.training.simulators.bert_standin import BertStandin
 
             sim = BertStandin(torque=float(spec.simulate.get("torque", 5.0)), seed=None).simulate(rec.u, fs=rec.fs)
             y_nom = sim["x" if output == "displacement" else "y"]
@@ -295,8 +290,6 @@ def novelty_study(model, out: Path, probe: dict, n_per_class: int = 20, n_paths:
     ``n_paths=0`` scores with the linearised propagation (deterministic, one pass per record; the
     same as ``"method": "linear"`` on the service's novelty route), else Monte Carlo.
     """
-    from gpnarx.model.novelty import calibrate_threshold, novelty_score, novelty_start
-    from gpnarx.training.config import simulate_record
 
     log = log or (lambda m: None)
     probe = dict(probe)
