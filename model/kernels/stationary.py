@@ -6,13 +6,42 @@ import numpy as np
 from .base import SQRT3, Kernel, _gram_parts, _r2_from_gram, squared_distances
 
 
-class Matern32(Kernel):
-    """Matérn 3/2 kernel, eq. (10): sigma_m^2 (1 + sqrt(3) r/l) exp(-sqrt(3) r/l)."""
+class Stationary(Kernel):
+    """What a stationary kernel var * f(r / l) of two parameters shares: k(x, x) = var (so the diagonal,
+    its gradients and its local terms are constants), the data-scaled start (var(y), the median
+    distance), and, in the ML-II workspace, a block of distances r with one N x N buffer for the kernel's
+    exponential and gradients of the form var * (block sums)."""
 
     param_names = ("variance", "lengthscale")
+    workspace_input = "distance"
+    workspace_buffer = True
+    workspace_ready = True
 
     def __init__(self, variance: float = 1.0, lengthscale: float = 1.0) -> None:
         self.theta = np.log([variance, lengthscale]).astype(float)
+
+    def diag(self, X):
+        return np.full(X.shape[0], np.exp(self.theta[0]))
+
+    def diag_local(self, x, ny):
+        return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
+
+    def initial_theta(self, var_y, median_distance, n_dims):
+        return np.log([var_y, median_distance])
+
+    def diag_and_grads(self, X, q=None):
+        var = float(np.exp(self.theta[0]))
+        n = X.shape[0]
+        return np.full(n, var), [np.full(n, var), np.zeros(n)]
+
+    def grads_from_sums(self, sums, tr_w):
+        var = np.exp(self.theta[0])
+        return [var * sums[0], var * sums[1]]
+
+
+class Matern32(Stationary):
+    """Matérn 3/2 kernel, eq. (10): sigma_m^2 (1 + sqrt(3) r/l) exp(-sqrt(3) r/l)."""
+
 
     def __call__(self, X, X2=None):
         var, ls = np.exp(self.theta)
@@ -30,9 +59,6 @@ class Matern32(Kernel):
         K = var * (1.0 + a) * e
         dls = var * a * a * e  # dk/dlog l = sigma^2 a^2 exp(-a)
         return K, [K.copy(), dls]
-
-    def diag(self, X):
-        return np.full(X.shape[0], np.exp(self.theta[0]))
 
     def from_gram(self, G, sq1, sq2):
         var, ls = np.exp(self.theta)
@@ -105,12 +131,6 @@ class Matern32(Kernel):
 
         return k, J, hess
 
-    def diag_local(self, x, ny):
-        return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
-
-    def initial_theta(self, var_y, median_distance, n_dims):
-        return np.log([var_y, median_distance])
-
     def iter_cross_grads(self, G, sq1, sq2):
         var, ls = np.exp(self.theta)
         a = _r2_from_gram(G, sq1, sq2)
@@ -123,15 +143,7 @@ class Matern32(Kernel):
         a *= var
         yield a                             # d/dlog l = var a^2 exp(-a)
 
-    def diag_and_grads(self, X, q=None):
-        var = float(np.exp(self.theta[0]))
-        n = X.shape[0]
-        return np.full(n, var), [np.full(n, var), np.zeros(n)]
-
-    # eq. (10) on a block of distances r: a = sqrt(3) r / l, K = var (1 + a) e^-a with e^-a kept in buf
-    workspace_input = "distance"
-    workspace_buffer = True
-    workspace_ready = True
+    # workspace: eq. (10) on a block of distances r, a = sqrt(3) r / l, K = var (1 + a) e^-a with e^-a in buf
 
     def block_value(self, base, buf):
         var, ls = np.exp(self.theta)
@@ -152,18 +164,10 @@ class Matern32(Kernel):
         s1 = t.sum()
         return np.array([s0 + s1, np.einsum("ij,ij->", t, a)])
 
-    def grads_from_sums(self, sums, tr_w):
-        var = np.exp(self.theta[0])
-        return [var * sums[0], var * sums[1]]
 
-
-class RBF(Kernel):
+class RBF(Stationary):
     """Squared-exponential kernel: sigma^2 exp(-r^2 / (2 l^2))."""
 
-    param_names = ("variance", "lengthscale")
-
-    def __init__(self, variance: float = 1.0, lengthscale: float = 1.0) -> None:
-        self.theta = np.log([variance, lengthscale]).astype(float)
 
     def __call__(self, X, X2=None):
         var, ls = np.exp(self.theta)
@@ -178,9 +182,6 @@ class RBF(Kernel):
         r2 = squared_distances(X) / ls**2
         K = var * np.exp(-0.5 * r2)
         return K, [K.copy(), K * r2]
-
-    def diag(self, X):
-        return np.full(X.shape[0], np.exp(self.theta[0]))
 
     def from_gram(self, G, sq1, sq2):
         var, ls = np.exp(self.theta)
@@ -221,12 +222,6 @@ class RBF(Kernel):
 
         return k, J, hess
 
-    def diag_local(self, x, ny):
-        return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
-
-    def initial_theta(self, var_y, median_distance, n_dims):
-        return np.log([var_y, median_distance])
-
     def iter_cross_grads(self, G, sq1, sq2):
         var, ls = np.exp(self.theta)
         r2 = _r2_from_gram(G, sq1, sq2)
@@ -237,15 +232,7 @@ class RBF(Kernel):
         r2 *= K
         yield r2                            # d/dlog l = K r^2 / l^2
 
-    def diag_and_grads(self, X, q=None):
-        var = float(np.exp(self.theta[0]))
-        n = X.shape[0]
-        return np.full(n, var), [np.full(n, var), np.zeros(n)]
-
-    # K = var exp(-(r/l)^2 / 2) on a block of distances r, exp(...) kept in buf
-    workspace_input = "distance"
-    workspace_buffer = True
-    workspace_ready = True
+    # workspace: K = var exp(-(r/l)^2 / 2) on a block of distances r, exp(...) kept in buf
 
     def block_value(self, base, buf):
         var, ls = np.exp(self.theta)
@@ -261,7 +248,3 @@ class RBF(Kernel):
         r2 = base * (1.0 / np.exp(self.theta[1]))
         r2 *= r2
         return np.array([t.sum(), np.einsum("ij,ij->", t, r2)])
-
-    def grads_from_sums(self, sums, tr_w):
-        var = np.exp(self.theta[0])
-        return [var * sums[0], var * sums[1]]
