@@ -30,7 +30,7 @@ import time
 import numpy as np
 from scipy.special import ndtri
 
-from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, check_confidence, lagged_inputs, start_index
+from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, McPaths, check_confidence, lagged_inputs, start_index
 from .freerun_reference import simulate_linear_reference
 from .gp import local_model
 from .kernels import RBF, SQRT3, CubicPolynomial, Matern32, Sum, White
@@ -93,41 +93,10 @@ def simulate_mc(
     error). ``local=False``: every step exact (``freerun_reference.simulate_mc_reference``'s arithmetic).
     ``latent``: also the latent band (``FreeRun.latent_lower``/``latent_upper``; see module docstring).
     """
-    t_start = time.perf_counter()
-    confidence = check_confidence(confidence)
-    if int(n_paths) < 1:
-        raise ValueError(f"n_paths must be at least 1, got {n_paths}")
-    P = int(n_paths)
-    n = u.size
-    i0, y0v = start_index(n, ny, y0)
-    rng = np.random.default_rng(seed)
-    q_lo, q_hi = (1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0
-    mean = np.zeros(n)
-    std = np.zeros(n)
-    lower = np.zeros(n)
-    upper = np.zeros(n)
-    if i0:
-        mean[:i0] = lower[:i0] = upper[:i0] = y0v
-    paths = np.zeros((n, P)) if keep_paths else None
-    if keep_paths and i0:
-        paths[:i0] = y0v[:, None]
-
-    xm, xs = x_scaler.mean_, x_scaler.scale_
-    ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]  # standardised input part, shared by paths
-    ylag_raw = np.zeros((P, ny))
-    if i0:
-        ylag_raw[:] = y0v[::-1][None, :]  # [y_{i0-1}, ..., y_{i0-ny}]
-    Xs = np.empty((P, ny + nu))
-    noise = posterior.noise_var if include_noise else 0.0
-    block = max(1, min(256, (1 << 22) // P))
-    buf = np.empty((block, P))
-    lat = latent and noise > 0.0  # without the noise term the latent band is the predictive band
-    lbuf = np.empty((block, P)) if lat else None
-    lat_lo = lower.copy() if lat else None
-    lat_hi = upper.copy() if lat else None
-    path_peak = np.zeros(P)
-    b0 = i0
+    st = McPaths(posterior, x_scaler, y_scaler, ny, nu, u, n_paths, seed, y0, confidence, include_noise,
+                 keep_paths, latent)
+    P, n, i0, y0v, noise = st.P, st.n, st.i0, st.y0v, st.noise
+    xm, xs, Xs, Ulag, ylag_raw = st.xm, st.xs, st.Xs, st.Ulag, st.ylag_raw
     use_local = (bool(LOCAL_MODEL if local is None else local) and P >= LOCAL_MIN_PATHS
                  and _has_local_model(posterior, ny + nu, ny))
     n_check = min(LOCAL_CHECKS, P)
@@ -164,48 +133,16 @@ def simulate_mc(
             local_steps += done
         if not done:
             mu[:], var[:] = posterior.predict(Xs, float32=float32)
-        sd = np.sqrt(var + noise)
-        ysamp = buf[i - b0]
-        np.multiply(sd, rng.standard_normal(P), out=ysamp)
-        if lat:  # latent draw mu + sigma_f eps with the output draw's eps: f = mu + (y - mu) sigma_f / sd
-            fsamp = lbuf[i - b0]
-            np.multiply(ysamp, np.sqrt(var) / sd, out=fsamp)
-            fsamp += mu
-        ysamp += mu
-        ysamp *= ys
-        ysamp += ym  # back to output units
-        mean[i] = float(np.mean(mu)) * ys + ym
-        if keep_paths:
-            paths[i] = ysamp
-        ylag_raw[:, 1:] = ylag_raw[:, :-1]
-        ylag_raw[:, 0] = ysamp
+        ysamp = st.draw(i, mu, var)
         if not (lo < float(ysamp.min()) and float(ysamp.max()) < hi):  # also for non-finite samples
             clip_until = i + ny  # some lag of the next ny steps may need clipping
-        if i - b0 + 1 == block or i == n - 1:
-            chunk = buf[: i - b0 + 1]
-            np.maximum(path_peak, np.max(np.abs(chunk), axis=0), out=path_peak)
-            std[b0 : i + 1] = np.std(chunk, axis=1)
-            lower[b0 : i + 1], upper[b0 : i + 1] = np.quantile(chunk, [q_lo, q_hi], axis=1)
-            if lat:
-                lat_lo[b0 : i + 1], lat_hi[b0 : i + 1] = np.quantile(lbuf[: i - b0 + 1], [q_lo, q_hi], axis=1)
-                lat_lo[b0 : i + 1] *= ys
-                lat_lo[b0 : i + 1] += ym
-                lat_hi[b0 : i + 1] *= ys
-                lat_hi[b0 : i + 1] += ym
-            b0 = i + 1
         if progress is not None and (i % 256 == 0 or i == n - 1):
             progress(i + 1, n)
-    diverged = 0 if diverge_limit is None else int(np.count_nonzero(~(path_peak <= diverge_limit)))
-    if latent and not lat:
-        lat_lo, lat_hi = lower.copy(), upper.copy()
-    return FreeRun(mean, std, lower, upper, confidence, P, "mc", time.perf_counter() - t_start,
-                   (n - i0) * P, paths, diverged, local_steps=local_steps, latent_lower=lat_lo,
-                   latent_upper=lat_hi)
+    return st.result(diverge_limit, local_steps=local_steps)
 
 
 def _has_local_model(posterior, D: int, ny: int) -> bool:
     """Whether ``gp.local_model`` covers this posterior (its kernel has ``local_terms``)."""
-
     if getattr(posterior, "kind", None) not in ("sparse", "exact") or not hasattr(posterior, "mean_weights"):
         return False
     try:
@@ -222,7 +159,6 @@ def _local_step(posterior, Xs, ny, noise, n_check, rng, mu, var, tmp, n_exact: i
     n_exact: the n_exact paths farthest from the mean regressor are evaluated exactly (eq. 8-9) and
     the model serves the others, checked at the farthest of those and at random ones.
     """
-
     P = Xs.shape[0]
     xbar = Xs.mean(axis=0)
     d = Xs[:, :ny] - xbar[:ny]
@@ -398,7 +334,6 @@ class _MeanRecursion:
     sum_m w_m sigma_p^2 (s g_m + b)^3 = sigma_p^2 (b^3 sum w + 3 b^2 s S1 + 3 b s^2 S2 + s^3 S3),
     which is the capped kernel's K w plus the posterior's ``mean_shift`` (kernels.CubicPolynomial).
     """
-
     def __init__(self, Z, parts, ny, nu, xm, xs):
         self.Z = Z
         self.ny, self.nu = ny, nu
@@ -426,7 +361,6 @@ class _MeanRecursion:
     @classmethod
     def build(cls, posterior, x_scaler, ny, nu):
         """A recursion for ``posterior``, or None when its kernel or type is not covered."""
-
         kernel = getattr(posterior, "kernel", None)
         Z = getattr(posterior, "X", None)
         try:

@@ -2,6 +2,7 @@
 a diverging path finite, and the lagged-input matrix and start index of a record (section 2.2 step 3)."""
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,3 +66,103 @@ def start_index(n: int, ny: int, y0) -> tuple[int, np.ndarray]:
     if n <= ny:
         raise ValueError(f"u must be longer than ny={ny} samples when y0 is given, got {n}")
     return ny, y0
+
+
+class McPaths:
+    """The paths of a Monte Carlo free run (section 2.2 step 3) and their band statistics.
+
+    Holds every path's lagged outputs (``ylag_raw``, output units, newest first), the regressor buffer
+    ``Xs`` (P, ny + nu) with the standardised input lags ``Ulag`` of each step, and the outputs: mean,
+    std, the band's quantiles and the latent band, in output units. ``draw(i, mu, var)`` samples step
+    i of every path from N(mu, var + sigma_y^2) (standardised; ``mu``, ``var`` from eqs. 8-9), feeds
+    it back and, once a block of steps is full, computes the block's band statistics with one
+    vectorised quantile call. ``result`` returns the ``FreeRun``.
+    """
+
+    def __init__(self, posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.ndarray, n_paths: int,
+                 seed, y0, confidence: float, include_noise: bool, keep_paths: bool, latent: bool):
+        self.t_start = time.perf_counter()
+        self.confidence = check_confidence(confidence)
+        if int(n_paths) < 1:
+            raise ValueError(f"n_paths must be at least 1, got {n_paths}")
+        P = self.P = int(n_paths)
+        n = self.n = u.size
+        self.ny = ny
+        self.i0, self.y0v = start_index(n, ny, y0)
+        i0, y0v = self.i0, self.y0v
+        self.rng = np.random.default_rng(seed)
+        self.q = ((1.0 - self.confidence) / 2.0, 1.0 - (1.0 - self.confidence) / 2.0)
+        self.mean = np.zeros(n)
+        self.std = np.zeros(n)
+        self.lower = np.zeros(n)
+        self.upper = np.zeros(n)
+        if i0:
+            self.mean[:i0] = self.lower[:i0] = self.upper[:i0] = y0v
+        self.paths = np.zeros((n, P)) if keep_paths else None
+        if keep_paths and i0:
+            self.paths[:i0] = y0v[:, None]
+        self.xm, self.xs = x_scaler.mean_, x_scaler.scale_
+        self.ym, self.ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
+        self.Ulag = (lagged_inputs(u, nu) - self.xm[ny:]) / self.xs[ny:]  # standardised input part, shared
+        # lagged outputs of every path in output units; at rest = 0
+        self.ylag_raw = np.zeros((P, ny))
+        if i0:
+            self.ylag_raw[:] = y0v[::-1][None, :]  # [y_{i0-1}, ..., y_{i0-ny}]
+        self.Xs = np.empty((P, ny + nu))
+        self.noise = posterior.noise_var if include_noise else 0.0
+        # samples of a block of steps; band statistics are computed per block (one vectorised
+        # quantile call per block instead of one per step)
+        self.block = max(1, min(256, (1 << 22) // P))
+        self.buf = np.empty((self.block, P))
+        self.latent = latent
+        self.lat = latent and self.noise > 0.0  # without the noise term the latent band is the predictive band
+        self.lbuf = np.empty((self.block, P)) if self.lat else None
+        self.lat_lo = self.lower.copy() if self.lat else None
+        self.lat_hi = self.upper.copy() if self.lat else None
+        self.path_peak = np.zeros(P)  # running peak |y| of each path (output units)
+        self.b0 = i0
+
+    def draw(self, i: int, mu: np.ndarray, var: np.ndarray) -> np.ndarray:
+        """Sample step i of every path, feed it back and return the samples (output units)."""
+        sd = np.sqrt(var + self.noise)
+        ysamp = self.buf[i - self.b0]
+        np.multiply(sd, self.rng.standard_normal(self.P), out=ysamp)
+        if self.lat:  # latent draw mu + sigma_f eps with the output draw's eps: f = mu + (y - mu) sigma_f / sd
+            fsamp = self.lbuf[i - self.b0]
+            np.multiply(ysamp, np.sqrt(var) / sd, out=fsamp)
+            fsamp += mu
+        ysamp += mu
+        ysamp *= self.ys
+        ysamp += self.ym  # back to output units
+        self.mean[i] = float(np.mean(mu)) * self.ys + self.ym
+        if self.paths is not None:
+            self.paths[i] = ysamp
+        self.ylag_raw[:, 1:] = self.ylag_raw[:, :-1]
+        self.ylag_raw[:, 0] = ysamp
+        if i - self.b0 + 1 == self.block or i == self.n - 1:
+            self._statistics(i)
+        return ysamp
+
+    def _statistics(self, i: int) -> None:
+        b0, ys, ym = self.b0, self.ys, self.ym
+        chunk = self.buf[: i - b0 + 1]
+        np.maximum(self.path_peak, np.max(np.abs(chunk), axis=0), out=self.path_peak)
+        self.std[b0 : i + 1] = np.std(chunk, axis=1)
+        self.lower[b0 : i + 1], self.upper[b0 : i + 1] = np.quantile(chunk, self.q, axis=1)
+        if self.lat:
+            self.lat_lo[b0 : i + 1], self.lat_hi[b0 : i + 1] = np.quantile(self.lbuf[: i - b0 + 1], self.q, axis=1)
+            self.lat_lo[b0 : i + 1] *= ys
+            self.lat_lo[b0 : i + 1] += ym
+            self.lat_hi[b0 : i + 1] *= ys
+            self.lat_hi[b0 : i + 1] += ym
+        self.b0 = i + 1
+
+    def result(self, diverge_limit: float | None, **extra) -> FreeRun:
+        """The run as a ``FreeRun``; paths whose peak |y| passed ``diverge_limit`` are counted."""
+        diverged = 0 if diverge_limit is None else int(np.count_nonzero(~(self.path_peak <= diverge_limit)))
+        lat_lo, lat_hi = self.lat_lo, self.lat_hi
+        if self.latent and not self.lat:
+            lat_lo, lat_hi = self.lower.copy(), self.upper.copy()
+        return FreeRun(self.mean, self.std, self.lower, self.upper, self.confidence, self.P, "mc",
+                       time.perf_counter() - self.t_start, (self.n - self.i0) * self.P, self.paths, diverged,
+                       latent_lower=lat_lo, latent_upper=lat_hi, **extra)

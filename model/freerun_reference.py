@@ -11,7 +11,7 @@ import time
 import numpy as np
 from scipy.special import ndtri
 
-from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, check_confidence, lagged_inputs, start_index
+from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, McPaths, check_confidence, lagged_inputs, start_index
 
 
 def simulate_linear_reference(
@@ -128,81 +128,16 @@ def simulate_mc_reference(
     path counts in ``FreeRun.diverged_paths`` (``model.envelope.divergence_limit``); None: not counted.
     ``latent``: also the latent band (``FreeRun.latent_lower``/``latent_upper``; see module docstring).
     """
-    t_start = time.perf_counter()
-    confidence = check_confidence(confidence)
-    if int(n_paths) < 1:
-        raise ValueError(f"n_paths must be at least 1, got {n_paths}")
-    P = int(n_paths)
-    n = u.size
-    i0, y0v = start_index(n, ny, y0)
-    rng = np.random.default_rng(seed)
-    q_lo, q_hi = (1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0
-    mean = np.zeros(n)
-    std = np.zeros(n)
-    lower = np.zeros(n)
-    upper = np.zeros(n)
-    if i0:
-        mean[:i0] = lower[:i0] = upper[:i0] = y0v
-    paths = np.zeros((n, P)) if keep_paths else None
-    if keep_paths and i0:
-        paths[:i0] = y0v[:, None]
-
-    xm, xs = x_scaler.mean_, x_scaler.scale_
-    ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]  # standardised input part, shared by paths
-    # lagged outputs of every path, standardised per column; at rest = 0 in output units
-    ylag_raw = np.zeros((P, ny))
-    if i0:
-        ylag_raw[:] = y0v[::-1][None, :]  # [y_{i0-1}, ..., y_{i0-ny}]
-    Xs = np.empty((P, ny + nu))
-    noise = posterior.noise_var if include_noise else 0.0
-    # samples of a block of steps; band statistics are computed per block (one vectorised
-    # quantile call per block instead of one per step)
-    block = max(1, min(256, (1 << 22) // P))
-    buf = np.empty((block, P))
-    lat = latent and noise > 0.0  # without the noise term the latent band is the predictive band
-    lbuf = np.empty((block, P)) if lat else None
-    lat_lo = lower.copy() if lat else None
-    lat_hi = upper.copy() if lat else None
-    path_peak = np.zeros(P)  # running peak |y| of each path (output units)
-    b0 = i0
-    for i in range(i0, n):
-        np.subtract(ylag_raw, xm[:ny], out=Xs[:, :ny])
+    st = McPaths(posterior, x_scaler, y_scaler, ny, nu, u, n_paths, seed, y0, confidence, include_noise,
+                 keep_paths, latent)
+    xm, xs, Xs, n = st.xm, st.xs, st.Xs, st.n
+    for i in range(st.i0, n):
+        np.subtract(st.ylag_raw, xm[:ny], out=Xs[:, :ny])
         Xs[:, :ny] /= xs[:ny]
         np.clip(Xs[:, :ny], -LAG_CLIP, LAG_CLIP, out=Xs[:, :ny])  # a diverging path cannot overflow
-        Xs[:, ny:] = Ulag[i]
+        Xs[:, ny:] = st.Ulag[i]
         mu, var = posterior.predict(Xs, float32=float32)
-        sd = np.sqrt(var + noise)
-        ysamp = buf[i - b0]
-        np.multiply(sd, rng.standard_normal(P), out=ysamp)
-        if lat:  # latent draw mu + sigma_f eps with the output draw's eps: f = mu + (y - mu) sigma_f / sd
-            fsamp = lbuf[i - b0]
-            np.multiply(ysamp, np.sqrt(var) / sd, out=fsamp)
-            fsamp += mu
-        ysamp += mu
-        ysamp *= ys
-        ysamp += ym  # back to output units
-        mean[i] = float(np.mean(mu)) * ys + ym
-        if keep_paths:
-            paths[i] = ysamp
-        ylag_raw[:, 1:] = ylag_raw[:, :-1]
-        ylag_raw[:, 0] = ysamp
-        if i - b0 + 1 == block or i == n - 1:
-            chunk = buf[: i - b0 + 1]
-            np.maximum(path_peak, np.max(np.abs(chunk), axis=0), out=path_peak)
-            std[b0 : i + 1] = np.std(chunk, axis=1)
-            lower[b0 : i + 1], upper[b0 : i + 1] = np.quantile(chunk, [q_lo, q_hi], axis=1)
-            if lat:
-                lat_lo[b0 : i + 1], lat_hi[b0 : i + 1] = np.quantile(lbuf[: i - b0 + 1], [q_lo, q_hi], axis=1)
-                lat_lo[b0 : i + 1] *= ys
-                lat_lo[b0 : i + 1] += ym
-                lat_hi[b0 : i + 1] *= ys
-                lat_hi[b0 : i + 1] += ym
-            b0 = i + 1
+        st.draw(i, mu, var)
         if progress is not None and (i % 256 == 0 or i == n - 1):
             progress(i + 1, n)
-    diverged = 0 if diverge_limit is None else int(np.count_nonzero(~(path_peak <= diverge_limit)))
-    if latent and not lat:
-        lat_lo, lat_hi = lower.copy(), upper.copy()
-    return FreeRun(mean, std, lower, upper, confidence, P, "mc", time.perf_counter() - t_start,
-                   (n - i0) * P, paths, diverged, latent_lower=lat_lo, latent_upper=lat_hi)
+    return st.result(diverge_limit)

@@ -201,8 +201,7 @@ def on_worker(fn: Callable, *args):
     MALLOC_TRIM_THRESHOLD_=65536, which returns every step's temporaries to the kernel: free runs
     measured 3-4x slower), and BLAS held to ``GPNARX_BLAS_THREADS`` (default 1) threads during the task,
     so a worker computes what a local run computes, as fast."""
-    from threadpoolctl import threadpool_limits
-
+    from threadpoolctl import threadpool_limits  # here: a worker-side import, only where tasks run
 
     if not _TUNED:
         tune_malloc(mmap_threshold_from_env())

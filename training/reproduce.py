@@ -71,7 +71,6 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
               mc_paths: int | None = None, novelty_n: int = 20, log=None, progress: bool = False,
               docs_page=None, table_mc: int | None = None) -> dict:
     """Run one protocol; returns the summary (also written to OUT/report.json with figures)."""
-
     if system not in SYSTEMS:
         raise ValueError(f"system must be one of {SYSTEMS}, got {system!r}")
     log = log or (lambda m: None)
@@ -150,7 +149,6 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
 def results_page(summary: dict, surface: dict | None = None) -> str:
     """The system's results page (docs/results-SYSTEM.md) from one run's figures only (``summary.json``
     and ``lag_surface.json``): Bouc-Wen and the stand-in by ``training.results_pages``, real BERT here."""
-
     if summary.get("system") in PAGES:
         return PAGES[summary["system"]](summary, surface)
     return real_page(summary, surface)
@@ -158,7 +156,6 @@ def results_page(summary: dict, surface: dict | None = None) -> str:
 
 def real_page(summary: dict, surface: dict | None = None) -> str:
     """docs/results-bert-real.md from one run's figures only (``summary.json`` and ``lag_surface.json``)."""
-
     ch = summary["chosen_lags"]
     table = summary["real_table"]
     page = (
@@ -201,7 +198,6 @@ def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=No
     """bert-real: score the finished run's own bundle on every real record again with ``table_mc``
     Monte Carlo paths (0: linearised only), replace the table in OUT/summary.json and re-render the
     page (OUT/results-bert-real.md and ``docs_page``). The model is the run's; only the table changes."""
-
     out = Path(out_dir)
     summary = json.loads((out / "summary.json").read_text())
     if summary.get("system") != "bert-real":
@@ -244,7 +240,6 @@ def standin_oracle(cfg, records: dict) -> dict:
     a seeded realization, the fit % (eq. 14) of the *nominal* stand-in (same input, ``seed=None``)
     against the record's clean output. No model trained on other realizations can be expected to do
     better than this on average, so it is reported beside the GP-NARX's fit."""
-
     out = {}
     for spec in cfg.records:
         if spec.name not in records or not spec.simulate or spec.simulate.get("seed") is None:
@@ -290,7 +285,6 @@ def novelty_study(model, out: Path, probe: dict, n_per_class: int = 20, n_paths:
     ``n_paths=0`` scores with the linearised propagation (deterministic, one pass per record; the
     same as ``"method": "linear"`` on the service's novelty route), else Monte Carlo.
     """
-
     log = log or (lambda m: None)
     probe = dict(probe)
 
