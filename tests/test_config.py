@@ -337,3 +337,197 @@ def test_monitor_config_trains_on_healthy_probes_only():
     assert {s.simulate["torque"] for s in specs["damaged"]} == {4.0, 7.0, 9.0}
     train_seeds = {s.simulate["seed"] for s in specs["train"]}
     assert not train_seeds & {s.simulate["seed"] for s in specs["healthy"] + specs["damaged"]}
+
+
+# ---------------------------------------------------------------- the schema (training/config_schema.py)
+GOOD = "name='x'\n[system]\nfs=750.0\n{tables}[[records]]\nname='rec-1'\nroles=['train']\npath='x.npz'\n{record}"
+
+
+@pytest.mark.parametrize(
+    "tables, record, line",
+    [
+        ("", "", None),  # the base config loads
+        ("[model]\ninducing=0\n", "", "model.inducing: must be an integer >= 1, got 0"),
+        ("[model]\nmax_train_points=-5\n", "", "model.max_train_points: must be an integer >= 1, got -5"),
+        ("[model]\nrestarts=-1\n", "", "model.restarts: must be an integer >= 0, got -1"),
+        ("[model]\nny=2.0\n", "", "model.ny: must be an integer >= 1, got 2.0"),
+        ("[model]\nmode='foo'\n", "", "model.mode: must be one of 'exact', 'sparse', got 'foo'"),
+        ("[model]\nselection='best'\n", "",
+         "model.selection: must be one of 'stride', 'random', 'resonance', got 'best'"),
+        ("[model]\nband_window=10.5\n", "", "model.band_window: must be a number of seconds in (0, 10], got 10.5"),
+        ("[predict]\nconfidence=1.5\n", "", "predict.confidence: must be between 0 and 1, got 1.5"),
+        ("[predict]\nconfidence=1.0\n", "", "predict.confidence: must be between 0 and 1, got 1.0"),
+        ("[predict]\nmc_paths=0\n", "", "predict.mc_paths: must be an integer >= 1, got 0"),
+        ("[predict]\nmethod='exact'\n", "", "predict.method: must be 'mc' or 'linear', got 'exact'"),
+        ("[novelty]\nfalse_alarm_rate=0\n", "", "novelty.false_alarm_rate: must be between 0 and 1, got 0"),
+        ("[physics]\nmass=0\n", "", "physics.mass: must be a positive number, got 0"),
+        ("[physics]\ninput_gain=inf\n", "", "physics.input_gain: must be a positive number, got inf"),
+        ("[lags]\nnu='1:5:0'\n", "", "lags.nu: range '1:5:0': step must be >= 1"),
+        ("", "noise={fraction=-1}\n", "records.rec-1.noise.fraction: must be a number >= 0, got -1"),
+        ("", "noise={fraction=0.1, seed=-2}\n", "records.rec-1.noise.seed: must be a non-negative integer, got -2"),
+        ("", "noise={fraction=0.1, sd=2}\n",
+         "records.rec-1.noise: unknown key(s) sd; allowed: fraction, reference, seed"),
+        ("", "noise={seed=2}\n", "records.rec-1.noise.fraction: missing required key "
+                                 "(noise variance over the mean square of the reference's clean output)"),
+        ("", "window=[2, 1]\n", "records.rec-1.window: must be [t0, t1] in s with 0 <= t0 < t1, got [2, 1]"),
+        ("", "window=[-1, 1]\n", "records.rec-1.window: must be [t0, t1] in s with 0 <= t0 < t1, got [-1, 1]"),
+        ("", "window=[0, 1, 2]\n", "records.rec-1.window: must be [t0, t1] in s with 0 <= t0 < t1, got [0, 1, 2]"),
+        ("", "fs=0\n", "records.rec-1.fs: must be a positive number, got 0"),
+        ("", "meta='x'\n", "records.rec-1.meta: must be a table, got str"),
+        # a boolean is never a number, an integer or a float
+        ("[model]\ninducing=true\n", "", "model.inducing: must be an integer >= 1, got True"),
+        ("[predict]\nconfidence=true\n", "", "predict.confidence: must be between 0 and 1, got True"),
+        ("", "noise={fraction=true}\n", "records.rec-1.noise.fraction: must be a number >= 0, got True"),
+        ("", "window=[0, true]\n", "records.rec-1.window: must be [t0, t1] in s with 0 <= t0 < t1, got [0, True]"),
+        # a string is not a number either
+        ("[model]\nseed='1'\n", "", "model.seed: must be an integer >= 0, got '1'"),
+    ],
+)
+def test_schema_bad_value_is_one_line_naming_file_key_and_limit(tmp_path, tables, record, line):
+    p = _write(tmp_path, GOOD.format(tables=tables, record=record))
+    if line is None:
+        load_config(p)
+        return
+    with pytest.raises(ConfigError) as ei:
+        load_config(p)
+    assert str(ei.value) == f"{p.resolve()}: {line}"
+
+
+@pytest.mark.parametrize(
+    "text, line",
+    [
+        ("name='x'\n[system]\nfs=0\n", "system.fs: must be a positive number, got 0"),
+        ("name='x'\n[system]\nfs=true\n", "system.fs: must be a positive number, got True"),
+        ("name='x'\n[system]\nfs='750'\n", "system.fs: must be a positive number, got '750'"),
+        ("name='x'\n[system]\nfs=750.0\noutput='accel'\n",
+         "system.output: must be one of 'displacement', 'velocity', got 'accel'"),
+        ("name='x'\n[system]\nfs=750.0\nunits={u='N', w='m'}\n", "system.units: unknown key(s) w; allowed: u, y"),
+        ("name='x'\nsystem=750.0\n", "system: must be a table, got float"),
+        ("name='a b'\n[system]\nfs=750.0\n", "name: must be a name of letters, digits, '.', '_' or '-', got 'a b'"),
+        ("name='x'\ndescription=3\n[system]\nfs=750.0\n", "description: must be a string, got 3"),
+        ("name='x'\nrecords=[1]\n[system]\nfs=750.0\n", "records: must be an array of tables ([[records]])"),
+    ],
+)
+def test_schema_top_level_and_system_errors(tmp_path, text, line):
+    p = _write(tmp_path, text + "[[records]]\nname='a'\nroles=['train']\npath='x'\n" if "records" not in text else text)
+    with pytest.raises(ConfigError) as ei:
+        load_config(p)
+    assert str(ei.value) == f"{p.resolve()}: {line}"
+
+
+@pytest.mark.parametrize(
+    "record, line",
+    [
+        ("name=''\nroles=['train']\npath='x'\n", "records[1].name: must be a non-blank record name, got ''"),
+        ("roles=['train']\npath='x'\n", "records[1].name: missing required key (a unique record name)"),
+        ("name='b'\npath='x'\n", 'records.b.roles: missing required key (e.g. roles = ["train"])'),
+        ("name='b'\nroles=[]\npath='x'\n", "records.b.roles: must be a non-empty list of role names, got []"),
+        ("name='b'\nroles=['train', 3]\npath='x'\n",
+         "records.b.roles: must be a non-empty list of role names, got ['train', 3]"),
+        ("name='b'\nroles=['train']\npath=''\n", "records.b.path: must be a file or folder path string, got ''"),
+        ("name='b'\nroles=['train']\npath='x'\nsimulate={system='bouc-wen', amplitude=1.0}\n",
+         "records.b: give exactly one of path or simulate"),
+        ("name='b'\nroles=['train']\nsimulate={amplitude=1.0}\n",
+         "records.b.simulate.system: missing required key (bouc-wen or bert-standin)"),
+        ("name='b'\nroles=['train']\nsimulate={system='bouc-wen'}\n",
+         "records.b.simulate.amplitude: missing required key (peak for sweep/sine, RMS for multisine/noise)"),
+        ("name='b'\nroles=['train']\nsimulate={system='bouc-wen', excitation='chirp', amplitude=1.0}\n",
+         "records.b.simulate.excitation: must be one of sweep, sine, multisine, noise, got 'chirp'"),
+        ("name='b'\nroles=['train']\nsimulate={system='bouc-wen', amplitude=1.0, gain=2}\n",
+         "records.b.simulate: unknown option(s) gain; allowed: amplitude, duration, excitation, f0, f1, freq, rate, "
+         "scatter, seed, system, torque"),
+        ("name='b'\nroles=['train']\nsimulate='bouc-wen'\n",
+         "records.b.simulate: must be a table like { system = \"bouc-wen\", ... }, got str"),
+        ("name='a'\nroles=['verify']\npath='y'\n", "records.a: duplicate record name"),
+        ("name='b'\nroles=['verify']\npath='y'\nnoise={fraction=0.1, reference='c'}\n",
+         "records.b.noise.reference: no record named 'c'"),
+    ],
+)
+def test_schema_record_errors_name_the_record(tmp_path, record, line):
+    p = _write(tmp_path, "name='x'\n[system]\nfs=750.0\n[[records]]\nname='a'\nroles=['train']\npath='x'\n"
+                         "[[records]]\n" + record)
+    with pytest.raises(ConfigError) as ei:
+        load_config(p)
+    assert str(ei.value) == f"{p.resolve()}: {line}"
+
+
+def test_schema_defaults_are_the_documented_ones():
+    from gpnarx.training import config
+
+    assert config.MODEL_DEFAULTS == {
+        "kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000, "selection": "stride",
+        "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none", "band_window": 0.25}
+    assert config.PREDICT_DEFAULTS == {"mc_paths": 1024, "confidence": 0.99, "method": "mc"}
+    assert config.NOVELTY_DEFAULTS == {"false_alarm_rate": 0.01, "method": "rms_standardised_residual"}
+    assert config.PHYSICS_DEFAULTS == {"mass": None, "input_gain": 1.0}
+
+
+def test_schema_keeps_unknown_keys_of_open_tables(tmp_path):
+    text = ("name='x'\nnote='kept'\n[system]\nfs=750\nsite='lab'\n[physics]\nmass=2\n[model]\nhyper='vfe'\nnu=4\n"
+            "[predict]\nextra=1\n[[records]]\nname='a'\nroles='train'\nsimulate={system='bouc-wen', amplitude=1}\n"
+            "window=[0, 1]\nmeta={k=1}\n")
+    cfg = load_config(_write(tmp_path, text))
+    assert cfg.extra == {"note": "kept"} and cfg.description == ""
+    assert cfg.system == {"fs": 750.0, "units": {"u": "", "y": ""}, "output": "displacement", "site": "lab"}
+    assert isinstance(cfg.system["fs"], float) and cfg.physics == {"mass": 2.0, "input_gain": 1.0}
+    assert cfg.model["hyper"] == "vfe" and cfg.model["nu"] == 4 and "ny" not in cfg.model
+    assert cfg.predict == {"mc_paths": 1024, "confidence": 0.99, "method": "mc", "extra": 1}
+    (spec,) = cfg.records
+    assert spec.roles == ["train"] and spec.window == (0.0, 1.0) and spec.meta == {"k": 1}
+    assert spec.simulate == {"system": "bouc-wen", "amplitude": 1} and spec.noise is None and spec.path is None
+
+
+def test_simulate_values_are_checked_when_the_record_is_simulated(tmp_path):
+    from gpnarx.training.config import simulate_record
+
+    text = SMALL.replace("amplitude = 10.0, f0 = 5.0", "amplitude = true, f0 = 5.0")
+    cfg = load_config(_write(tmp_path, text))  # loads: simulate values are the simulation's to check
+    with pytest.raises(ConfigError, match=r"cfg.toml: records.sweep-10N.simulate: amplitude must be a finite number "
+                                          r"> 0, got True$"):
+        cfg.records_for("train")
+    with pytest.raises(ConfigError, match=r"^f0 must be a finite number >= 0, got -1$"):
+        simulate_record({"system": "bouc-wen", "amplitude": 1.0, "f0": -1})
+    with pytest.raises(ConfigError, match=r"^freq does not apply to excitation sweep$"):
+        simulate_record({"system": "bouc-wen", "amplitude": 1.0, "freq": 3.0})
+    with pytest.raises(ConfigError, match=r"^amplitude is required \(peak for sweep/sine, RMS for multisine/noise\)$"):
+        simulate_record({"system": "bouc-wen"})
+
+
+def _shipped_expectation(doc: dict, base: Path) -> dict:
+    """What a shipped config's DatasetConfig holds, read from its TOML with today's defaults."""
+    from gpnarx.training.config import expand_path
+
+    model = {"kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000,
+             "selection": "stride", "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none",
+             "band_window": 0.25, **doc.get("model", {})}
+    records = [(r["name"], list(r["roles"]), expand_path(r["path"], base) if "path" in r else None,
+                r.get("simulate"), r.get("noise"), tuple(r["window"]) if "window" in r else None, r.get("fs"),
+                r.get("meta", {})) for r in doc["records"]]
+    return {
+        "name": doc["name"], "description": doc.get("description", ""),
+        "system": {"fs": float(doc["system"]["fs"]), "units": doc["system"].get("units", {"u": "", "y": ""}),
+                   "output": doc["system"].get("output", "displacement")},
+        "physics": {"mass": None, "input_gain": 1.0, **doc.get("physics", {})},
+        "model": model, "lags": doc.get("lags", {}),
+        "predict": {"mc_paths": 1024, "confidence": 0.99, "method": "mc", **doc.get("predict", {})},
+        "novelty": {"false_alarm_rate": 0.01, "method": "rms_standardised_residual", **doc.get("novelty", {})},
+        "records": records, "extra": {},
+    }
+
+
+def test_every_shipped_config_loads_to_the_same_dicts_as_its_toml_says():
+    import tomllib
+
+    from gpnarx.training.defaults import CONFIG_DIR
+
+    paths = sorted(CONFIG_DIR.glob("*.toml"))
+    assert len(paths) >= 4
+    for p in paths:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+        cfg = load_config(p)
+        got = {"name": cfg.name, "description": cfg.description, "system": cfg.system, "physics": cfg.physics,
+               "model": cfg.model, "lags": cfg.lags, "predict": cfg.predict, "novelty": cfg.novelty,
+               "records": [(s.name, s.roles, s.path, s.simulate, s.noise, s.window, s.fs, s.meta) for s in cfg.records],
+               "extra": cfg.extra}
+        assert got == _shipped_expectation(doc, p.resolve().parent), p.name
+        assert cfg.path == p.resolve()
