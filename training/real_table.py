@@ -14,7 +14,9 @@ when the config does not name it):
 * a steady window (``WINDOW`` s: 30-32 s of a sine, 10-12 s of a noise run) free-run from its first
   ny measured outputs: the same figures;
 * two linear ARX baselines fitted by least squares on the same training records: ny=8, nu=4 and
-  the GP-NARX's own lags, simulated the same way.
+  the GP-NARX's own lags, simulated the same way;
+* between the recorded frequencies, the model's steady sine response against the rig's own FRF
+  (``training.frf_check``), when the noise run's LMS ``FRF.mat`` is in the data folder.
 
 Units: u [V], y [m/s], times [s]. The numbers come from the run that writes them.
 """
@@ -29,6 +31,7 @@ from gpnarx.model.envelope import assess
 from gpnarx.model.metrics import band_width, coverage, fit_percent
 from gpnarx.model.records import Record
 from gpnarx.training.baselines import LinearARX
+from gpnarx.training.frf_check import frf_check
 from gpnarx.training.records import read_record
 
 SINE_WINDOW = (30.0, 32.0)  # s: steady state of a 64 s sine (the drive runs 0-51 s)
@@ -137,8 +140,15 @@ def real_table(model, cfg, data_dir, *, mc_paths: int = 1024, seed: int = 0, max
             f"coverage {g['coverage']:.1f} %, peak x{_fmt(g['peak_ratio'], 2)}, diverged {g['diverged_paths']}; "
             f"ARX {_fmt(row['whole_arx_8_4']['fit'])} / {_fmt(row[f'whole_arx_{model.ny}_{model.nu}']['fit'])} %; "
             f"window fit {_fmt(row['window_linear']['fit'])} %")
+    # between the recorded frequencies: the model's steady sine response against the rig's FRF
+    sines = [f for f in folders if f.parent.name == "Sine"]
+    frf = (frf_check(model, data_dir, recorded=sines) if max_seconds is None
+           else frf_check(model, data_dir, freqs=(12.0, 25.0), seconds=3.0, recorded=sines[:1]))
+    if frf is not None:
+        log(f"  FRF check: model / rig FRF {min(r['ratio'] for r in frf['rows']):.3f}-"
+            f"{max(r['ratio'] for r in frf['rows']):.3f} off resonance")
     return {"records": rows, "arx_lags": [list(ARX_LAGS), [model.ny, model.nu]], "mc_paths": int(mc_paths),
-            "max_seconds": max_seconds, "seconds": time.perf_counter() - t0}
+            "max_seconds": max_seconds, "seconds": time.perf_counter() - t0, "frf_check": frf}
 
 
 def _fmt(v, nd=1) -> str:

@@ -26,6 +26,7 @@ from gpnarx.model.metrics import fit_percent
 from gpnarx.model.novelty import RMS_METHOD, calibrate_threshold, novelty_score, novelty_start
 from gpnarx.training.config import bert_data_dir, load_config, simulate_record
 from gpnarx.training.defaults import shipped_config
+from gpnarx.training.frf_check import markdown as frf_markdown
 from gpnarx.training.jsonsafe import to_json_safe
 from gpnarx.training.lags import edge_message, lag_surface, write_surface
 from gpnarx.training.pipeline import train
@@ -178,6 +179,15 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
         "included). Peak ratio: max|mean| / max|measured| (divergence shows as a ratio far above 1). Diverged: "
         "Monte Carlo paths whose peak left 3x the training output peak. ARX: linear ARX by least squares on the "
         "same training records, ny=8/nu=4 and at the GP-NARX's lags.\n\n" + markdown(table, table["checks"]))
+    if table.get("frf_check"):
+        page += ("\n## Between the recorded frequencies: the rig's FRF\n\nThe subset's sines are at 5-9.75, 17, 19 "
+                 "and 20 Hz. At other drive frequencies the model's steady response to a 0.15 V sine (ramped in over "
+                 "0.5 s, free run from rest, linearised, the drive-frequency amplitude of the mean over the last 2 s "
+                 "of 8 s) is set against the rig's own frequency response, the LMS FRF of the noise run (velocity "
+                 "per volt). The noise run's first 10 s are training data, so this checks that the model's response "
+                 "between the recorded sines is the rig's; 17-20 Hz is left out (there the response depends on the "
+                 "amplitude and the noise run's FRF is no reference). `training/frf_check.py`.\n\n"
+                 + frf_markdown(table["frf_check"]))
     if surface:
         names = sorted({k for c in surface["cells"] for k in (c.get("fits") or {})})
         page += ("\n## Lag surface\n\nFree-run fit % (linearised, from rest for whole records, from measured "

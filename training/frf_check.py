@@ -1,0 +1,148 @@
+"""Between the recorded frequencies: the model's steady sine response against the rig's own FRF.
+
+The shared real subset holds steady sines at 5-9.75, 17, 19 and 20 Hz only, so a user who drives the
+rig at 12 Hz or 25 Hz asks the model about a frequency no sine record shows. The LMS export of the
+noise run holds the rig's frequency response (``Rand/*/FRF.mat``: ``FRF_Laser__X_Shaker__X``, free-end
+velocity per shaker volt [(m/s)/V], 0.0625 Hz steps, estimated by Test.Lab from the 0.25 V white-noise
+run). For each frequency of ``FREQUENCIES`` (none of them a recorded sine) a sine of ``AMPLITUDE`` V,
+ramped in over ``RAMP`` s, is free-run from rest with the linearised method for ``SECONDS`` s; the
+amplitude of the mean's component at the drive frequency over the last ``FIT_SECONDS`` s (a least-squares
+sine fit) is compared with |H(f)| x the drive amplitude. The same comparison on the recorded sines (their
+measured output and their own drive) says how well the FRF describes a 0.15 V sine in the first place.
+
+Near the first resonance (``RESONANCE_BAND``, 17-20 Hz) the response depends on the amplitude (the joint
+softens and the peak moves), so the noise run's FRF is no reference there and those frequencies are left
+out. The noise run's first 10 s are training data of the shipped model: this checks that the model's
+response between the recorded sines is the rig's, not that the FRF was unseen.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import scipy.io as sio
+
+from gpnarx.training.records import read_record
+
+AMPLITUDE = 0.15  # V: the level of the recorded sines (0.15 V nominal)
+FREQUENCIES = (3.0, 4.0, 7.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0, 16.0, 22.0, 23.0, 25.0, 28.0, 30.0)  # Hz
+RESONANCE_BAND = (16.5, 20.5)  # Hz: amplitude-dependent there; the noise run's FRF is no reference
+RAMP = 0.5  # s: the drive's amplitude ramps in linearly, as a shaker's does
+SECONDS = 8.0  # s of free run per frequency
+FIT_SECONDS = 2.0  # s at the end of the run whose drive-frequency component is compared
+RECORDED_WINDOW = (30.0, 32.0)  # s: steady state of a recorded 64 s sine
+FRF_VARIABLE = "FRF_Laser__X_Shaker__X"
+
+
+def find_frf(data_dir) -> Path | None:
+    """The first LMS ``FRF.mat`` of a noise run under ``data_dir`` (``Rand/*/FRF.mat``), or None."""
+    hits = sorted(Path(data_dir).glob("Rand/*/FRF.mat"))
+    return hits[0] if hits else None
+
+
+def read_lms_frf(path) -> tuple[np.ndarray, np.ndarray]:
+    """(frequencies [Hz], complex FRF) of an LMS Test.Lab ``FRF.mat`` export (velocity per volt, (m/s)/V)."""
+    try:
+        d = sio.loadmat(str(path), squeeze_me=True, struct_as_record=False)
+        frf = d[FRF_VARIABLE]
+        x = frf.x_values
+        h = np.asarray(frf.y_values.values, dtype=complex).ravel()
+        f = float(x.start_value) + float(x.increment) * np.arange(int(x.number_of_values))
+    except (KeyError, AttributeError, ValueError, OSError) as exc:
+        raise ValueError(f"{path}: not an LMS FRF export with {FRF_VARIABLE} ({type(exc).__name__}: {exc})") from None
+    if f.size != h.size or f.size < 2:
+        raise ValueError(f"{path}: {FRF_VARIABLE} holds {h.size} values for {f.size} frequencies")
+    return f, h
+
+
+def frf_gain(f: np.ndarray, h: np.ndarray, freq: float) -> float:
+    """|H| at ``freq`` [Hz], linearly interpolated between the FRF's lines."""
+    return float(np.interp(freq, f, np.abs(h)))
+
+
+def sine_amplitude(x: np.ndarray, fs: float, freq: float) -> float:
+    """Amplitude of the component of ``x`` at ``freq`` [Hz] (least-squares fit of a sine, a cosine and an
+    offset), in x's units."""
+    t = np.arange(x.size) / fs
+    A = np.column_stack([np.sin(2 * np.pi * freq * t), np.cos(2 * np.pi * freq * t), np.ones_like(t)])
+    coef, *_ = np.linalg.lstsq(A, x, rcond=None)
+    return float(np.hypot(coef[0], coef[1]))
+
+
+def drive(freq: float, amplitude: float, fs: float, seconds: float) -> np.ndarray:
+    """A sine of ``amplitude`` [V] at ``freq`` [Hz], ramped in over ``RAMP`` s, ``seconds`` long at ``fs``."""
+    t = np.arange(int(round(seconds * fs))) / fs
+    return amplitude * np.minimum(1.0, t / RAMP) * np.sin(2 * np.pi * freq * t)
+
+
+def frf_check(model, data_dir, *, freqs=FREQUENCIES, amplitude: float = AMPLITUDE, seconds: float = SECONDS,
+              recorded=()) -> dict | None:
+    """Compare the model's steady sine amplitude with the rig's FRF (see the module docstring).
+
+    model: a fitted ``GPNARX`` of the rig (u in V, y in m/s, fs = the records' fs). recorded: record
+    folders whose measured steady amplitude is compared with the FRF too (the reference's own accuracy).
+    Returns ``{"frf": path, "amplitude": V, "rows": [...], "recorded": [...], "worst_ratio_error": ...}``
+    (ratios model / FRF), or None when no FRF export is under ``data_dir``.
+    """
+    path = find_frf(data_dir)
+    if path is None:
+        return None
+    f, h = read_lms_frf(path)
+    fs = float(model.fs_) if getattr(model, "fs_", None) else 1024.0
+    n_fit = int(round(FIT_SECONDS * fs))
+    rows = []
+    for freq in freqs:
+        if RESONANCE_BAND[0] <= freq <= RESONANCE_BAND[1]:
+            continue
+        run = model.simulate(drive(freq, amplitude, fs, seconds), method="linear")
+        got = sine_amplitude(run.mean[-n_fit:], fs, freq)
+        ref = frf_gain(f, h, freq) * amplitude
+        half = float(np.mean(run.upper[-n_fit:] - run.lower[-n_fit:]) / 2.0)
+        rows.append({"freq": float(freq), "model": got, "frf": ref, "ratio": got / ref, "band_halfwidth": half})
+    rec_rows = []
+    for folder in recorded:
+        rec = read_record(folder)
+        i0, i1 = (int(round(s * rec.fs)) for s in RECORDED_WINDOW)
+        u, y = rec.u[i0:i1], rec.y[i0:i1]
+        freq = _dominant(u, rec.fs)
+        if RESONANCE_BAND[0] <= freq <= RESONANCE_BAND[1]:
+            continue
+        drive_amp = sine_amplitude(u, rec.fs, freq)
+        got = sine_amplitude(y, rec.fs, freq)
+        ref = frf_gain(f, h, freq) * drive_amp
+        rec_rows.append({"record": Path(folder).name, "freq": freq, "drive": drive_amp, "measured": got, "frf": ref,
+                         "ratio": got / ref})
+    worst = max((abs(r["ratio"] - 1.0) for r in rows), default=None)
+    worst_rec = max((abs(r["ratio"] - 1.0) for r in rec_rows), default=None)
+    return {"frf": str(path), "amplitude": float(amplitude), "seconds": float(seconds), "rows": rows,
+            "recorded": rec_rows, "worst_ratio_error": worst, "worst_recorded_ratio_error": worst_rec}
+
+
+def _dominant(u: np.ndarray, fs: float) -> float:
+    """The drive frequency [Hz] of a steady sine window: the largest line of a zero-padded spectrum."""
+    n = 8 * u.size
+    spec = np.abs(np.fft.rfft(u - np.mean(u), n))
+    return float(np.argmax(spec) * fs / n)
+
+
+def markdown(check: dict) -> str:
+    """The comparison as Markdown (a section of docs/results-bert-real.md)."""
+    amp = check["amplitude"]
+    lines = [f"| drive [Hz] | model: steady amplitude [m/s] | rig FRF x {amp:g} V [m/s] | model / FRF | "
+             "99 % band half-width [m/s] |", "|---|---|---|---|---|"]
+    for r in check["rows"]:
+        lines.append(f"| {r['freq']:g} | {r['model']:.4f} | {r['frf']:.4f} | {r['ratio']:.3f} | "
+                     f"{r['band_halfwidth']:.4f} |")
+    out = "\n".join(lines) + "\n"
+    if check["recorded"]:
+        out += ("\nThe reference itself, on the recorded sines (steady window 30-32 s, each record's own drive "
+                "amplitude):\n\n| record | drive [Hz] | drive [V] | measured [m/s] | FRF x drive [m/s] | "
+                "measured / FRF |\n|---|---|---|---|---|---|\n")
+        for r in check["recorded"]:
+            out += (f"| {r['record']} | {r['freq']:.2f} | {r['drive']:.3f} | {r['measured']:.4f} | {r['frf']:.4f} | "
+                    f"{r['ratio']:.3f} |\n")
+    worst = check["worst_ratio_error"]
+    out += (f"\nLargest departure of the model from the FRF off resonance: {100 * worst:.1f} %"
+            + (f" (the FRF against the recorded sines: {100 * check['worst_recorded_ratio_error']:.1f} %)."
+               if check["worst_recorded_ratio_error"] is not None else ".") + "\n")
+    return out
