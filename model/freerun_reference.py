@@ -117,16 +117,9 @@ def simulate_mc_reference(
     diverge_limit: float | None = None,
     latent: bool = True,
 ) -> FreeRun:
-    """Reference implementation of ``simulate_mc``: every step evaluates eq. 8 and eq. 9 at every
-    path (``posterior.predict``). Kept for the equivalence tests and bench/bench_mc_speed.py.
-
-    Monte Carlo free-run over ``n_paths`` paths advanced together (see module docstring).
-
-    u: input record (input units, e.g. N or V). y0: optional first ny measured outputs (output
-    units) taken as known; otherwise the system starts from rest. ``progress``: optional callable
-    ``progress(done_steps, total_steps)``. ``diverge_limit``: peak |y| [output units] beyond which a
-    path counts in ``FreeRun.diverged_paths`` (``model.envelope.divergence_limit``); None: not counted.
-    ``latent``: also the latent band (``FreeRun.latent_lower``/``latent_upper``; see module docstring).
+    """Reference implementation of ``freerun.simulate_mc`` (same arguments but ``local``, same result):
+    every step evaluates eq. 8 and eq. 9 at every path (``posterior.predict``). Kept for the equivalence
+    tests and bench/bench_mc_speed.py.
     """
     st = McPaths(posterior, x_scaler, y_scaler, ny, nu, u, n_paths, seed, y0, confidence, include_noise,
                  keep_paths, latent)
