@@ -456,25 +456,36 @@ def test_schema_defaults_are_the_documented_ones():
 
     assert config.MODEL_DEFAULTS == {
         "kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000, "selection": "stride",
-        "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none", "band_window": 0.25}
+        "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none", "band_window": 0.25,
+        "hyper": "subset"}
     assert config.PREDICT_DEFAULTS == {"mc_paths": 1024, "confidence": 0.99, "method": "mc"}
     assert config.NOVELTY_DEFAULTS == {"false_alarm_rate": 0.01, "method": "rms_standardised_residual"}
     assert config.PHYSICS_DEFAULTS == {"mass": None, "input_gain": 1.0}
 
 
-def test_schema_keeps_unknown_keys_of_open_tables(tmp_path):
-    text = ("name='x'\nnote='kept'\n[system]\nfs=750\nsite='lab'\n[physics]\nmass=2\n[model]\nhyper='vfe'\nnu=4\n"
-            "[predict]\nextra=1\n[[records]]\nname='a'\nroles='train'\nsimulate={system='bouc-wen', amplitude=1}\n"
-            "window=[0, 1]\nmeta={k=1}\n")
+def test_every_table_refuses_unknown_keys_and_the_document_keeps_its_own(tmp_path):
+    """A misspelt option is an error naming the table, the key and the allowed keys, not a silent default;
+    other top-level keys stay in DatasetConfig.extra; [model] hyper is a documented option."""
+    rec = "[[records]]\nname='a'\nroles='train'\nsimulate={system='bouc-wen', amplitude=1}\nwindow=[0, 1]\nmeta={k=1}\n"
+    text = "name='x'\nnote='kept'\n[system]\nfs=750\n[physics]\nmass=2\n[model]\nhyper='vfe'\nnu=4\n" + rec
     cfg = load_config(_write(tmp_path, text))
     assert cfg.extra == {"note": "kept"} and cfg.description == ""
-    assert cfg.system == {"fs": 750.0, "units": {"u": "", "y": ""}, "output": "displacement", "site": "lab"}
+    assert cfg.system == {"fs": 750.0, "units": {"u": "", "y": ""}, "output": "displacement"}
     assert isinstance(cfg.system["fs"], float) and cfg.physics == {"mass": 2.0, "input_gain": 1.0}
     assert cfg.model["hyper"] == "vfe" and cfg.model["nu"] == 4 and "ny" not in cfg.model
-    assert cfg.predict == {"mc_paths": 1024, "confidence": 0.99, "method": "mc", "extra": 1}
+    assert cfg.predict == {"mc_paths": 1024, "confidence": 0.99, "method": "mc"}
     (spec,) = cfg.records
     assert spec.roles == ["train"] and spec.window == (0.0, 1.0) and spec.meta == {"k": 1}
     assert spec.simulate == {"system": "bouc-wen", "amplitude": 1} and spec.noise is None and spec.path is None
+    for table, line in [("system", "site='lab'"), ("model", "inducng=128"), ("predict", "mc_path=64"),
+                        ("novelty", "false_alarm=0.05"), ("physics", "mas=2.0")]:
+        head = "name='x'\n[system]\nfs=750\n" + ("" if table == "system" else f"[{table}]\n")
+        text = head + line + "\n" + rec
+        key = line.split("=")[0]
+        with pytest.raises(ConfigError, match=rf"{table}: unknown key\(s\) {key}; allowed: "):
+            load_config(_write(tmp_path, text))
+    with pytest.raises(ConfigError, match=r"model.hyper: must be one of 'subset', 'vfe', got 'exact'"):
+        load_config(_write(tmp_path, "name='x'\n[system]\nfs=750\n[model]\nhyper='exact'\n" + rec))
 
 
 def test_simulate_values_are_checked_when_the_record_is_simulated(tmp_path):
@@ -499,7 +510,7 @@ def _shipped_expectation(doc: dict, base: Path) -> dict:
 
     model = {"kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000,
              "selection": "stride", "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none",
-             "band_window": 0.25, **doc.get("model", {})}
+             "band_window": 0.25, "hyper": "subset", **doc.get("model", {})}
     records = [(r["name"], list(r["roles"]), expand_path(r["path"], base) if "path" in r else None,
                 r.get("simulate"), r.get("noise"), tuple(r["window"]) if "window" in r else None, r.get("fs"),
                 r.get("meta", {})) for r in doc["records"]]

@@ -32,6 +32,7 @@ key name below is a contract)::
     band_calibration = "none"         # "none" | "lags": add the model-discrepancy term to the free-run
                                       # band, calibrated on the 'lags' records (model.discrepancy)
     band_window = 0.25                # [s] window of its local amplitude
+    hyper = "subset"                  # sparse mode: "subset" (exact ML-II on the capped rows) | "vfe"
 
     [lags]                            # lag-surface ranges, LO:HI inclusive, optional step LO:HI:STEP
     ny = "1:24"
@@ -80,8 +81,8 @@ and builds :class:`DatasetConfig`'s plain dicts from the validated tables. Unkno
 in ``[[records]]``, ``simulate``, ``noise`` and ``system.units`` and kept elsewhere (top-level ones
 in ``DatasetConfig.extra``).
 
-Errors (missing ``name``/``system.fs``/``records``, no record with role ``train``, unknown roles or
-options, bad values, fs or unit mismatches, unreadable records) raise :class:`ConfigError` (a
+Errors (missing ``name``/``system.fs``/``records``, no record with role ``train``, unknown roles, keys
+or options (every table refuses keys it does not know), bad values, fs or unit mismatches, unreadable records) raise :class:`ConfigError` (a
 ``ValueError``) with one line naming the file and the dotted key, e.g.
 ``cfg.toml: model.inducing: must be an integer >= 1, got 0`` or
 ``cfg.toml: records.sweep-10N.noise.fraction: must be a number >= 0, got -1`` (a record without a

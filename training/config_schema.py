@@ -25,8 +25,8 @@ Numbers are strict (a boolean or a string is not a number; an integer is where a
 for), limits are ``Field`` constraints, choices are ``Literal``; the rules across keys (exactly
 one of ``path``/``simulate``, unique record names, ``noise.reference`` naming a record, a record
 with role 'train', the 'lags' records of ``noise_calibration``/``band_calibration``) are model
-validators. Records, ``simulate``, ``noise`` and ``units`` refuse unknown keys; the other tables
-keep theirs (``[model] hyper``, for one, reaches the estimator).
+validators. Every table refuses unknown keys (a misspelt option is an error, not a silent default);
+only the document keeps other top-level keys (``DatasetConfig.extra``).
 
 A ``simulate`` table's values are checked when the record is simulated (:class:`Simulation`, used
 by ``simulate_record``), as a file record's contents are when it is read: loading a config checks
@@ -258,20 +258,20 @@ class UnitsTable(_Closed):
     y: Annotated[Any, AfterValidator(_unit)] = Field("", description="unit of the output y, e.g. m or m/s")
 
 
-class SystemTable(_Table):
+class SystemTable(_Closed):
     fs: Positive = Field(description="sampling frequency in Hz")
     units: UnitsTable = Field(default_factory=UnitsTable, description="every record must match")
     output: _choice(OUTPUTS) = Field("displacement", description="what y is")
 
 
-class PhysicsTable(_Table):
+class PhysicsTable(_Closed):
     """Restoring force R = input_gain * u - mass * acceleration [N]."""
 
     mass: Positive | None = Field(None, description="modal mass [kg]")
     input_gain: Positive = Field(1.0, description="N per input unit (N/V for a shaker voltage)")
 
 
-class ModelTable(_Table):
+class ModelTable(_Closed):
     omit_unset: ClassVar[tuple[str, ...]] = ("ny", "nu")
     kernel: _choice(KERNELS) = Field("matern32+cubic", description="eq. 12")
     mode: _choice(MODES) = "exact"
@@ -286,15 +286,17 @@ class ModelTable(_Table):
         0.25, description="window of the band's local amplitude [s]")
     ny: Count | None = Field(None, description="output lags (omit when chosen by the lag surface)")
     nu: Count | None = Field(None, description="input lags")
+    hyper: _choice(("subset", "vfe")) = Field(
+        "subset", description="sparse mode's hyperparameters: exact ML-II on the capped rows, or the VFE bound")
 
 
-class PredictTable(_Table):
+class PredictTable(_Closed):
     mc_paths: Count = Field(1024, description="Monte Carlo paths")
     confidence: Fraction = 0.99
     method: _choice(PREDICT_METHODS, "'mc' or 'linear'") = Field("mc", description="the report's free runs")
 
 
-class NoveltyTable(_Table):
+class NoveltyTable(_Closed):
     false_alarm_rate: Fraction = 0.01
     method: _choice(NOVELTY_METHODS, _one_of(NOVELTY_METHODS, quoted=False)) = NOVELTY_METHODS[0]
 
