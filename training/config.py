@@ -82,8 +82,9 @@ in ``[[records]]``, ``simulate``, ``noise`` and ``system.units`` and kept elsewh
 in ``DatasetConfig.extra``).
 
 Errors (missing ``name``/``system.fs``/``records``, no record with role ``train``, unknown roles, keys
-or options (every table refuses keys it does not know), bad values, fs or unit mismatches, unreadable records) raise :class:`ConfigError` (a
-``ValueError``) with one line naming the file and the dotted key, e.g.
+or options (every table refuses keys it does not know), bad values, fs or unit mismatches, unreadable
+records) raise :class:`ConfigError` (a ``ValueError``) with one line naming the file and the dotted
+key, e.g.
 ``cfg.toml: model.inducing: must be an integer >= 1, got 0`` or
 ``cfg.toml: records.sweep-10N.noise.fraction: must be a number >= 0, got -1`` (a record without a
 valid name is ``records[i]``).
