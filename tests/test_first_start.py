@@ -312,3 +312,46 @@ def test_serve_first_start_builds_then_predicts(tmp_path):
         print(f"live {live_s:.1f} s, ready {ready_s:.1f} s, first predict {time.monotonic() - t0:.1f} s")
     finally:
         _stop(proc)
+
+
+_RACER = """
+import sys, time
+from pathlib import Path
+from gpnarx.training import defaults
+
+root = Path(sys.argv[1])
+marker = root / "bouc-wen.built"
+
+
+def plan(root_, names=None):
+    return {"present": ["bouc-wen"] if marker.exists() else [], "skipped": {},
+            "missing": [] if marker.exists() else ["bouc-wen"]}
+
+
+def build(name, root_, **kw):
+    (root / f"build-{sys.argv[2]}").write_text("started")
+    t0 = time.monotonic()  # hold the lock until the other process has started and asked for it
+    while len(list(root.glob("started-*"))) < 2 and time.monotonic() - t0 < 30:
+        time.sleep(0.05)
+    time.sleep(1.0)
+    marker.write_text(sys.argv[2])
+
+
+defaults.plan_defaults, defaults.build_default = plan, build
+(root / f"started-{sys.argv[2]}").write_text("")
+defaults.ensure_default_registry(root, progress=False, names=["bouc-wen"], log=lambda m: print(m, flush=True))
+"""
+
+
+def test_two_processes_on_one_empty_registry_build_each_default_once(tmp_path):
+    """Two processes that start on the same empty registry at once (two servers, or a server and
+    build-defaults) build a default once: the build plan is made under an exclusive lock of the registry
+    (training.defaults.build_lock), so the second waits, says so, and then finds the bundle present."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    procs = [subprocess.Popen([sys.executable, "-c", _RACER, str(tmp_path), k], stdout=subprocess.PIPE, text=True,
+                              env=env) for k in "ab"]
+    outs = [p.communicate(timeout=60)[0] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0]
+    assert len(list(tmp_path.glob("build-*"))) == 1, outs  # one build, not two
+    assert sum("waiting for it" in o for o in outs) == 1, outs
+    assert (tmp_path / defaults.LOCK_FILE).is_file() and defaults.Registry(tmp_path).scan().refused == []

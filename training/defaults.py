@@ -18,9 +18,15 @@ runs because its novelty threshold is calibrated on them.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX
+    fcntl = None
 
 from gpnarx.configs import CONFIG_DIR, shipped_config, shipped_config_names
 from gpnarx.model.registry import Registry
@@ -42,6 +48,7 @@ DEFAULT_MC = 128
 #: report method of a default build; absent: the config's own (``[predict] method``)
 LIGHT_METHOD = {"bouc-wen": "linear", "bert-standin": "linear"}
 DEFAULTS_ENV = "GPNARX_DEFAULTS"
+LOCK_FILE = ".defaults.lock"  # in the registry root; the scan ignores files there
 
 
 def default_registry_dir() -> Path:
@@ -94,7 +101,6 @@ def build_default(name: str, root, progress: bool = False, log=None, mc_paths: i
     if name not in DEFAULT_BUNDLES:
         raise ValueError(f"{name!r} is not a default bundle; choose among {', '.join(DEFAULT_BUNDLES)}")
     if name in DERIVED:
-
         return build_real_monitor(Path(root), bert_data_dir(), mc_paths=mc_paths, log=log)
     return train(shipped_config(name), Path(root), progress=progress, mc_paths=mc_paths, log=log,
                  method=LIGHT_METHOD.get(name))
@@ -111,12 +117,36 @@ def ensure_default_registry(path=None, progress: bool = True, names=None, mc_pat
     root.mkdir(parents=True, exist_ok=True)
     if log is None and progress:
         log = lambda m: print(f"[gpnarx] {m}", file=sys.stderr, flush=True)  # noqa: E731
-    plan = plan_defaults(root, names)
-    for name, why in plan["skipped"].items():
-        if log:
-            log(f"{why}: skipping {name}")
-    for name in plan["missing"]:
-        if log:
-            log(f"building default bundle {name} into {root} (first use only)")
-        build_default(name, root, progress=progress, log=log, mc_paths=mc_paths)
+    with build_lock(root, log):
+        plan = plan_defaults(root, names)  # after the lock: another process may have built some meanwhile
+        for name, why in plan["skipped"].items():
+            if log:
+                log(f"{why}: skipping {name}")
+        for name in plan["missing"]:
+            if log:
+                log(f"building default bundle {name} into {root} (first use only)")
+            build_default(name, root, progress=progress, log=log, mc_paths=mc_paths)
     return root
+
+
+@contextlib.contextmanager
+def build_lock(root: Path, log=None):
+    """Hold ``ROOT/.defaults.lock`` (an exclusive ``flock``) while defaults are planned and built, so two
+    processes starting on the same empty registry (two ``gpnarx serve``, or a server and a
+    ``build-defaults``) build each default once: the second waits, then finds the bundles present. The
+    lock is the kernel's, released when its holder exits, even killed. Without ``fcntl`` (not POSIX) the
+    build runs unlocked."""
+    if fcntl is None:  # pragma: no cover - POSIX is where the service runs
+        yield
+        return
+    with open(root / LOCK_FILE, "a+") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if log:
+                log(f"another process is building defaults into {root}: waiting for it")
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
