@@ -1,9 +1,11 @@
-"""The FRF comparison's parts (training/frf_check.py) on synthetic data: the drive-frequency amplitude,
-the LMS FRF reader and its refusal of other files, and a linear model checked against its own FRF."""
+"""The FRF comparison's parts (training/frf_check.py) on synthetic data: the drive-frequency amplitude it
+takes from model.probe, the LMS FRF reader and its refusal of other files, and a linear model checked
+against its own FRF."""
 import numpy as np
 import pytest
 import scipy.io as sio
 
+from gpnarx.model.probe import sine_fit
 from gpnarx.training import frf_check as fc
 
 
@@ -11,8 +13,8 @@ def test_sine_amplitude_recovers_the_drive_component_next_to_an_offset_and_a_har
     fs = 1024.0
     t = np.arange(2048) / fs
     x = 0.3 + 0.07 * np.sin(2 * np.pi * 12.0 * t + 0.4) + 0.02 * np.sin(2 * np.pi * 24.0 * t)
-    assert fc.sine_amplitude(x, fs, 12.0) == pytest.approx(0.07, rel=1e-9)
-    assert fc.sine_amplitude(x, fs, 24.0) == pytest.approx(0.02, rel=1e-9)
+    assert sine_fit(x, fs, 12.0)[0] == pytest.approx(0.07, rel=1e-9)
+    assert sine_fit(x, fs, 24.0)[0] == pytest.approx(0.02, rel=1e-9)
 
 
 def _write_frf(path, f, h):
@@ -40,8 +42,6 @@ def test_frf_check_of_a_linear_model_against_its_own_frf(tmp_path):
     fs, a, b = 1024.0, 0.97, 0.05
 
     class Linear:
-        fs_ = fs
-
         def simulate(self, u, method="linear"):
             y = np.zeros_like(u)
             for i in range(1, u.size):
@@ -51,12 +51,12 @@ def test_frf_check_of_a_linear_model_against_its_own_frf(tmp_path):
                 mean, lower, upper = y, y - 0.01, y + 0.01
             return Run
 
-    assert fc.frf_check(Linear(), tmp_path) is None
+    assert fc.frf_check(Linear(), tmp_path, fs=fs) is None
     f = np.arange(0, 100, 0.0625)
     z = np.exp(2j * np.pi * f / fs)
     (tmp_path / "Rand" / "noise").mkdir(parents=True)
     _write_frf(tmp_path / "Rand" / "noise" / "FRF.mat", f, b / (z - a))
-    check = fc.frf_check(Linear(), tmp_path, freqs=(3.0, 12.0, 18.0, 40.0), seconds=4.0)
+    check = fc.frf_check(Linear(), tmp_path, fs=fs, freqs=(3.0, 12.0, 18.0, 40.0), seconds=4.0)
     assert [r["freq"] for r in check["rows"]] == [3.0, 12.0, 40.0]  # 18 Hz lies in the resonance band
     assert check["worst_ratio_error"] < 0.01
     assert "| 12 |" in fc.markdown(check)

@@ -72,7 +72,7 @@ def test_steady_sine_between_the_recorded_frequencies_follows_the_rig_frf(model)
     sit at 0.90-0.97 of that FRF, so the tolerance is the reference's own spread and a little more."""
     from gpnarx.training.frf_check import frf_check
 
-    check = frf_check(model, DATA, freqs=(4.0, 7.0, 12.0, 14.0, 16.0, 22.0, 25.0, 30.0), seconds=6.0,
+    check = frf_check(model, DATA, fs=1024.0, freqs=(4.0, 7.0, 12.0, 14.0, 16.0, 22.0, 25.0, 30.0), seconds=6.0,
                       recorded=[p for p in RECORDS if p.parent.name == "Sine"])
     if check is None:
         pytest.skip(f"no LMS FRF.mat of a noise run under {DATA}")

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import scipy.io as sio
 
+from gpnarx.model.probe import drive_of, sine_fit
 from gpnarx.training.records import read_record
 
 AMPLITUDE = 0.15  # V: the level of the recorded sines (0.15 V nominal)
@@ -60,27 +61,24 @@ def frf_gain(f: np.ndarray, h: np.ndarray, freq: float) -> float:
     return float(np.interp(freq, f, np.abs(h)))
 
 
-def sine_amplitude(x: np.ndarray, fs: float, freq: float) -> float:
-    """Amplitude of the component of ``x`` at ``freq`` [Hz] (least-squares fit of a sine, a cosine and an
-    offset), in x's units."""
-    t = np.arange(x.size) / fs
-    A = np.column_stack([np.sin(2 * np.pi * freq * t), np.cos(2 * np.pi * freq * t), np.ones_like(t)])
-    coef, *_ = np.linalg.lstsq(A, x, rcond=None)
-    return float(np.hypot(coef[0], coef[1]))
-
-
 def drive(freq: float, amplitude: float, fs: float, seconds: float) -> np.ndarray:
     """A sine of ``amplitude`` [V] at ``freq`` [Hz], ramped in over ``RAMP`` s, ``seconds`` long at ``fs``."""
     t = np.arange(int(round(seconds * fs))) / fs
     return amplitude * np.minimum(1.0, t / RAMP) * np.sin(2 * np.pi * freq * t)
 
 
-def frf_check(model, data_dir, *, freqs=FREQUENCIES, amplitude: float = AMPLITUDE, seconds: float = SECONDS,
-              recorded=()) -> dict | None:
+def _in_resonance(freq: float) -> bool:
+    return RESONANCE_BAND[0] <= freq <= RESONANCE_BAND[1]
+
+
+def frf_check(model, data_dir, *, fs: float, freqs=FREQUENCIES, amplitude: float = AMPLITUDE,
+              seconds: float = SECONDS, recorded=()) -> dict | None:
     """Compare the model's steady sine amplitude with the rig's FRF (see the module docstring).
 
-    model: a fitted ``GPNARX`` of the rig (u in V, y in m/s, fs = the records' fs). recorded: record
-    folders whose measured steady amplitude is compared with the FRF too (the reference's own accuracy).
+    model: a fitted ``GPNARX`` of the rig (u in V, y in m/s) at the records' sampling frequency ``fs``
+    [Hz]. recorded: record folders whose measured steady amplitude is compared with the FRF too (the
+    reference's own accuracy). Amplitudes and drive frequencies come from ``model.probe``
+    (``sine_fit``, ``drive_of``), as the novelty probe contract measures them.
     Returns ``{"frf": path, "amplitude": V, "rows": [...], "recorded": [...], "worst_ratio_error": ...}``
     (ratios model / FRF), or None when no FRF export is under ``data_dir``.
     """
@@ -88,14 +86,13 @@ def frf_check(model, data_dir, *, freqs=FREQUENCIES, amplitude: float = AMPLITUD
     if path is None:
         return None
     f, h = read_lms_frf(path)
-    fs = float(model.fs_) if getattr(model, "fs_", None) else 1024.0
     n_fit = int(round(FIT_SECONDS * fs))
     rows = []
     for freq in freqs:
-        if RESONANCE_BAND[0] <= freq <= RESONANCE_BAND[1]:
+        if _in_resonance(freq):
             continue
         run = model.simulate(drive(freq, amplitude, fs, seconds), method="linear")
-        got = sine_amplitude(run.mean[-n_fit:], fs, freq)
+        got = sine_fit(run.mean[-n_fit:], fs, freq)[0]
         ref = frf_gain(f, h, freq) * amplitude
         half = float(np.mean(run.upper[-n_fit:] - run.lower[-n_fit:]) / 2.0)
         rows.append({"freq": float(freq), "model": got, "frf": ref, "ratio": got / ref, "band_halfwidth": half})
@@ -104,11 +101,11 @@ def frf_check(model, data_dir, *, freqs=FREQUENCIES, amplitude: float = AMPLITUD
         rec = read_record(folder)
         i0, i1 = (int(round(s * rec.fs)) for s in RECORDED_WINDOW)
         u, y = rec.u[i0:i1], rec.y[i0:i1]
-        freq = _dominant(u, rec.fs)
-        if RESONANCE_BAND[0] <= freq <= RESONANCE_BAND[1]:
+        d = drive_of(u, rec.fs)
+        freq, drive_amp = d["frequency"], d["amplitude"]
+        if d["kind"] != "sine" or _in_resonance(freq):
             continue
-        drive_amp = sine_amplitude(u, rec.fs, freq)
-        got = sine_amplitude(y, rec.fs, freq)
+        got = sine_fit(y, rec.fs, freq)[0]
         ref = frf_gain(f, h, freq) * drive_amp
         rec_rows.append({"record": Path(folder).name, "freq": freq, "drive": drive_amp, "measured": got, "frf": ref,
                          "ratio": got / ref})
@@ -116,13 +113,6 @@ def frf_check(model, data_dir, *, freqs=FREQUENCIES, amplitude: float = AMPLITUD
     worst_rec = max((abs(r["ratio"] - 1.0) for r in rec_rows), default=None)
     return {"frf": str(path), "amplitude": float(amplitude), "seconds": float(seconds), "rows": rows,
             "recorded": rec_rows, "worst_ratio_error": worst, "worst_recorded_ratio_error": worst_rec}
-
-
-def _dominant(u: np.ndarray, fs: float) -> float:
-    """The drive frequency [Hz] of a steady sine window: the largest line of a zero-padded spectrum."""
-    n = 8 * u.size
-    spec = np.abs(np.fft.rfft(u - np.mean(u), n))
-    return float(np.argmax(spec) * fs / n)
 
 
 def markdown(check: dict) -> str:

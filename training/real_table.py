@@ -142,8 +142,9 @@ def real_table(model, cfg, data_dir, *, mc_paths: int = 1024, seed: int = 0, max
             f"window fit {_fmt(row['window_linear']['fit'])} %")
     # between the recorded frequencies: the model's steady sine response against the rig's FRF
     sines = [f for f in folders if f.parent.name == "Sine"]
-    frf = (frf_check(model, data_dir, recorded=sines) if max_seconds is None
-           else frf_check(model, data_dir, freqs=(12.0, 25.0), seconds=3.0, recorded=sines[:1]))
+    fs = float(cfg.system["fs"])
+    frf = (frf_check(model, data_dir, fs=fs, recorded=sines) if max_seconds is None
+           else frf_check(model, data_dir, fs=fs, freqs=(12.0, 25.0), seconds=3.0, recorded=sines[:1]))
     if frf is not None:
         log(f"  FRF check: model / rig FRF {min(r['ratio'] for r in frf['rows']):.3f}-"
             f"{max(r['ratio'] for r in frf['rows']):.3f} off resonance")
