@@ -290,11 +290,6 @@ def _nlml_ws(theta, kernel, X, y, ws):
     return nlml_and_grad(theta, kernel, X, y, ws)
 
 
-def redundant_scale_indices(kernel: Kernel) -> list[int]:
-    """Positions in theta of the redundant parameters (the cubic parts' log scale s, eq. 11)."""
-    return kernel.redundant_indices()
-
-
 def default_warm_start_subset(n: int) -> int | None:
     """Warm-start subset size used by ``GPNARX`` for n ML-II rows: n // 4 from n >= 2000, else none."""
     return n // 4 if n >= 2000 else None
@@ -342,7 +337,7 @@ def fit_ml2(
     bounds = kernel.log_bounds() + [NOISE_LOG_BOUNDS]
     if hold_redundant:
         base = np.clip(base, [b[0] for b in bounds], [b[1] for b in bounds])
-        for j in redundant_scale_indices(kernel):
+        for j in kernel.redundant_indices():
             bounds[j] = (float(base[j]), float(base[j]))  # L-BFGS-B keeps a variable with equal bounds fixed
     n = X.shape[0]
     sub_evals = sub_rows = 0

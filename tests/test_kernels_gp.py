@@ -211,7 +211,7 @@ def test_a_new_kernel_brings_its_own_formulas_to_ml2_and_vfe():
     """Kernels own their formulas: ML-II's workspace and the sparse bound use a kernel defined outside the
     package through its methods alone (no list of known types), with the same numbers as the textbook path;
     starting values, per-parameter bounds and redundant parameters come from the parts."""
-    from gpnarx.model.ml2 import NLMLWorkspace, _nlml_and_grad_generic, redundant_scale_indices
+    from gpnarx.model.ml2 import NLMLWorkspace, _nlml_and_grad_generic
     from gpnarx.model.vfe import vfe_nlml_and_grad
 
     rng = np.random.default_rng(11)
@@ -234,5 +234,5 @@ def test_a_new_kernel_brings_its_own_formulas_to_ml2_and_vfe():
               - vfe_nlml_and_grad(th - e, k, X, y, Z, jitter=0.0)[0]) / 2e-6
         assert abs(gv[j] - fd) <= 1e-4 * max(abs(fd), 1.0), (j, gv[j], fd)
     assert k.log_bounds()[-1] == (-5.0, 5.0) and k.log_bounds()[0] == (-12.0, 12.0)
-    assert redundant_scale_indices(k) == [3]  # the cubic part's log scale: Matern32 has 2 parameters first
+    assert k.redundant_indices() == [3]  # the cubic part's log scale: Matern32 has 2 parameters first
     assert initial_theta(k, X, y)[-2] == k.parts[-1].theta[0]  # no rule of its own: its current theta

@@ -126,7 +126,6 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
                                            probe=probe, n_paths=0, seconds=1.0 if quick else 4.0, log=log,
                                            method=mon_cfg.novelty["method"])
     if system == "bert-real":
-
         log(f"[{system}] every real record under {bert_data_dir()}: whole records from rest and steady windows, "
             f"linearised and {n_paths if table_mc is None else table_mc}-path Monte Carlo (0: linearised only), next "
             f"to linear ARX baselines")
@@ -139,7 +138,7 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
         log(f"[{system}] diverged: {c['diverged'] or 'none'}; GP-NARX at least the better ARX on {c['at_least_arx']} "
             f"of {c['n_records']}; lowest sine coverage {c['min_sine_coverage']:.1f} %")
     summary["wall_seconds"] = time.perf_counter() - t0
-    (out / "summary.json").write_text(json.dumps(_clean(summary), indent=1))
+    (out / "summary.json").write_text(json.dumps(to_json_safe(summary), indent=1))
     # the results page from the JSON just written (as --from-run renders it): no figure of its own
     render_from_run(out, docs_page)
     log(f"[{system}] done in {summary['wall_seconds']:.1f} s; report in {res['path']}/report, "
@@ -219,7 +218,7 @@ def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=No
                        summary.get("quick") else QUICK["max_seconds"], jobs=jobs, log=log)
     table["checks"] = table_checks(table)
     table["rescored_seconds"] = time.perf_counter() - t0
-    summary["real_table"] = _clean(table)
+    summary["real_table"] = to_json_safe(table)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     render_from_run(out, docs_page)
     return summary
@@ -238,11 +237,6 @@ def render_from_run(out_dir, docs_page=None, write_out: bool = True) -> str:
     if docs_page:
         Path(docs_page).write_text(page)
     return page
-
-
-def _clean(o):
-
-    return to_json_safe(o)
 
 
 def standin_oracle(cfg, records: dict) -> dict:
