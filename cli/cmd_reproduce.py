@@ -1,4 +1,4 @@
-"""``gpnarx reproduce bouc-wen|bert-standin|bert-real [--quick] [--out DIR]``.
+"""``gpnarx reproduce bouc-wen|bert-standin|bert-real|bert-real-paper [--quick] [--out DIR]``.
 
 Imports of the model and training packages sit inside the functions that use them: every command module is
 imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
@@ -11,7 +11,7 @@ import sys
 def add_parser(sub):
     p = sub.add_parser("reproduce", help="run the paper's protocol end to end (lag surface, train, verify, "
                                          "validate, baselines, report)")
-    p.add_argument("system", choices=("bouc-wen", "bert-standin", "bert-real"))
+    p.add_argument("system", choices=("bouc-wen", "bert-standin", "bert-real", "bert-real-paper"))
     p.add_argument("--out", default=None, help="output folder (default: runs/reproduce-SYSTEM)")
     p.add_argument("--quick", action="store_true", help="same code path on a tiny grid, short records, few paths")
     p.add_argument("--jobs", type=int, default=-1, help="parallel jobs for the lag surface")

@@ -16,8 +16,19 @@ away; nothing in the mean itself says so. Every answer therefore carries two fla
 When either flag is raised the mean, band, fit, RMSE and coverage are still returned (they describe
 what the model computed), but they are extrapolations, not predictions the model stands behind.
 
-The envelope is amplitude-only (peak |u|, peak |y| over the training records): an input inside it
-at a frequency or waveform the training records never held is not flagged by it; the validation
+* ``"frequency"`` in ``out_of_range``: the drive holds more than ``FREQUENCY_SHARE`` (10 %) of its
+  power in frequency bands where it is stronger than ``FREQUENCY_FACTOR`` (2x) the strongest the
+  training inputs ever were in that band. Bands and strengths come from a short-time Fourier
+  transform of u (Hann frames of ``FRAME`` = 1024 samples, half overlap; ``BAND_BINS`` = 8 bins
+  per band, i.e. 8 Hz at 1024 Hz, about 5.9 Hz at 750 Hz): a band's strength in a frame is the
+  root sum of squares of its bins, and the training envelope keeps, per band, the largest strength
+  over every frame of every training record (``u_bands``, input units). So a 0-110 Hz drive to a
+  model whose inputs reached 40 Hz (or whose 40-110 Hz inputs were a hundred times weaker) says
+  so, while a sine anywhere inside the trained band and level does not. The rule works in
+  samples, so it needs no fs; a bundle trained before it existed has no ``u_bands`` and is not
+  checked for it.
+
+The peak and band envelopes are what the model saw, not what it predicts well: the validation
 tables in ``docs/`` say where the shipped models were checked.
 """
 from __future__ import annotations
@@ -28,20 +39,61 @@ import numpy as np
 
 RANGE_FACTOR = 1.5  # peak |u|, |y| or |mean| beyond 1.5x the training peak -> out_of_range
 DIVERGENCE_FACTOR = 3.0  # peak |y| of a path (or the linearised mean) beyond 3x -> diverged
-RANGE_FIELDS = ("u", "y", "prediction")
+RANGE_FIELDS = ("u", "y", "prediction", "frequency")
+FRAME = 1024  # samples per STFT frame of the frequency check (Hann window, half overlap)
+BAND_BINS = 8  # STFT bins per band of the frequency check
+FREQUENCY_FACTOR = 2.0  # a band is beyond the training inputs when stronger than 2x their strongest
+FREQUENCY_SHARE = 0.10  # "frequency" when more than 10 % of the drive's power lies in such bands
+
+
+def band_strengths(u) -> np.ndarray:
+    """Per-frame band strengths of input ``u``: shape (n_bands, n_frames), input units.
+
+    Short-time Fourier transform (Hann frames of ``FRAME`` samples, half overlap, zero-padded
+    ends); a band is ``BAND_BINS`` adjacent bins and its strength is the root sum of squares of
+    their magnitudes (scipy's spectrum scaling: a full-frame sine of amplitude A gives about A/2).
+    """
+    from scipy.signal import stft  # here: scipy.signal costs a CLI start time it rarely needs
+
+    u = np.asarray(u, dtype=float)
+    if u.size < FRAME:  # a short record is one zero-padded frame
+        u = np.pad(u, (0, FRAME - u.size))
+    _, _, z = stft(u, nperseg=FRAME, noverlap=FRAME // 2, window="hann", detrend=False)
+    p = np.abs(z) ** 2
+    n_bands = -(-p.shape[0] // BAND_BINS)
+    pad = n_bands * BAND_BINS - p.shape[0]
+    p = np.pad(p, ((0, pad), (0, 0)))
+    return np.sqrt(p.reshape(n_bands, BAND_BINS, -1).sum(axis=1))
+
+
+def band_envelope(inputs) -> list[float]:
+    """Largest band strength over every frame of every input in ``inputs`` (``u_bands``), input units."""
+    return [float(v) for v in np.max(np.concatenate([band_strengths(u) for u in inputs], axis=1), axis=1)]
+
+
+def frequency_share(u_bands, u) -> float:
+    """Share (0-1) of ``u``'s STFT power in bands stronger than ``FREQUENCY_FACTOR`` x ``u_bands``."""
+    s = band_strengths(u)
+    env = np.asarray(u_bands, dtype=float)[:, None]
+    power = s * s
+    total = float(power.sum())
+    if not np.isfinite(total) or total <= 0.0:
+        return 0.0
+    return float(power[s > FREQUENCY_FACTOR * env].sum() / total)
 
 
 def training_envelope(pairs) -> dict:
     """Peak |u| and peak |y| over training (u, y) pairs, in input and output units.
 
-    Returns ``{"u_peak": float, "y_peak": float, "n_records": int}``.
+    Returns ``{"u_peak": float, "y_peak": float, "n_records": int, "u_bands": [float, ...]}``
+    (``u_bands``: the inputs' band envelope, ``band_envelope``).
     """
     pairs = [(np.asarray(u, float), np.asarray(y, float)) for u, y in pairs]
     if not pairs:
         raise ValueError("at least one training record is needed for the training envelope")
     return {"u_peak": max(float(np.max(np.abs(u))) for u, _ in pairs),
             "y_peak": max(float(np.max(np.abs(y))) for _, y in pairs),
-            "n_records": len(pairs)}
+            "n_records": len(pairs), "u_bands": band_envelope([u for u, _ in pairs])}
 
 
 def check_envelope(env) -> dict | None:
@@ -55,7 +107,18 @@ def check_envelope(env) -> dict | None:
     if not (math.isfinite(u_peak) and math.isfinite(y_peak) and u_peak >= 0 and y_peak > 0):
         raise ValueError(f"training envelope peaks must be finite, u_peak >= 0 and y_peak > 0; got "
                          f"{u_peak!r}, {y_peak!r}")
-    return {**dict(env), "u_peak": u_peak, "y_peak": y_peak}
+    out = {**dict(env), "u_peak": u_peak, "y_peak": y_peak}
+    if env.get("u_bands") is not None:
+        bands = env["u_bands"]
+        n_bands = -(-(FRAME // 2 + 1) // BAND_BINS)
+        try:
+            arr = np.asarray(bands, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError("training envelope u_bands must be a list of numbers") from None
+        if arr.shape != (n_bands,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+            raise ValueError(f"training envelope u_bands must hold {n_bands} finite non-negative numbers")
+        out["u_bands"] = [float(v) for v in arr]
+    return out
 
 
 def divergence_limit(env: dict | None) -> float | None:
@@ -76,17 +139,22 @@ def out_of_range(env: dict | None, u, y=None, mean=None) -> list[str]:
     """Names among ``RANGE_FIELDS`` whose peak lies beyond ``RANGE_FACTOR`` x the training peak.
 
     u: the record's input; y: its measured output (optional); mean: the predicted mean (optional).
+    ``"frequency"`` comes after them when the envelope holds ``u_bands`` and more than
+    ``FREQUENCY_SHARE`` of u's power lies beyond them (``frequency_share``).
     Non-finite values count as outside. [] without an envelope.
     """
     if env is None:
         return []
     out = []
-    if _peak(u) > RANGE_FACTOR * env["u_peak"]:
+    peak_u = _peak(u)
+    if peak_u > RANGE_FACTOR * env["u_peak"]:
         out.append("u")
     if y is not None and _peak(y) > RANGE_FACTOR * env["y_peak"]:
         out.append("y")
     if mean is not None and _peak(mean) > RANGE_FACTOR * env["y_peak"]:
         out.append("prediction")
+    if env.get("u_bands") is not None and math.isfinite(peak_u) and frequency_share(env["u_bands"], u) > FREQUENCY_SHARE:
+        out.append("frequency")
     return out
 
 
@@ -106,5 +174,6 @@ def assess(env: dict | None, run, u, y=None) -> dict:
     return {"diverged_paths": diverged, "out_of_range": out_of_range(env, u, y, run.mean)}
 
 
-__all__ = ["DIVERGENCE_FACTOR", "RANGE_FACTOR", "RANGE_FIELDS", "assess", "check_envelope", "divergence_limit",
-           "out_of_range", "training_envelope"]
+__all__ = ["BAND_BINS", "DIVERGENCE_FACTOR", "FRAME", "FREQUENCY_FACTOR", "FREQUENCY_SHARE", "RANGE_FACTOR",
+           "RANGE_FIELDS", "assess", "band_envelope", "band_strengths", "check_envelope", "divergence_limit",
+           "frequency_share", "out_of_range", "training_envelope"]

@@ -15,6 +15,8 @@ from test_service_support import FS, built_registry, multisine, noisy, simulate
 
 from gpnarx.model.envelope import (
     DIVERGENCE_FACTOR,
+    FREQUENCY_SHARE,
+    frequency_share,
     RANGE_FACTOR,
     assess,
     check_envelope,
@@ -35,7 +37,8 @@ def _run(mean, method="linear", diverged=0):
 def test_envelope_is_the_training_peaks_and_checks_each_field():
     env = training_envelope([(np.array([0.0, 2.0, -1.0]), np.array([0.5, -3.0])),
                              (np.array([1.0, -4.0]), np.array([1.0, 2.0]))])
-    assert env == {"u_peak": 4.0, "y_peak": 3.0, "n_records": 2}
+    assert {k: env[k] for k in ("u_peak", "y_peak", "n_records")} == {"u_peak": 4.0, "y_peak": 3.0, "n_records": 2}
+    assert len(env["u_bands"]) == 65 and check_envelope(env)["u_bands"] == env["u_bands"]
     inside_u = np.array([RANGE_FACTOR * 4.0 * 0.99])
     assert out_of_range(env, inside_u, y=[RANGE_FACTOR * 3.0 * 0.99], mean=[-4.4]) == []
     assert out_of_range(env, [RANGE_FACTOR * 4.0 * 1.01]) == ["u"]
@@ -52,8 +55,42 @@ def test_linearised_run_reports_zero_or_one_diverged_path():
     assert assess(env, _run([0.0], method="mc", diverged=7), [0.5])["diverged_paths"] == 7
 
 
+def _sweep(f0, f1, rate, amp, fs=1024.0):
+    t = np.arange(int((f1 - f0) / rate * fs)) / fs
+    return amp * np.sin(2 * np.pi * (f0 * t + 0.5 * rate * t * t))
+
+
+def test_frequency_flag_fires_for_a_drive_beyond_the_trained_band_and_not_inside_it():
+    """Trained on 0-40 Hz sweeps at 0.2 V and a weak 0-110 Hz noise run: a 0-110 Hz sweep at 0.05 V holds
+    most of its power above 40 Hz, where the training inputs were 100x weaker, so it is flagged; a sine or a
+    0-40 Hz sweep inside the trained band and level, and a weaker noise run, are not."""
+    fs = 1024.0
+    rng = np.random.default_rng(0)
+    from scipy.signal import butter, sosfilt
+
+    noise = sosfilt(butter(8, 110.0, fs=fs, output="sos"), rng.normal(scale=0.003, size=16384))
+    train = [(_sweep(0.0, 40.0, 5.0, 0.2), np.zeros(1)), (noise, np.zeros(1))]
+    env = training_envelope(train)
+    t = np.arange(int(8 * fs)) / fs
+    assert out_of_range(env, _sweep(0.0, 110.0, 5.0, 0.05)) == ["frequency"]
+    assert frequency_share(env["u_bands"], _sweep(0.0, 110.0, 5.0, 0.05)) > 0.5
+    assert out_of_range(env, _sweep(0.0, 40.0, 5.0, 0.15)) == []
+    for f in (3.0, 12.0, 25.0, 38.0):
+        assert out_of_range(env, 0.15 * np.sin(2 * np.pi * f * t)) == [], f
+    assert out_of_range(env, 0.5 * noise) == []
+    assert out_of_range(env, np.zeros(4096)) == []  # no power: nothing outside
+    # a strong 60 Hz sine (never trained at that level) is flagged; a sine 2x the envelope's edge is the limit
+    assert out_of_range(env, 0.15 * np.sin(2 * np.pi * 60.0 * t)) == ["frequency"]
+    assert FREQUENCY_SHARE == 0.10
+    # a bundle trained before the rule (no u_bands) is not checked for it
+    old = {"u_peak": env["u_peak"], "y_peak": 1.0}
+    assert out_of_range(old, _sweep(0.0, 110.0, 5.0, 0.05)) == []
+
+
 @pytest.mark.parametrize("bad", [{"u_peak": 1.0}, {"u_peak": 1.0, "y_peak": 0.0}, {"u_peak": "x", "y_peak": 1.0},
-                                 {"u_peak": 1.0, "y_peak": float("inf")}])
+                                 {"u_peak": 1.0, "y_peak": float("inf")},
+                                 {"u_peak": 1.0, "y_peak": 1.0, "u_bands": [1.0, 2.0]},
+                                 {"u_peak": 1.0, "y_peak": 1.0, "u_bands": [float("nan")] * 65}])
 def test_bad_envelope_is_refused(bad):
     with pytest.raises(ValueError, match="envelope"):
         check_envelope(bad)

@@ -49,6 +49,42 @@ class LinearARX:
         return y[ny:]
 
 
+def arx_lag_search(train_records, lag_records, ny_grid, nu_grid, criterion: str = "worst") -> dict:
+    """The ARX a system-identification engineer would choose with the GP-NARX's own lag search: at each
+    (ny, nu) of the grid, least squares on ``train_records``, free-run on each ``lag_records`` record
+    (from rest, or from its first ny measured outputs when ``meta["initial"] == "measured"``), scored by
+    fit % (eq. 14); the cell with the best ``criterion`` ("worst": the lowest record fit, "mean": the
+    mean fit; ties: fewer lags) is refitted and returned.
+
+    Returns ``{"model": LinearARX, "ny", "nu", "fit", "cells": [{"ny", "nu", "fits"}...]}``.
+    """
+    if criterion not in ("worst", "mean"):
+        raise ValueError(f"criterion must be 'worst' or 'mean', got {criterion!r}")
+    cells = []
+    for ny in ny_grid:
+        for nu in nu_grid:
+            arx = LinearARX(int(ny), int(nu)).fit(train_records)
+            fits = {}
+            for rec in lag_records:
+                y0 = rec.y[: arx.ny] if rec.meta.get("initial") == "measured" else None
+                with np.errstate(all="ignore"):
+                    f = fit_percent(rec.y, arx.simulate(rec.u, y0=y0))
+                fits[rec.name] = float(f) if np.isfinite(f) else -np.inf
+            cells.append({"ny": int(ny), "nu": int(nu), "fits": fits})
+    if not cells:
+        raise ValueError("the ARX lag search needs at least one (ny, nu) cell")
+
+    def score(c):
+        vals = list(c["fits"].values())
+        return min(vals) if criterion == "worst" else float(np.mean(vals))
+
+    best = max(cells, key=lambda c: (score(c), -(c["ny"] + c["nu"])))
+    return {"model": LinearARX(best["ny"], best["nu"]).fit(train_records), "ny": best["ny"], "nu": best["nu"],
+            "fit": score(best), "criterion": criterion,
+            "cells": [{**c, "fits": {k: (v if np.isfinite(v) else None) for k, v in c["fits"].items()}}
+                      for c in cells]}
+
+
 class FrolsNARX:
     """SysIdentPy polynomial NARX (FROLS), degree 2, AIC-selected terms."""
 

@@ -36,9 +36,25 @@ FRF_VARIABLE = "FRF_Laser__X_Shaker__X"
 
 
 def find_frf(data_dir) -> Path | None:
-    """The first LMS ``FRF.mat`` of a noise run under ``data_dir`` (``Rand/*/FRF.mat``), or None."""
+    """The reference FRF: the LMS ``FRF.mat`` of the noise run under ``data_dir`` (``Rand/*/FRF.mat``)
+    with the strongest drive (largest RMS shaker voltage of its ``TimeShaker.mat``), or None.
+
+    The rig is nonlinear, so noise runs at different levels give different FRFs (the 0.10 V run's
+    differs from the 0.25 V run's by several % below 5 Hz); the strongest run is the one closest to
+    the level of the 0.15 V sines this check sets the model against. A noise run without its time
+    records ranks last.
+    """
     hits = sorted(Path(data_dir).glob("Rand/*/FRF.mat"))
-    return hits[0] if hits else None
+    if not hits:
+        return None
+
+    def level(frf_path: Path) -> float:
+        try:
+            return float(np.sqrt(np.mean(read_record(frf_path.parent).u ** 2)))
+        except Exception:  # noqa: BLE001 - a run without readable time records cannot be ranked
+            return -1.0
+
+    return max(hits, key=level)
 
 
 def read_lms_frf(path) -> tuple[np.ndarray, np.ndarray]:
@@ -54,6 +70,28 @@ def read_lms_frf(path) -> tuple[np.ndarray, np.ndarray]:
     if f.size != h.size or f.size < 2:
         raise ValueError(f"{path}: {FRF_VARIABLE} holds {h.size} values for {f.size} frequencies")
     return f, h
+
+
+def sweep_receptances(data_dir) -> list[dict]:
+    """The receptance FRFs of the swept-sine runs under ``data_dir`` (``Chirp/*/*/FRF.mat``), the paper's
+    Fig. 12(a): for each run its name, the frequencies [Hz], |H_d| = |H_v| / (2 pi f) [m/V] (displacement
+    per volt from the exported velocity per volt; 0 Hz left out) and the peak of |H_d| over 5-40 Hz
+    (``peak_freq`` [Hz], ``peak`` [m/V]): the peak moves down as the drive grows (softening). Sorted by
+    the run's RMS shaker voltage; [] when there are no such exports."""
+    out = []
+    for path in sorted(Path(data_dir).glob("Chirp/*/*/FRF.mat")):
+        f, h = read_lms_frf(path)
+        keep = f > 0
+        f, rec = f[keep], np.abs(h[keep]) / (2.0 * np.pi * f[keep])
+        band = (f >= 5.0) & (f <= 40.0)
+        k = int(np.argmax(np.where(band, rec, -np.inf)))
+        try:
+            level = float(np.sqrt(np.mean(read_record(path.parent).u ** 2)))
+        except Exception:  # noqa: BLE001 - an FRF export without its time records still plots
+            level = float("nan")
+        out.append({"name": path.parent.name, "freq": f, "receptance": rec, "peak_freq": float(f[k]),
+                    "peak": float(rec[k]), "u_rms": level})
+    return sorted(out, key=lambda r: (np.isnan(r["u_rms"]), r["u_rms"]))
 
 
 def frf_gain(f: np.ndarray, h: np.ndarray, freq: float) -> float:

@@ -1,22 +1,28 @@
-"""The real-rig results table: every real record of a data folder, whole and windowed, GP-NARX next to
-linear ARX baselines fitted on the same training records.
+"""The real-rig results table by excitation class: every real record of a data folder, whole and from
+rest, GP-NARX next to two linear ARX baselines a system-identification engineer would take seriously.
 
-For each record found under the data folder (``Sine/*`` and ``Rand/*`` LMS exports; records a user
-adds there are picked up too) and its role in the dataset config (``train`` when any training
-window comes from it, ``lags`` when it chose the lags, ``validate`` when it is held out, ``unseen``
-when the config does not name it):
+For each record found under the data folder (LMS exports with ``Time.mat`` + ``TimeShaker.mat``; records
+a user adds there are picked up too), its excitation class (``record_class``: sine near the first
+resonance, sine away from it, sweep, broadband noise) and its role in the dataset config (``train`` when
+any training window comes from it, ``lags`` when it took part in a choice, ``validate`` when it is held
+out of every choice, ``unseen`` when the config does not name it):
 
-* whole record, free run from rest (start-up transient, steady state and free decay): the
-  linearised run and, unless skipped, a Monte Carlo run (``mc_paths`` paths): fit % (eq. 14), the
-  peak ratio max|mean| / max|y| (divergence shows as a ratio far above 1), coverage of the 99 %
-  predictive band (noise included) against the measured output, mean band width, diverged paths
-  and the out-of-range flags (``model.envelope``);
-* a steady window (``WINDOW`` s: 30-32 s of a sine, 10-12 s of a noise run) free-run from its first
-  ny measured outputs: the same figures;
-* two linear ARX baselines fitted by least squares on the same training records: ny=8, nu=4 and
-  the GP-NARX's own lags, simulated the same way;
+* the whole record free-run from rest (start-up, steady state or sweep, free decay after the drive
+  stops), by the linearised method and, unless skipped, by a Monte Carlo run (``mc_paths`` paths):
+  fit % (eq. 14), peak ratio max|mean| / max|y| (divergence shows as a ratio far above 1), coverage
+  of the 99 % predictive band, the band's mean half-width over the record's standard deviation,
+  diverged paths and the out-of-range flags (``model.envelope``);
+* ARX by lag search: the linear ARX whose order the GP-NARX's own lag search chooses (the same grid,
+  the same ``lags`` records, the same criterion) fitted on the same training records
+  (``baselines.arx_lag_search``);
+* ARX of the class: a linear ARX (ny = nu = ``CLASS_ARX_LAGS``) fitted by least squares on the other
+  records of the record's class in the data folder, whole (the noise runs for a noise run, the sweeps
+  for a sweep), never on the record it is scored on;
+* sharpness: the band's mean half-width over that of a calibrated 99 % band around the class ARX's
+  errors on the record (2.576 x its RMS error): a band wider than a linear model's honest one tells a
+  monitor little;
 * between the recorded frequencies, the model's steady sine response against the rig's own FRF
-  (``training.frf_check``), when the noise run's LMS ``FRF.mat`` is in the data folder.
+  (``training.frf_check``), when a noise run's LMS ``FRF.mat`` is in the data folder.
 
 Units: u [V], y [m/s], times [s]. The numbers come from the run that writes them.
 """
@@ -29,14 +35,17 @@ import numpy as np
 
 from gpnarx.model.envelope import assess
 from gpnarx.model.metrics import band_width, coverage, fit_percent
+from gpnarx.model.probe import drive_of
 from gpnarx.model.records import Record
-from gpnarx.training.baselines import LinearARX
-from gpnarx.training.frf_check import frf_check
+from gpnarx.training.baselines import LinearARX, arx_lag_search
+from gpnarx.training.frf_check import RESONANCE_BAND, frf_check
 from gpnarx.training.records import read_record
 
-SINE_WINDOW = (30.0, 32.0)  # s: steady state of a 64 s sine (the drive runs 0-51 s)
-NOISE_WINDOW = (10.0, 12.0)  # s: inside a 16 s noise run
-ARX_LAGS = (8, 4)  # the small ARX a user would fit first (next to one at the GP-NARX's lags)
+CLASSES = ("sine near resonance", "sine away from resonance", "sweep", "noise")
+CLASS_ARX_LAGS = (16, 16)  # the class ARX's order (ny, nu): the order a user fits a noise run with first
+SINE_SHARE = 0.5  # share of u's variance in its dominant sine from which a record counts as a sine
+Z99 = 2.5758  # two-sided 99 % normal quantile: a calibrated 99 % band is +/- Z99 x the RMS error
+TARGETS = {"min_coverage": 90.0, "max_noise_sharpness": 1.5}  # held-out records: per class, and noise runs
 
 
 def find_records(data_dir) -> list[Path]:
@@ -63,9 +72,20 @@ def role_of(roles: list) -> str:
     return "unseen" if not roles else roles[0]
 
 
-def _window(rec: Record, span) -> Record:
-    i, j = int(round(span[0] * rec.fs)), int(round(span[1] * rec.fs))
-    return Record(rec.u[i:j], rec.y[i:j], rec.fs, dict(rec.units), rec.name, dict(rec.meta))
+def record_class(folder: Path, rec: Record) -> str:
+    """The excitation class of a real record (one of ``CLASSES``): a sweep when a folder of its path is
+    named Chirp* or Sweep*, a sine when the sine at u's dominant frequency holds at least ``SINE_SHARE`` of
+    u's variance (``model.probe.drive_of``; a whole 64 s sine record is driven for 51 s, so about 0.8;
+    a sweep or a noise run below 0.01), near resonance when
+    the sine's frequency lies in ``frf_check.RESONANCE_BAND``; otherwise broadband noise."""
+    parts = [p.lower() for p in Path(folder).parts]
+    if any(p.startswith(("chirp", "sweep")) for p in parts):
+        return "sweep"
+    d = drive_of(rec.u, rec.fs)
+    if d["frequency"] is not None and d["concentration"] >= SINE_SHARE:
+        lo, hi = RESONANCE_BAND
+        return "sine near resonance" if lo <= d["frequency"] <= hi else "sine away from resonance"
+    return "noise"
 
 
 def _scores(y, run, u, env) -> dict:
@@ -73,135 +93,194 @@ def _scores(y, run, u, env) -> dict:
     with np.errstate(all="ignore"):
         f = fit_percent(y, mean)
         peak = float(np.max(np.abs(mean)) / max(float(np.max(np.abs(y))), 1e-300))
+        half = float(np.mean(run.upper - run.lower) / 2.0)
     out = {"fit": float(f) if np.isfinite(f) else None, "peak_ratio": peak if np.isfinite(peak) else None,
            "coverage": coverage(y, run.lower, run.upper), "band_width": band_width(run.lower, run.upper),
+           "half_width": half if np.isfinite(half) else None,
+           "half_width_over_std": half / float(np.std(y)) if np.isfinite(half) and np.std(y) > 0 else None,
            "seconds": float(run.seconds)}
     out.update(assess(env, run, u, y))
     return out
 
 
-def _arx_scores(arx: LinearARX, rec: Record, y0=None) -> dict:
+def _arx_scores(arx: LinearARX | None, rec: Record) -> dict:
+    if arx is None:
+        return {"fit": None, "rmse": None, "peak_ratio": None}
     with np.errstate(all="ignore"):
-        yh = arx.simulate(rec.u, y0=y0)
+        yh = arx.simulate(rec.u)
         f = fit_percent(rec.y, yh)
+        e = float(np.sqrt(np.mean((rec.y - yh) ** 2)))
         peak = float(np.max(np.abs(yh)) / max(float(np.max(np.abs(rec.y))), 1e-300))
-    return {"fit": float(f) if np.isfinite(f) else None, "peak_ratio": peak if np.isfinite(peak) else None}
+    fin = np.isfinite
+    return {"fit": float(f) if fin(f) else None, "rmse": e if fin(e) else None,
+            "peak_ratio": peak if fin(peak) else None}
 
 
-def _row(model, arx: dict, folder: Path, role: str, mc_paths: int, seed: int, max_seconds) -> dict:
+def _row(model, arx_search, arx_class, folder: Path, rec: Record, role: str, cls: str, mc_paths: int, seed: int,
+         max_seconds) -> dict:
     """One record's row (see the module docstring); runs in a worker process when jobs > 1."""
     env = getattr(model, "envelope_", None)
-    rec = read_record(folder)
-    whole = rec if not max_seconds else _window(rec, (0.0, max_seconds))
-    span = NOISE_WINDOW if folder.parent.name.lower().startswith("rand") else SINE_WINDOW
-    win = _window(rec, span)
-    y0 = win.y[: model.ny]
-    row = {"role": role, "seconds_long": whole.n / whole.fs, "window": list(span),
-           "measured_peak": float(np.max(np.abs(whole.y))), "input_peak": float(np.max(np.abs(whole.u)))}
+    whole = rec if not max_seconds else rec.window(0.0, min(max_seconds, rec.n / rec.fs))
+    row = {"role": role, "class": cls, "seconds_long": whole.n / whole.fs,
+           "measured_peak": float(np.max(np.abs(whole.y))), "measured_std": float(np.std(whole.y)),
+           "input_peak": float(np.max(np.abs(whole.u)))}
     with np.errstate(all="ignore"):
         row["whole_linear"] = _scores(whole.y, model.simulate(whole.u, method="linear"), whole.u, env)
-        row["window_linear"] = _scores(win.y, model.simulate(win.u, method="linear", y0=y0), win.u, env)
         if mc_paths:
             row["whole_mc"] = _scores(whole.y, model.simulate(whole.u, n_paths=mc_paths, seed=seed), whole.u, env)
-            row["window_mc"] = _scores(win.y, model.simulate(win.u, n_paths=mc_paths, seed=seed, y0=y0), win.u, env)
-    for key, a in arx.items():
-        row[f"whole_{key}"] = _arx_scores(a, whole)
-        row[f"window_{key}"] = _arx_scores(a, win, y0=win.y[: a.ny])
+    row["arx_search"] = _arx_scores(arx_search, whole)
+    row["arx_class"] = {**_arx_scores(arx_class[0] if arx_class else None, whole),
+                        "trained_on": arx_class[1] if arx_class else []}
+    ref = row["arx_class"]["rmse"]
+    for key in ("whole_linear", "whole_mc"):
+        if key in row:
+            h = row[key]["half_width"]
+            row[key]["sharpness"] = h / (Z99 * ref) if h is not None and ref else None
     return row
 
 
+def _class_arx(recs: dict, classes: dict) -> dict:
+    """{record name: (ARX fitted on the other records of its class, their names)} (None: no other record)."""
+    out = {}
+    for name, cls in classes.items():
+        others = [n for n, c in classes.items() if c == cls and n != name]
+        out[name] = (LinearARX(*CLASS_ARX_LAGS).fit([recs[n] for n in others]), others) if others else None
+    return out
+
+
 def real_table(model, cfg, data_dir, *, mc_paths: int = 1024, seed: int = 0, max_seconds: float | None = None,
-               jobs: int = 1, log=None) -> dict:
+               jobs: int = 1, lag_grid=None, lag_criterion: str = "worst", log=None) -> dict:
     """Score ``model`` on every real record under ``data_dir`` (see the module docstring).
 
-    mc_paths: Monte Carlo paths of the whole-record and window runs (0: linearised only).
-    max_seconds: quick mode, the first ``max_seconds`` of each whole record (windows unchanged).
+    mc_paths: Monte Carlo paths of the whole-record runs (0: linearised only).
+    max_seconds: quick mode, the first ``max_seconds`` of each record.
     jobs: records scored in parallel worker processes (joblib; -1: one per core).
-    Returns ``{"records": {name: row}, "arx_lags": [...], "mc_paths": int, "seconds": float}``.
+    lag_grid: (ny values, nu values) of the ARX lag search (default: the model's own lags only);
+    lag_criterion: its choice rule ("worst" or "mean" fit over the config's ``lags`` records).
+    Returns ``{"records": {name: row}, "arx_search": {...}, "mc_paths": int, "seconds": float, ...}``.
     """
     from joblib import Parallel, delayed
 
     log = log or (lambda m: None)
     t0 = time.perf_counter()
-    train = cfg.records_for("train")
-    arx = {f"arx_{ny}_{nu}": LinearARX(ny, nu).fit(train) for ny, nu in (ARX_LAGS, (model.ny, model.nu))}
+    train, lags = cfg.records_for("train"), cfg.records_for("lags")
+    grid = lag_grid or ([model.ny], [model.nu])
+    search = arx_lag_search(train, lags, grid[0], grid[1], criterion=lag_criterion)
+    log(f"  ARX by the lag search: ny={search['ny']} nu={search['nu']} ({lag_criterion} fit {search['fit']:.1f} % "
+        f"on the 'lags' records)")
     roles = record_roles(cfg)
     folders = find_records(data_dir)
     if not folders:
         raise ValueError(f"no LMS record (Time.mat + TimeShaker.mat) under {data_dir}")
+    recs = {f.name: read_record(f) for f in folders}
+    classes = {f.name: record_class(f, recs[f.name]) for f in folders}
+    class_arx = _class_arx(recs, classes)
     todo = [(f, role_of(roles.get(str(f.resolve()), []))) for f in folders]
     rows = {}
     gen = Parallel(n_jobs=jobs, return_as="generator")(
-        delayed(_row)(model, arx, f, role, mc_paths, seed, max_seconds) for f, role in todo)
+        delayed(_row)(model, search["model"], class_arx[f.name], f, recs[f.name], role, classes[f.name], mc_paths,
+                      seed, max_seconds) for f, role in todo)
     for (folder, role), row in zip(todo, gen):
         rows[folder.name] = row
         g = row.get("whole_mc", row["whole_linear"])
-        log(f"  {folder.name:12s} {role:8s} whole fit {_fmt(g['fit'])} % (linear {_fmt(row['whole_linear']['fit'])}), "
-            f"coverage {g['coverage']:.1f} %, peak x{_fmt(g['peak_ratio'], 2)}, diverged {g['diverged_paths']}; "
-            f"ARX {_fmt(row['whole_arx_8_4']['fit'])} / {_fmt(row[f'whole_arx_{model.ny}_{model.nu}']['fit'])} %; "
-            f"window fit {_fmt(row['window_linear']['fit'])} %")
+        log(f"  {folder.name:12s} {row['class']:24s} {role:8s} fit {_fmt(g['fit'])} % (linear "
+            f"{_fmt(row['whole_linear']['fit'])}), coverage {g['coverage']:.1f} %, half-width/std "
+            f"{_fmt(g['half_width_over_std'], 2)}, peak x{_fmt(g['peak_ratio'], 2)}, diverged {g['diverged_paths']}; "
+            f"ARX search {_fmt(row['arx_search']['fit'])} %, class {_fmt(row['arx_class']['fit'])} %")
     # between the recorded frequencies: the model's steady sine response against the rig's FRF
-    sines = [f for f in folders if f.parent.name == "Sine"]
+    sines = [f for f in folders if classes[f.name].startswith("sine")]
     fs = float(cfg.system["fs"])
     frf = (frf_check(model, data_dir, fs=fs, recorded=sines) if max_seconds is None
            else frf_check(model, data_dir, fs=fs, freqs=(12.0, 25.0), seconds=3.0, recorded=sines[:1]))
     if frf is not None:
         log(f"  FRF check: model / rig FRF {min(r['ratio'] for r in frf['rows']):.3f}-"
             f"{max(r['ratio'] for r in frf['rows']):.3f} off resonance")
-    return {"records": rows, "arx_lags": [list(ARX_LAGS), [model.ny, model.nu]], "mc_paths": int(mc_paths),
-            "max_seconds": max_seconds, "seconds": time.perf_counter() - t0, "frf_check": frf}
+    arx_search = {k: v for k, v in search.items() if k != "model"}
+    return {"records": rows, "arx_search": arx_search, "class_arx_lags": list(CLASS_ARX_LAGS),
+            "mc_paths": int(mc_paths), "max_seconds": max_seconds, "seconds": time.perf_counter() - t0,
+            "frf_check": frf, "targets": dict(TARGETS)}
 
 
 def _fmt(v, nd=1) -> str:
     return "n/a" if v is None else f"{v:.{nd}f}"
 
 
+def _methods(table: dict) -> list[str]:
+    return ["whole_linear", "whole_mc"] if table.get("mc_paths") else ["whole_linear"]
+
+
 def table_checks(table: dict) -> dict:
-    """The acceptance figures of the table: diverged records, records where the GP-NARX's whole-record
-    fit is at least the better ARX's, and the sines' lowest coverage (Monte Carlo when run)."""
+    """The acceptance figures of the table, for each method run (linearised; Monte Carlo when run):
+    diverged records; held-out records whose fit is at least the better ARX's; per class, the lowest
+    held-out coverage; the noise runs' largest sharpness ratio; and ``met``: every held-out record at
+    least the better ARX, every class's held-out coverage at least 90 %, every noise run's sharpness at
+    most 1.5."""
     rows = table["records"]
-    key = "whole_mc" if table.get("mc_paths") else "whole_linear"
-    diverged, wins, cov = [], [], []
-    for name, r in rows.items():
-        g = r[key]
-        lin = r["whole_linear"]
-        if any(x["peak_ratio"] is None or x["peak_ratio"] > 3.0 or x["diverged_paths"] > 0 for x in (g, lin)):
-            diverged.append(name)
-        arx_best = max((r[k]["fit"] for k in r if k.startswith("whole_arx") and r[k]["fit"] is not None),
+    diverged = sorted({n for n, r in rows.items() for k in _methods(table)
+                       if r[k]["peak_ratio"] is None or r[k]["peak_ratio"] > 3.0 or r[k]["diverged_paths"] > 0})
+    out = {"n_records": len(rows), "diverged": diverged, "held_out": sorted(n for n, r in rows.items()
+                                                                          if r["role"] == "validate"),
+           "methods": {}}
+    met = not diverged
+    for key in _methods(table):
+        below_arx, cov, sharp = [], {}, {}
+        for name, r in rows.items():
+            g = r[key]
+            if r["class"] == "noise" and g.get("sharpness") is not None:
+                sharp[name] = g["sharpness"]
+            if r["role"] != "validate":
+                continue
+            best = max((x for x in (r["arx_search"]["fit"], r["arx_class"]["fit"]) if x is not None),
                        default=-np.inf)
-        if g["fit"] is not None and g["fit"] >= arx_best:
-            wins.append(name)
-        if name.lower().startswith("sine"):
-            cov.append(g["coverage"])
-    return {"n_records": len(rows), "diverged": diverged, "at_least_arx": len(wins),
-            "not_at_least_arx": sorted(set(rows) - set(wins)), "min_sine_coverage": min(cov) if cov else None,
-            "scored_with": key}
+            if g["fit"] is None or g["fit"] < best:
+                below_arx.append(name)
+            cov.setdefault(r["class"], []).append(g["coverage"])
+        m = {"below_better_arx": below_arx, "min_heldout_coverage": {c: min(v) for c, v in cov.items()},
+             "max_noise_sharpness": max(sharp.values()) if sharp else None, "noise_sharpness": sharp}
+        m["met"] = (not below_arx and all(v >= TARGETS["min_coverage"] for v in m["min_heldout_coverage"].values())
+                    and (m["max_noise_sharpness"] is None or m["max_noise_sharpness"] <= TARGETS["max_noise_sharpness"]))
+        met = met and m["met"]
+        out["methods"][key] = m
+    out["met"] = met
+    return out
 
 
 def markdown(table: dict, checks: dict) -> str:
-    """The table as Markdown (docs/results-bert-real.md body)."""
-    ny_nu = table["arx_lags"][1]
-    mc = table.get("mc_paths")
-    head = ("| record | role | whole: fit % (MC) | fit % (lin.) | coverage % | band width [m/s] | peak ratio | "
-            f"diverged | out of range | ARX 8/4 fit % | ARX {ny_nu[0]}/{ny_nu[1]} fit % | window: fit % | "
-            "coverage % | ARX 8/4 | ARX same lags |\n|" + "---|" * 15)
+    """The table by class as Markdown (the body of docs/results-bert-real.md)."""
+    mc = bool(table.get("mc_paths"))
+    s = table["arx_search"]
+    head = ("| record | class | role | fit % (lin.) | fit % (MC) | ARX search fit % | ARX class fit % | "
+            "coverage % (lin.) | coverage % (MC) | half-width / std (lin.) | sharpness (lin.) | sharpness (MC) | "
+            "peak ratio | diverged | out of range |\n|" + "---|" * 15)
     lines = [head]
-    for name, r in table["records"].items():
-        g = r["whole_mc"] if mc else r["whole_linear"]
-        w = r["window_mc"] if mc else r["window_linear"]
+    order = {c: i for i, c in enumerate(CLASSES)}
+    for name, r in sorted(table["records"].items(), key=lambda kv: (order.get(kv[1]["class"], 9), kv[0])):
+        lin = r["whole_linear"]
+        g = r.get("whole_mc", {})
+        flags = sorted(set(lin["out_of_range"]) | set(g.get("out_of_range", [])))
         lines.append(
-            f"| {name} | {r['role']} | {_fmt(g['fit']) if mc else 'n/a'} | {_fmt(r['whole_linear']['fit'])} | "
-            f"{g['coverage']:.1f} | {g['band_width']:.3g} | {_fmt(g['peak_ratio'], 2)} | {g['diverged_paths']} | "
-            f"{', '.join(g['out_of_range']) or '-'} | {_fmt(r['whole_arx_8_4']['fit'])} | "
-            f"{_fmt(r[f'whole_arx_{ny_nu[0]}_{ny_nu[1]}']['fit'])} | {_fmt(w['fit'])} | {w['coverage']:.1f} | "
-            f"{_fmt(r['window_arx_8_4']['fit'])} | {_fmt(r[f'window_arx_{ny_nu[0]}_{ny_nu[1]}']['fit'])} |")
+            f"| {name} | {r['class']} | {r['role']} | {_fmt(lin['fit'])} | {_fmt(g.get('fit')) if mc else 'n/a'} | "
+            f"{_fmt(r['arx_search']['fit'])} | {_fmt(r['arx_class']['fit'])} | {lin['coverage']:.1f} | "
+            f"{_fmt(g.get('coverage')) if mc else 'n/a'} | {_fmt(lin['half_width_over_std'], 2)} | "
+            f"{_fmt(lin.get('sharpness'), 2)} | {_fmt(g.get('sharpness'), 2) if mc else 'n/a'} | "
+            f"{_fmt(lin['peak_ratio'], 2)} | {max(lin['diverged_paths'], g.get('diverged_paths', 0))} | "
+            f"{', '.join(flags) or '-'} |")
     if not mc:
         lines.append("")
         lines.append("Linearised bands only in this run (`--table-mc 0`): the Monte Carlo columns read n/a.")
     lines.append("")
+    lines.append(f"ARX search: ny={s['ny']}, nu={s['nu']}, chosen by the GP-NARX's lag search ({s['criterion']} fit "
+                 f"{s['fit']:.1f} % on the `lags` records) and fitted on the same training records. ARX class: "
+                 f"ny=nu={table['class_arx_lags'][0]}, fitted on the other records of the class in the data folder. "
+                 "Sharpness: mean band half-width / (2.576 x the class ARX's RMS error on the record).")
+    lines.append("")
     lines.append(f"Records: {checks['n_records']}; diverged (peak ratio > 3 or diverged paths): "
-                 f"{', '.join(checks['diverged']) or 'none'}; GP-NARX whole-record fit at least the better ARX's on "
-                 f"{checks['at_least_arx']} of {checks['n_records']}"
-                 + (f" (not on {', '.join(checks['not_at_least_arx'])})" if checks["not_at_least_arx"] else "")
-                 + f"; lowest sine coverage {_fmt(checks['min_sine_coverage'])} % ({checks['scored_with']}).")
+                 f"{', '.join(checks['diverged']) or 'none'}.")
+    for key, m in checks["methods"].items():
+        label = "linearised" if key == "whole_linear" else f"{table['mc_paths']}-path Monte Carlo"
+        covs = ", ".join(f"{c} {v:.1f} %" for c, v in m["min_heldout_coverage"].items())
+        lines.append(f"- {label}: held-out records below the better ARX's fit: "
+                     f"{', '.join(m['below_better_arx']) or 'none'}; lowest held-out coverage by class: {covs}; "
+                     f"noise sharpness at most {_fmt(m['max_noise_sharpness'], 2)} (target 1.5); "
+                     f"targets {'met' if m['met'] else 'NOT met'}.")
     return "\n".join(lines) + "\n"

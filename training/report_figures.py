@@ -242,3 +242,22 @@ def lag_surface_figure(surface: list[dict], chosen: tuple | None, paper: tuple |
 
 
 FIGURE_LOCK = threading.Lock()  # pyplot's state is per process: one figure at a time per worker process
+
+
+def receptance_figure(runs: list[dict], path: Path, f_range=(5.0, 40.0)) -> Path:
+    """The receptance FRFs of several sweeps on one log axis (the paper's Fig. 12(a)): ``runs`` as
+    ``training.frf_check.sweep_receptances`` returns them (freq [Hz], receptance [m/V], name, peak_freq)."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for r in runs:
+        sel = (r["freq"] >= f_range[0]) & (r["freq"] <= f_range[1])
+        ax.semilogy(r["freq"][sel], r["receptance"][sel], lw=1.0,
+                    label=f"{r['name']} (peak {r['peak_freq']:.2f} Hz)")
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("receptance |X/V| [m/V]")
+    ax.set_title("Real BERT rig, 5 N m: receptance of the swept sines (LMS FRF)")
+    ax.grid(True, which="both", lw=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,81 @@
+"""The real-rig table's parts on synthetic data: the excitation class of a record, the ARX chosen by the
+lag search, the class ARX never fitted on the record it scores, and the acceptance checks."""
+import numpy as np
+import pytest
+
+from gpnarx.model.records import Record
+from gpnarx.training import real_table as rt
+from gpnarx.training.baselines import LinearARX, arx_lag_search
+
+FS = 1024.0
+
+
+def _rec(u, y, name, **meta):
+    return Record(np.asarray(u, float), np.asarray(y, float), FS, {"u": "V", "y": "m/s"}, name, meta)
+
+
+def _filter(u, a=(1.6, -0.8), b=(0.05, 0.02)):
+    """y_i = a1 y_{i-1} + a2 y_{i-2} + b0 u_i + b1 u_{i-1}: an exact second-order ARX."""
+    y = np.zeros_like(u)
+    for i in range(u.size):
+        y[i] = (a[0] * y[i - 1] if i >= 1 else 0.0) + (a[1] * y[i - 2] if i >= 2 else 0.0) \
+            + b[0] * u[i] + (b[1] * u[i - 1] if i >= 1 else 0.0)
+    return y
+
+
+def test_record_class_by_folder_and_drive(tmp_path):
+    t = np.arange(4096) / FS
+    sine = lambda f: _rec(0.15 * np.sin(2 * np.pi * f * t), np.zeros(t.size), "s")  # noqa: E731
+    noise = _rec(np.random.default_rng(0).normal(size=t.size), np.zeros(t.size), "n")
+    assert rt.record_class(tmp_path / "Sine" / "Sine_19Hz", sine(19.0)) == "sine near resonance"
+    assert rt.record_class(tmp_path / "Sine" / "Sine_09Hz", sine(9.0)) == "sine away from resonance"
+    assert rt.record_class(tmp_path / "Chirp" / "Chirp0to40Hz" / "Chirp0p05", sine(9.0)) == "sweep"
+    assert rt.record_class(tmp_path / "Rand" / "Rand0p10", noise) == "noise"
+
+
+def test_arx_lag_search_finds_the_true_order_and_scores_every_cell():
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=3000)
+    train = [_rec(u[:2000], _filter(u[:2000]), "train")]
+    lags = [_rec(u[2000:], _filter(u[2000:]), "lags")]
+    s = arx_lag_search(train, lags, [1, 2, 4], [1, 2], criterion="worst")
+    assert (s["ny"], s["nu"]) == (2, 2)  # the smallest cell that is exact (ties: fewer lags)
+    assert s["fit"] == pytest.approx(100.0, abs=1e-6)
+    assert len(s["cells"]) == 6 and all(set(c["fits"]) == {"lags"} for c in s["cells"])
+    assert next(c for c in s["cells"] if (c["ny"], c["nu"]) == (1, 1))["fits"]["lags"] < 99.0
+    with pytest.raises(ValueError, match="criterion"):
+        arx_lag_search(train, lags, [2], [2], criterion="median")
+
+
+def test_class_arx_is_fitted_on_the_other_records_of_its_class_only():
+    rng = np.random.default_rng(2)
+    recs = {n: _rec(u, _filter(u), n) for n, u in (("a", rng.normal(size=800)), ("b", rng.normal(size=800)),
+                                                   ("c", rng.normal(size=800)))}
+    classes = {"a": "noise", "b": "noise", "c": "sweep"}
+    out = rt._class_arx(recs, classes)
+    assert out["a"][1] == ["b"] and out["b"][1] == ["a"] and out["c"] is None
+    assert isinstance(out["a"][0], LinearARX)
+
+
+def _row(role, cls, fit, cov, arx_s, arx_c, sharp=None, peak=1.0, diverged=0):
+    g = {"fit": fit, "coverage": cov, "peak_ratio": peak, "diverged_paths": diverged, "sharpness": sharp}
+    return {"role": role, "class": cls, "whole_linear": g, "arx_search": {"fit": arx_s}, "arx_class": {"fit": arx_c}}
+
+
+def test_table_checks_apply_every_target_to_held_out_records():
+    rows = {"n1": _row("validate", "noise", 70.0, 99.0, 10.0, 68.0, sharp=1.2),
+            "n2": _row("train", "noise", 80.0, 100.0, 10.0, 84.0, sharp=1.4),
+            "s1": _row("validate", "sweep", 90.0, 95.0, 70.0, 68.0),
+            "t1": _row("train", "sweep", 20.0, 10.0, 90.0, 90.0)}  # a training record is not held to the targets
+    c = rt.table_checks({"records": rows, "mc_paths": 0})
+    m = c["methods"]["whole_linear"]
+    assert c["met"] and m["met"] and m["below_better_arx"] == []
+    assert m["min_heldout_coverage"] == {"noise": 99.0, "sweep": 95.0} and m["max_noise_sharpness"] == 1.4
+    rows["n1"] = _row("validate", "noise", 60.0, 99.0, 10.0, 68.0, sharp=1.2)  # below the class ARX
+    rows["s1"] = _row("validate", "sweep", 90.0, 85.0, 70.0, 68.0)  # coverage below 90 %
+    c = rt.table_checks({"records": rows, "mc_paths": 0})
+    assert not c["met"] and c["methods"]["whole_linear"]["below_better_arx"] == ["n1"]
+    rows["n2"] = _row("train", "noise", 80.0, 100.0, 10.0, 84.0, sharp=1.6)  # a band too wide on a noise run
+    assert rt.table_checks({"records": rows, "mc_paths": 0})["methods"]["whole_linear"]["max_noise_sharpness"] == 1.6
+    rows["t1"] = _row("train", "sweep", 20.0, 10.0, 90.0, 90.0, peak=4.0)
+    assert rt.table_checks({"records": rows, "mc_paths": 0})["diverged"] == ["t1"]
