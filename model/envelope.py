@@ -153,7 +153,8 @@ def out_of_range(env: dict | None, u, y=None, mean=None) -> list[str]:
         out.append("y")
     if mean is not None and _peak(mean) > RANGE_FACTOR * env["y_peak"]:
         out.append("prediction")
-    if env.get("u_bands") is not None and math.isfinite(peak_u) and frequency_share(env["u_bands"], u) > FREQUENCY_SHARE:
+    bands = env.get("u_bands")
+    if bands is not None and math.isfinite(peak_u) and frequency_share(bands, u) > FREQUENCY_SHARE:
         out.append("frequency")
     return out
 

@@ -136,7 +136,8 @@ _DIVERGED_DESC = ("Monte Carlo paths whose sampled output left the training outp
 _OOR_DESC = ("What lies outside the model's knowledge: 'u' when the record's peak |u| exceeds 1.5x the largest "
              "training peak |u|, 'y' when the measured output's peak |y| exceeds 1.5x the training peak |y|, "
              "'prediction' when the predicted mean's does, 'frequency' when more than 10 % of the drive's power "
-             "lies in frequency bands where it is over 2x stronger than the training inputs ever were (for novelty also: 'u'/'y' outside the healthy "
+             "lies in frequency bands where it is over 2x stronger than the training inputs ever were (for "
+             "novelty also: 'u'/'y' outside the healthy "
              "calibration records' peak range widened 2x each way, and 'probe' when the drive does not match the "
              "monitor's probe). Empty when everything lies inside. Non-empty: treat the answer as an "
              "extrapolation.")

@@ -16,10 +16,10 @@ from test_service_support import FS, built_registry, multisine, noisy, simulate
 from gpnarx.model.envelope import (
     DIVERGENCE_FACTOR,
     FREQUENCY_SHARE,
-    frequency_share,
     RANGE_FACTOR,
     assess,
     check_envelope,
+    frequency_share,
     out_of_range,
     training_envelope,
 )
