@@ -80,3 +80,20 @@ def test_steady_sine_between_the_recorded_frequencies_follows_the_rig_frf(model)
     for r in check["rows"]:
         assert 0.85 <= r["ratio"] <= 1.05, r
     assert all(0.85 <= r["ratio"] <= 1.05 for r in check["recorded"]), check["recorded"]
+
+
+def test_a_drive_beyond_the_trained_frequencies_says_so_and_the_real_records_do_not(model):
+    """out_of_range "frequency" on the shipped model: a 0-110 Hz sweep (5 Hz/s, the rig's second mode near
+    90 Hz lies in it) at 0.05-0.20 V is flagged, a 0-40 Hz sweep at the same levels and every real record of
+    the data folder are not."""
+    from gpnarx.model.envelope import out_of_range
+    from gpnarx.training.records import read_record
+
+    fs = 1024.0
+    for amp in (0.05, 0.10, 0.20):
+        for f1, flagged in ((110.0, True), (40.0, False)):
+            t = np.arange(int(f1 / 5.0 * fs)) / fs
+            u = amp * np.sin(2 * np.pi * 0.5 * 5.0 * t * t)
+            assert ("frequency" in out_of_range(model.envelope_, u)) is flagged, (amp, f1)
+    for folder in RECORDS:
+        assert "frequency" not in out_of_range(model.envelope_, read_record(folder).u), folder.name

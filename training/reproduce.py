@@ -133,9 +133,9 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
                                            probe=probe, n_paths=0, seconds=1.0 if quick else 4.0, log=log,
                                            method=mon_cfg.novelty["method"])
     if system == "bert-real":
-        log(f"[{system}] every real record under {bert_data_dir()}: whole records from rest and steady windows, "
+        log(f"[{system}] every real record under {bert_data_dir()}, by excitation class: whole records from rest, "
             f"linearised and {n_paths if table_mc is None else table_mc}-path Monte Carlo (0: linearised only), next "
-            f"to linear ARX baselines")
+            f"to an ARX chosen by the same lag search and an ARX fitted on each record's class")
         table_paths = n_paths if table_mc is None else int(table_mc)
         table = real_table(res["model"], cfg, bert_data_dir(), mc_paths=table_paths, max_seconds=max_seconds,
                            jobs=jobs, lag_grid=grid, lag_criterion=LAG_CRITERION[system], log=log)
