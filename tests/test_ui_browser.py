@@ -172,6 +172,27 @@ def test_uploaded_record_plot_and_verdict_match_the_api(page, live, tmp_path, sh
     assert page.watch.blocked == [] and page.watch.failed == [] and page.watch.errors == []
 
 
+def test_a_longer_record_is_used_whole_and_a_narrowed_run_says_so(page, live, tmp_path):
+    """A 1500-sample record, then a 2500-sample one: the second is predicted whole (the samples field follows
+    the record, not the previous record's length); narrowed by the user, the page says how much it ran on."""
+    page.goto(f"{live}/ui")
+    page.wait_for_selector("#models tbody tr.selected[data-name='boucwen']")
+    for n in (1500, 2500):
+        u, y = short_record(n, 23)
+        path = write_record(tmp_path / f"r{n}.csv", Record(u, y, FS, {"u": "N", "y": "m"}, f"r{n}"))
+        page.set_input_files("#file", str(path))
+        page.wait_for_selector(f"#record-info[data-samples='{n}']")
+        assert page.input_value("#count") == str(n)
+        shown = run_in_page(page)
+        assert shown["plotted"] == shown["predicted"] == n
+        assert page.get_attribute("#run-state", "data-narrowed") == "false"
+        assert "the whole record" in page.inner_text("#run-state")
+    page.fill("#count", "1000")
+    shown = run_in_page(page)
+    assert shown["plotted"] == 1000 and page.get_attribute("#run-state", "data-narrowed") == "true"
+    assert "1000 of the record's 2500 samples" in page.inner_text("#run-state")
+
+
 def test_api_key_example_and_training_report(page, live_keyed, shots):
     page.goto(f"{live_keyed}/ui")
     page.wait_for_selector("#error:not([hidden])")

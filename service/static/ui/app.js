@@ -161,8 +161,9 @@ async function useFiles(files, label) {
     state.record = rec;
     showError(null);
     const dur = rec.n_samples / rec.fs;
-    $("count").value = Math.min(rec.n_samples, Number($("count").value) || rec.n_samples, 65536);
-    if (Number($("t0").value) >= dur) $("t0").value = 0;
+    // a new record is used whole; the user narrows it afterwards with "from" and "samples"
+    $("count").value = rec.n_samples;
+    $("t0").value = 0;
     $("record-info").textContent = `${rec.name} (${rec.format}${rec.files.length > 1 ? ": " + rec.files.join(" + ") : ""}): `
       + `${rec.n_samples} samples at ${fmt(rec.fs)} Hz (${fmt(dur)} s); u [${rec.units.u || "-"}]`
       + (rec.y ? `, y [${rec.units.y || "-"}]` : ", no measured y (prediction only)");
@@ -231,14 +232,18 @@ async function run() {
   for (const id of ["time-plot", "psd-plot", "loops-plot"]) delete $(id).dataset.ready;
   delete $("verdict").dataset.verdict;
   delete $("predict-metrics").dataset.samples;
-  $("run-state").textContent = `running on ${body.u.length} samples...`;
+  const narrowed = body.u.length < state.record.n_samples;
+  const span = narrowed ? `${body.u.length} of the record's ${state.record.n_samples} samples (from ${fmt(i0 / body.fs)} s, `
+    + `narrowed by "from" and "samples")` : `the whole record, ${body.u.length} samples`;
+  $("run-state").dataset.narrowed = String(narrowed);
+  $("run-state").textContent = `running on ${span}...`;
   const t0 = performance.now();
   const [pred, loops, nov] = await Promise.allSettled([
     postJSON(`${base}/predict`, body),
     wantLoops ? postJSON(`${base}/loops`, body) : Promise.resolve(null),
     wantNovelty ? postJSON(`${base}/novelty`, body) : Promise.resolve(null),
   ]);
-  $("run-state").textContent = `answered in ${fmt((performance.now() - t0) / 1000)} s`;
+  $("run-state").textContent = `answered in ${fmt((performance.now() - t0) / 1000)} s, on ${span}`;
   $("run").disabled = false;
   const errors = [pred, loops, nov].filter((r) => r.status === "rejected").map((r) => r.reason.message);
   if (errors.length) showError({ message: errors.join("\n") });
