@@ -203,7 +203,7 @@ def test_predict_and_novelty_cli_json(trained, small_config, tmp_path, capsys):
     assert main(["novelty", "--registry", str(trained), "--model", "bw-small:1", str(big), "--mc", "16", "--json"]) == 0
     far = json.loads(capsys.readouterr().out)
     # ... and its drive (1000x the healthy amplitude) is not the probe the threshold holds for
-    assert far["out_of_range"] == ["u", "y", "prediction", "probe"] and far["verdict"] == "novel", far
+    assert far["out_of_range"] == ["u", "y", "prediction", "frequency", "probe"] and far["verdict"] == "novel", far
     assert far["diverged_paths"] == 16 and far["start"] == "measured", far  # 1000x the training peak: every path
 
 

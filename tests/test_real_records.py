@@ -65,8 +65,6 @@ def test_monte_carlo_at_resonance_keeps_every_path(model):
     assert float(np.max(np.abs(run.mean))) <= 3.0 * float(np.max(np.abs(rec.y[:n])))
 
 
-@pytest.mark.xfail(strict=True, reason="known miss: the every-class bert-real (ny 24, nu 30) reaches model / FRF "
-                   "0.910-1.088 off resonance in its stored run (docs/results-bert-real.md), above the 1.05 limit")
 def test_steady_sine_between_the_recorded_frequencies_follows_the_rig_frf(model):
     """Generalisation to drive frequencies no sine record shows (4-16 Hz and 22-30 Hz; the subset's sines
     are at 5-9.75, 17, 19 and 20 Hz): the model's steady amplitude for a 0.15 V sine lies within
