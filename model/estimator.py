@@ -11,6 +11,7 @@ import numpy as np
 from sklearn.base import BaseEstimator
 
 from . import freerun
+from .backend import check_backend
 from .discrepancy import calibrate_scale, widen
 from .envelope import check_envelope, divergence_limit, training_envelope
 from .gp import ExactPosterior, SparsePosterior, choose_inducing
@@ -152,7 +153,7 @@ class GPNARX(BaseEstimator):
                  n_inducing: int = 256, max_train_points: int | None = 2000, selection: str = "stride",
                  n_restarts: int = 2, seed: int = 0, include_noise: bool = True,
                  sparse_max_rows: int | None = 50000, hyper: str = "subset",
-                 constant_cap: float | None = DEFAULT_CONSTANT_CAP):
+                 constant_cap: float | None = DEFAULT_CONSTANT_CAP, fit_backend: str = "numpy"):
         self.ny = ny
         self.nu = nu
         self.kernel = kernel
@@ -166,6 +167,7 @@ class GPNARX(BaseEstimator):
         self.sparse_max_rows = sparse_max_rows
         self.hyper = hyper
         self.constant_cap = constant_cap
+        self.fit_backend = fit_backend
 
     # ------------------------------------------------------------------------------------------
     def _check_params(self) -> None:
@@ -183,6 +185,7 @@ class GPNARX(BaseEstimator):
         if int(self.n_restarts) < 0:
             raise ValueError(f"n_restarts must be >= 0, got {self.n_restarts}")
         check_constant_cap(self.constant_cap)
+        self.fit_backend = check_backend(self.fit_backend, "fit_backend")
 
     def fit(self, records, theta: np.ndarray | None = None, heldout=None) -> "GPNARX":
         """Learn standardisation, hyperparameters (ML-II, eq. 13) and the posterior.
@@ -222,7 +225,7 @@ class GPNARX(BaseEstimator):
         if theta is None:
             sub = default_warm_start_subset(Xt.shape[0])
             res = fit_ml2(self.kernel_, Xt, Yt, n_restarts=int(self.n_restarts), seed=int(self.seed),
-                          warm_start_subset=sub, hold_redundant=sub is not None)
+                          warm_start_subset=sub, hold_redundant=sub is not None, backend=self.fit_backend)
             self.theta_, self.nlml_, self.ml2_restarts_ = res.theta, res.nlml, res.restarts
         else:
             theta = np.asarray(theta, dtype=float)
@@ -231,7 +234,8 @@ class GPNARX(BaseEstimator):
         self.noise_var_ = float(np.exp(self.theta_[-1]))
         if self.mode == "exact":
             def build(nv):
-                return ExactPosterior.fit(self.kernel_, nv, Xt, Yt, var_kernel=self._posterior_kernel())
+                return ExactPosterior.fit(self.kernel_, nv, Xt, Yt, var_kernel=self._posterior_kernel(),
+                                          backend=self.fit_backend)
         else:
             all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed)
             Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
@@ -260,7 +264,12 @@ class GPNARX(BaseEstimator):
         from .calibration import heldout_noise_var  # here: training-only, kept out of a predict start-up
 
         X, Y, _ = stack_regressors(pairs, self.ny, self.nu)
-        mu, var = self.posterior_.predict(self.x_scaler_.transform(X))
+        if self.fit_backend == "jax" and self.posterior_.kind == "exact":
+            from .ml2_jax import predict_exact_jax  # here: the optional backend stays out of numpy runs
+
+            mu, var = predict_exact_jax(self.posterior_, self.x_scaler_.transform(X))
+        else:
+            mu, var = self.posterior_.predict(self.x_scaler_.transform(X))
         resid = (Y - self.y_scaler_.mean_[0]) / self.y_scaler_.scale_[0] - mu
         s2 = heldout_noise_var(resid, var, floor=self.noise_var_)  # >= the ML-II value
         self.noise_calibration_ = {
@@ -329,7 +338,7 @@ class GPNARX(BaseEstimator):
 
     def simulate(self, u, n_paths: int = 1024, seed: int | None = 0, y0=None, confidence: float = 0.99,
                  method: str = "mc", float32: bool = False, keep_paths: bool = False, progress=None,
-                 cov_window: int = 0):
+                 cov_window: int = 0, backend: str | None = None):
         """Free-run prediction for input u (input units) with uncertainty propagation.
 
         method: 'mc' (Monte Carlo over n_paths, seeded) or 'linear' (first-order propagation).
@@ -341,22 +350,41 @@ class GPNARX(BaseEstimator):
         keep_paths: Monte Carlo only, keep every path in ``FreeRun.paths`` (n x n_paths).
         cov_window: linearised only, also return ``FreeRun.cov_band``, the output covariance over
             that many lags (``freerun.simulate_linear``).
+        backend: 'numpy' or 'jax' (``model.backend``; None: ``GPNARX_BACKEND``, else numpy). 'jax'
+            runs the free run as one compiled program (``model.freerun_jax``): Monte Carlo with
+            eq. 8-9 exact at every path, on a GPU when JAX has one.
         Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units); Monte Carlo runs
         count in ``diverged_paths`` the paths that left the training envelope (``model.envelope``).
         When the band was calibrated (``calibrate_band``), std and both bands include the
         model-discrepancy term of ``model.discrepancy``.
         """
         self._check_fitted()
-        run = self._simulate(u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window)
+        run = self._simulate(u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,
+                             check_backend(backend))
         disc = getattr(self, "band_discrepancy_", None)
         return widen(run, float(disc["scale"]), int(disc["window"])) if disc else run
 
-    def _simulate(self, u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window):
+    def _simulate(self, u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,
+                  backend="numpy"):
         u = _as_input(u)
         limit = divergence_limit(check_envelope(getattr(self, "envelope_", None)))
+        if method not in ("mc", "linear"):
+            raise ValueError(f"method must be 'mc' or 'linear', got {method!r}")
+        if method == "mc" and (isinstance(n_paths, bool) or not isinstance(n_paths, (int, np.integer))
+                               or not 1 <= n_paths <= MAX_PATHS):
+            raise ValueError(f"n_paths must be an integer between 1 and {MAX_PATHS}, got {n_paths!r}")
+        if backend == "jax":
+            from . import freerun_jax  # here: the optional backend stays out of a numpy process
+
+            if method == "mc":
+                return freerun_jax.simulate_mc_jax(
+                    self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u, n_paths=int(n_paths),
+                    seed=seed, y0=y0, confidence=confidence, include_noise=self.include_noise, float32=float32,
+                    keep_paths=keep_paths, progress=progress, diverge_limit=limit)
+            return freerun_jax.simulate_linear_jax(
+                self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u, y0=y0, confidence=confidence,
+                include_noise=self.include_noise, progress=progress, cov_window=cov_window)
         if method == "mc":
-            if isinstance(n_paths, bool) or not isinstance(n_paths, (int, np.integer)) or not 1 <= n_paths <= MAX_PATHS:
-                raise ValueError(f"n_paths must be an integer between 1 and {MAX_PATHS}, got {n_paths!r}")
             return freerun.simulate_mc(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                        n_paths=int(n_paths), seed=seed, y0=y0, confidence=confidence,
                                        include_noise=self.include_noise, float32=float32,
@@ -365,7 +393,6 @@ class GPNARX(BaseEstimator):
             return freerun.simulate_linear(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                            y0=y0, confidence=confidence, include_noise=self.include_noise,
                                            progress=progress, cov_window=cov_window)
-        raise ValueError(f"method must be 'mc' or 'linear', got {method!r}")
 
     def __repr__(self) -> str:
         return f"GPNARX(ny={self.ny}, nu={self.nu}, kernel={self.kernel!r}, mode={self.mode!r})"

@@ -30,6 +30,7 @@ class FreeRun:
     # reported; fed-back outputs keep their noise), to score against a noise-free output y_clean
     latent_lower: np.ndarray | None = field(default=None, repr=False)
     latent_upper: np.ndarray | None = field(default=None, repr=False)
+    backend: str = "numpy"  # the array backend that ran it (``model.backend``)
 
     @property
     def band_width(self) -> np.ndarray:

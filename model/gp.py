@@ -36,14 +36,19 @@ class ExactPosterior:
 
     @classmethod
     def fit(cls, kernel: Kernel, noise_var: float, X: np.ndarray, y: np.ndarray,
-            var_kernel: Kernel | None = None) -> "ExactPosterior":
+            var_kernel: Kernel | None = None, backend: str = "numpy") -> "ExactPosterior":
         """alpha from ``kernel`` (eq. 8); Linv from ``var_kernel`` when given (its capped copy,
-        ``Kernel.for_posterior``), which keeps eq. 9 exact when kernel carries a large constant."""
-        alpha, Linv = cls._solve(kernel, noise_var, X, y)
+        ``Kernel.for_posterior``), which keeps eq. 9 exact when kernel carries a large constant.
+        backend 'jax': the two solves on the JAX device (``ml2_jax.exact_solve_jax``)."""
+        if backend == "jax":
+            from .ml2_jax import exact_solve_jax as solve  # here: the optional backend stays out of numpy runs
+        else:
+            solve = cls._solve
+        alpha, Linv = solve(kernel, noise_var, X, y)
         if var_kernel is None:
             return cls(kernel, noise_var, X, alpha, Linv)
         if var_kernel.cap_shift() > 0.0:
-            Linv = cls._solve(var_kernel, noise_var, X, y)[1]
+            Linv = solve(var_kernel, noise_var, X, y)[1]
         return cls(var_kernel, noise_var, X, alpha, Linv)
 
     @staticmethod

@@ -33,6 +33,8 @@ key name below is a contract)::
                                       # band, calibrated on the 'lags' records (model.discrepancy)
     band_window = 0.25                # [s] window of its local amplitude
     hyper = "subset"                  # sparse mode: "subset" (exact ML-II on the capped rows) | "vfe"
+    fit_backend = "numpy"             # "numpy" | "jax": ML-II and the exact posterior's solves on the JAX
+                                      # device (a GPU: exact mode at 10-20 thousand rows; docs/accelerator.md)
 
     [lags]                            # lag-surface ranges, LO:HI inclusive, optional step LO:HI:STEP
     ny = "1:24"

@@ -18,7 +18,8 @@ def model_from_config(cfg: DatasetConfig, ny: int | None = None, nu: int | None 
     return GPNARX(ny=int(ny), nu=int(nu), kernel=m.get("kernel", "matern32+cubic"), mode=m.get("mode", "exact"),
                   n_inducing=int(m.get("inducing", 256)), max_train_points=m.get("max_train_points", 2000),
                   selection=m.get("selection", "stride"), n_restarts=int(m.get("restarts", 2)),
-                  seed=int(m.get("seed", 0)), hyper=m.get("hyper", "subset"))
+                  seed=int(m.get("seed", 0)), hyper=m.get("hyper", "subset"),
+                  fit_backend=m.get("fit_backend", "numpy"))
 
 
 def shorten(rec: Record, seconds: float) -> Record:
