@@ -27,6 +27,9 @@ def _common(p):
     p.add_argument("--method", choices=("mc", "linear"), default=None,
                    help="uncertainty propagation (default: the model's, see 'gpnarx models' / GET /v1/models/NAME "
                         "default_method)")
+    p.add_argument("--backend", choices=("numpy", "jax"), default=None,
+                   help="array backend of the free run (default: $GPNARX_BACKEND, else numpy); 'jax' runs it as one "
+                        "compiled program, on a GPU where JAX has one (pip install 'gpnarx[jax]', docs/accelerator.md)")
     p.add_argument("--blas-threads", type=int, default=None,
                    help="BLAS threads for the free run (default: $GPNARX_BLAS_THREADS or 1; 0 leaves BLAS as it is)")
     p.add_argument("--window", default=None, metavar="START:END",
@@ -160,7 +163,7 @@ def run_predict(args):
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
     try:
         out = predict_answer(bundle, rec, mc=mc, seed=args.seed, confidence=args.confidence, method=args.method,
-                             start=args.start, progress=cb)
+                             start=args.start, progress=cb, backend=args.backend)
     finally:
         if bar is not None:
             bar.close()
@@ -172,7 +175,7 @@ def run_predict(args):
 
 
 def predict_answer(bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0.99, method: str = "mc",
-                   start: str = "rest", progress=None) -> dict:
+                   start: str = "rest", progress=None, backend: str | None = None) -> dict:
     """The answer of ``gpnarx predict --json`` for one record (``_run``: the free run itself, for --out).
 
     ``bundle``: anything with ``name``, ``version``, ``model`` and ``manifest`` (a loaded Bundle, or the
@@ -189,9 +192,9 @@ def predict_answer(bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0
             raise CLIError(f"--start measured needs the record's measured output y, longer than ny={bundle.model.ny} "
                            "samples")
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=seed, confidence=confidence, method=method,
-                                progress=progress, y0=y0)
+                                progress=progress, y0=y0, backend=backend)
     out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "start": start, "mc_paths": run.n_paths,
-           "method": run.method, "confidence": run.confidence, "seconds": run.seconds,
+           "method": run.method, "backend": run.backend, "confidence": run.confidence, "seconds": run.seconds,
            **assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y),
            "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std}
     if rec.y is not None:
@@ -233,7 +236,7 @@ def run_novelty(args):
                        "the default bert-standin-monitor bundle has one)")
     args.method = args.method or bundle.default_method("novelty")
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method,
-                                y0=novelty_start(rec.y, bundle.model.ny))
+                                y0=novelty_start(rec.y, bundle.model.ny), backend=args.backend)
     flags = assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y)
     a = assess_novelty(nov, rec.u, rec.y, rec.fs, run, start="measured", flags=flags)
     return {"model": bundle.name, "version": bundle.version, "score": a["score"], "nlpd": a["nlpd"],
@@ -268,7 +271,7 @@ def run_loops(args):
                                                                                            bundle.model.ny)}
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
     run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, confidence=args.confidence, method=args.method,
-                                progress=cb, y0=y0, **extra)
+                                progress=cb, y0=y0, backend=args.backend, **extra)
     if bar is not None:
         bar.close()
     kw = dict(fs=rec.fs, mass=phys["mass"], input_gain=phys["input_gain"], output=phys["output"])

@@ -31,6 +31,10 @@ def add_parser(sub):
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths for verification (default: config)")
     p.add_argument("--ny", type=int, default=None, help="override the config's output lags")
     p.add_argument("--nu", type=int, default=None, help="override the config's input lags")
+    p.add_argument("--backend", choices=("numpy", "jax"), default=None,
+                   help="where ML-II and the exact posterior's solves run (default: the config's [model] "
+                        "fit_backend, else numpy); 'jax' on a GPU makes exact mode at 10-20 thousand rows practical "
+                        "(docs/accelerator.md)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML/PNG report")
     p.add_argument("--choose-lags", action="store_true",
                    help="compute the lag surface over the config's [lags] ny/nu ranges first and train at the chosen "
@@ -83,7 +87,7 @@ def run(args):
                 log(f"lag surface: chosen ny={ny} nu={nu} (fit {ch['fit']:.2f} %) from {len(surface['cells'])} cells")
         res = train(config, args.registry, name=args.name, version=args.version, progress=not quiet,
                     mc_paths=args.mc, ny=ny, nu=nu, report=not args.no_report, lag_surface=surface, log=log,
-                    scheduler=scheduler)
+                    scheduler=scheduler, model_overrides={"fit_backend": args.backend} if args.backend else None)
     out = {"name": res["name"], "version": res["version"], "path": res["path"], "metrics": res["metrics"]}
     if surface is not None:
         out["lags"] = {"ny": ny, "nu": nu, "fit": surface["chosen"]["fit"], "cells": len(surface["cells"]),

@@ -15,7 +15,7 @@ BACKENDS = ("numpy", "jax")
 ENV_VAR = "GPNARX_BACKEND"
 
 
-class BackendUnavailable(RuntimeError):
+class BackendUnavailable(ValueError):
     """The backend asked for is not installed here (the message says how to install it)."""
 
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gpnarx.model.backend import jax_available
 from gpnarx.model.bundle import Bundle
 from gpnarx.model.cycles import cov_window_for, cycles
 from gpnarx.model.envelope import assess
@@ -34,6 +35,7 @@ class Plan:
     method: str
     mc_paths: int  # 0 for linear
     work: int  # Monte Carlo path-steps (samples for linear)
+    backend: str = "numpy"  # array backend of the free run (model.backend)
 
 
 def _fs_matches(a: float, b: float) -> bool:
@@ -84,7 +86,11 @@ def plan(operation: str, req, bundle: Bundle, settings: Settings, budget: int | 
                                     f"a shorter record", "mc_paths", limit=limit)
     else:
         paths, work = 0, n
-    return Plan(operation, bundle, method, paths, work)
+    backend = req.backend or settings.backend
+    if backend == "jax" and not jax_available():
+        raise ProblemError(422, "backend 'jax' is not installed on this server (pip install 'gpnarx[jax]'); "
+                                "use backend 'numpy'", "backend")
+    return Plan(operation, bundle, method, paths, work, backend)
 
 
 def start_of(operation: str, req) -> str:
@@ -148,7 +154,7 @@ def _simulate(plan: Plan, req, token: CancelToken | None = None):
                 extra = ({"keep_paths": True} if plan.method == "mc"
                          else {"cov_window": cov_window_for(u, plan.bundle.fs, model.ny)})
             run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=y0,
-                                 confidence=float(req.confidence), method=plan.method,
+                                 confidence=float(req.confidence), method=plan.method, backend=plan.backend,
                                  progress=None if token is None else token.progress, **extra)
     except ValueError as exc:
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
@@ -177,6 +183,7 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
     head = {"model": b.name, "version": b.version}
     flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
     common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
+              "backend": run.backend,
               "seed": int(req.seed), "start": start_of(plan.operation, req), **flags}
     steps = int(run.path_steps) if run.method == "mc" else 0
     if plan.operation == "predict":

@@ -45,6 +45,10 @@ _START_DESC = ("Where the free run starts: 'rest' (the system at rest before the
                "and loops) or 'measured' (from the record's first `ny` measured outputs, taken from `y0` or else "
                "from `y`; the default for novelty). Use 'measured' for a window cut from the middle of a steady "
                "run, 'rest' for a record that starts with the structure at rest.")
+_BACKEND_DESC = ("Array backend of the free run: 'numpy' (the default) or 'jax' (one compiled program; on a GPU "
+                 "where the server has the CUDA build of JAX; Monte Carlo evaluates eq. 8-9 exactly at every path, "
+                 "so its bands agree with numpy's within Monte Carlo error, not path for path). Default: the "
+                 "server's `GPNARX_BACKEND`. A server without JAX answers 'jax' with 422.")
 _METHOD_DESC = ("Uncertainty propagation: 'mc' (Monte Carlo over `mc_paths` paths, the paper's method) or "
                 "'linear' (first-order propagation of mean and variance, one pass). Default: the model's "
                 "`default_method` (GET /v1/models/{name}): the trained config's, and for novelty the one its "
@@ -69,6 +73,7 @@ class RecordRequest(_Strict):
     seed: StrictInt = Field(0, ge=0, le=2**63 - 1, description=_SEED_DESC)
     confidence: FiniteFloat = Field(0.99, ge=0.5, lt=1.0, description=_CONF_DESC)
     method: Literal["mc", "linear"] | None = Field(None, description=_METHOD_DESC)
+    backend: Literal["numpy", "jax"] | None = Field(None, description=_BACKEND_DESC)
     start: Literal["rest", "measured"] | None = Field(None, description=_START_DESC)
 
 
@@ -161,6 +166,7 @@ class PredictResponse(_Knowledge):
     confidence: float
     mc_paths: int = Field(..., description="Monte Carlo paths used (0 for method 'linear').")
     method: Literal["mc", "linear"]
+    backend: Literal["numpy", "jax"] = Field("numpy", description="The array backend that ran the free run.")
     seed: int
     n_samples: int
     units: Units
@@ -225,6 +231,7 @@ class LoopsResponse(_Knowledge):
     confidence: float
     mc_paths: int
     method: Literal["mc", "linear"]
+    backend: Literal["numpy", "jax"] = Field("numpy", description="The array backend that ran the free run.")
     seed: int
     n_samples: int
     physics: Physics
@@ -299,6 +306,7 @@ class NoveltyResponse(_Knowledge):
     n_samples: int = Field(..., description="Samples that entered the score.")
     mc_paths: int
     method: Literal["mc", "linear"]
+    backend: Literal["numpy", "jax"] = Field("numpy", description="The array backend that ran the free run.")
     seed: int
 
 

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import os
 from contextvars import ContextVar
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import Field, ValidationError, model_validator
 from pydantic.fields import FieldInfo
@@ -151,6 +151,10 @@ class Settings(BaseSettings):
                                     label="seconds between rescans of the registry (0 = none)")
     max_loaded: int = _setting(8, ge=1, kind=_POSITIVE, label="built models kept in memory (least recently used "
                                                               "dropped first)")
+    backend: Literal["numpy", "jax"] = _setting("numpy", kind=None, shown="numpy",
+                                                label="array backend of the free run when a body names none "
+                                                      "('jax': docs/accelerator.md)",
+                                                exceeded="422 on a request if 'jax' is not installed")
     #: reload the registry on SIGHUP (only where the event loop runs in the main thread); not an env setting
     sighup_reload: bool = False
 

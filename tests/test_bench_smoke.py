@@ -17,7 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py",
            "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
-           "bench_sparse_accuracy.py", "bench_sparse_variance.py", "bench_mc_speed.py", "bench_realtime.py"]
+           "bench_sparse_accuracy.py", "bench_sparse_variance.py", "bench_mc_speed.py", "bench_realtime.py", "bench_gpu.py"]
 # fields of some RESULT lines that must be finite positive numbers (besides ratio and baseline)
 FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_extrapolated", "user_ratio"),
           "bench_predict_e2e.py": ("wall_s", "baseline_wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s",
@@ -25,7 +25,8 @@ FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_e
           "bench_modes.py": ("ratio_exact", "ratio_sparse32", "ratio_sparse64", "linear_vs_mc", "user_ratio"),
           "bench_fit.py": ("eval_s", "fit_ratio_plain", "user_ratio"),
           "bench_mc_speed.py": ("path_steps_per_s", "max_edge_diff_se"),
-          "bench_realtime.py": ("rt_factor", "rt_factor_cpu", "wall_s", "cpu_s")}
+          "bench_realtime.py": ("rt_factor", "rt_factor_cpu", "wall_s", "cpu_s"),
+          "bench_gpu.py": ("pss", "realtime", "pss_segment", "band_median_se", "numpy_seeds_band_median_se")}
 # the baselines' numerics agree with the product's (same model on both sides of ratio=)
 MATCH = {"bench_freerun.py": "max_mean_diff", "bench_modes.py": "max_mean_diff",
          "bench_bert_scale.py": "ref_max_mean_diff", "bench_predict_e2e.py": "ref_max_mean_diff"}

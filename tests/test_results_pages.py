@@ -25,3 +25,18 @@ def test_docs_results_page_is_the_render_of_its_stored_run(system):
     for name, rec in summary["records"].items():
         row = next(ln for ln in page.splitlines() if ln.startswith(f"| {name} |"))
         assert f" {rec['coverage']:.1f} " in row and f" {rec['coverage_latent']:.1f} " in row, name
+
+
+def test_docs_accelerator_page_is_the_render_of_its_stored_gpu_run():
+    """docs/results-accelerator.md is what training.accelerator_page renders from docs/runs/accelerator/ (the
+    GPU run of bench/bench_gpu.py and training/rows_study.py): every figure on it comes from that run."""
+    from gpnarx.training.accelerator_page import render
+
+    run = DOCS / "runs" / "accelerator"
+    page = (DOCS / "results-accelerator.md").read_text()
+    assert page == render(run), "docs/results-accelerator.md differs from its run's render"
+    bench = [ln for ln in (run / "bench_gpu.txt").read_text().splitlines() if ln.startswith("RESULT ")]
+    assert bench and all("device=gpu" in ln for ln in bench)
+    rows = json.loads((run / "rows_study.json").read_text())
+    for r in rows["rows"]:
+        assert f"| exact, N = {r['n_train']} |" in page

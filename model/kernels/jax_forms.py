@@ -20,6 +20,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..backend import require_jax
 from .base import SQRT3, Kernel, Sum
 from .cubic import CubicPolynomial
 from .stationary import RBF, Matern32
@@ -87,7 +88,7 @@ def jax_kernel(kernel: Kernel) -> JaxKernel:
     """The JAX twin of ``kernel`` (a ``Sum`` or one of Matern32, RBF, CubicPolynomial, White).
 
     Raises NotImplementedError naming the kernel type when it has no JAX form."""
-    import jax.numpy as jnp
+    jnp = require_jax().numpy  # 64-bit arrays on
 
     pieces = []  # (offset, n, cross or None, diag)
     off = 0
