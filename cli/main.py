@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import sys
 
 import numpy as np
 
 from gpnarx.cli.errors import CLIError
-from gpnarx.model.jsonsafe import to_json_safe
+from gpnarx.model.jsonsafe import dumps_json
 
 # Subcommand modules, in the order shown by --help.
 COMMAND_MODULES = [
@@ -90,8 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if result is not None:
         if as_json:
-            json.dump(to_json_safe(result), sys.stdout, allow_nan=False)
-            sys.stdout.write("\n")
+            sys.stdout.write(dumps_json(result).decode() + "\n")
         else:
             _print_human(result)
     return int(getattr(args, "exit_code", 0))

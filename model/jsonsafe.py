@@ -2,9 +2,15 @@
 the service share."""
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
+
+try:  # fast JSON for long float arrays
+    import orjson as _orjson
+except ImportError:  # pragma: no cover - exercised only without orjson
+    _orjson = None
 
 
 def to_json_safe(obj):
@@ -14,6 +20,8 @@ def to_json_safe(obj):
     if isinstance(obj, (list, tuple)):
         return [to_json_safe(v) for v in obj]
     if isinstance(obj, np.ndarray):
+        if obj.dtype.kind in "iub" or (obj.dtype.kind == "f" and bool(np.all(np.isfinite(obj)))):
+            return obj.tolist()  # nothing inside to convert
         return to_json_safe(obj.tolist())
     if isinstance(obj, np.generic):
         obj = obj.item()
@@ -32,4 +40,17 @@ def json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-__all__ = ["to_json_safe", "json_default"]
+def dumps_json(obj) -> bytes:
+    """Compact JSON bytes of ``obj``: numpy arrays and scalars serialised natively (orjson, in C), NaN/inf
+    as null, keys as strings; what orjson refuses (e.g. a non-contiguous array) goes through
+    ``to_json_safe`` first. The service's bodies and ``gpnarx ... --json`` share it."""
+    if _orjson is not None:
+        opt = _orjson.OPT_SERIALIZE_NUMPY | _orjson.OPT_NON_STR_KEYS
+        try:
+            return _orjson.dumps(obj, option=opt)
+        except (TypeError, _orjson.JSONEncodeError):
+            return _orjson.dumps(to_json_safe(obj), option=opt)
+    return json.dumps(to_json_safe(obj), separators=(",", ":"), allow_nan=False).encode()
+
+
+__all__ = ["to_json_safe", "json_default", "dumps_json"]

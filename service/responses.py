@@ -6,7 +6,7 @@ from typing import Any
 
 from starlette.responses import JSONResponse
 
-from gpnarx.model.jsonsafe import to_json_safe
+from gpnarx.model.jsonsafe import dumps_json
 
 from .problems import PROBLEM_MEDIA_TYPE, ProblemError
 
@@ -18,9 +18,7 @@ except ImportError:  # pragma: no cover - exercised only without orjson
 
 def render_json(obj) -> bytes:
     """JSON bytes; numpy arrays serialised natively (orjson) and non-finite floats as null."""
-    if _orjson is not None:
-        return _orjson.dumps(obj, option=_orjson.OPT_SERIALIZE_NUMPY | _orjson.OPT_NON_STR_KEYS)
-    return json.dumps(to_json_safe(obj), separators=(",", ":"), allow_nan=False).encode()
+    return dumps_json(obj)
 
 
 def parse_json(raw: bytes):

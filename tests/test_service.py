@@ -674,3 +674,23 @@ def test_model_detail_reports_a_held_out_noise_calibration(tmp_path):
     assert d["noise_calibration"]["method"] == "heldout_ml"
     assert d["noise_calibration"]["noise_var"] == pytest.approx(m.noise_var_)
     assert d["hyperparameters"]["noise_var"] == pytest.approx(m.noise_var_)
+
+
+def test_backend_in_the_body_picks_the_free_runs_array_backend(client, monkeypatch):
+    """"backend": "jax" runs the free run on the JAX backend and the answer says so (linearised: numpy's
+    numbers to rounding); a backend that is not one of numpy/jax, or jax on a server without it, is a 422
+    naming the field."""
+    pytest.importorskip("jax")
+    from gpnarx.service import ops
+
+    body, _ = rec()
+    body["method"] = "linear"
+    a = client.post("/v1/models/boucwen/predict", json=body).json()
+    b = client.post("/v1/models/boucwen/predict", json={**body, "backend": "jax"}).json()
+    assert a["backend"] == "numpy" and b["backend"] == "jax"
+    assert np.allclose(b["mean"], a["mean"], rtol=1e-7, atol=1e-12) and np.allclose(b["upper"], a["upper"], rtol=1e-6)
+    r = client.post("/v1/models/boucwen/predict", json={**body, "backend": "cuda"})
+    assert r.status_code == 422 and "backend" in r.text
+    monkeypatch.setattr(ops, "jax_available", lambda: False)
+    r = client.post("/v1/models/boucwen/predict", json={**body, "backend": "jax"})
+    assert r.status_code == 422 and r.json()["field"] == "backend" and "not installed" in r.json()["detail"]
