@@ -31,6 +31,13 @@ def add_parser(sub):
     p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths for verification (default: config)")
     p.add_argument("--ny", type=int, default=None, help="override the config's output lags")
     p.add_argument("--nu", type=int, default=None, help="override the config's input lags")
+    p.add_argument("--mode", choices=("exact", "sparse"), default=None,
+                   help="override the config's [model] mode: 'exact' is the full GP on the selected rows (on the real "
+                        "rig the more faithful free run, docs/results-accelerator.md; its predictions cost O(N^2) a "
+                        "step), 'sparse' the inducing-point one")
+    p.add_argument("--train-points", type=int, default=None, metavar="N",
+                   help="override the config's [model] max_train_points (the rows ML-II, and in exact mode the "
+                        "posterior, use)")
     p.add_argument("--backend", choices=("numpy", "jax"), default=None,
                    help="where ML-II and the exact posterior's solves run (default: the config's [model] "
                         "fit_backend, else numpy); 'jax' on a GPU makes exact mode at 10-20 thousand rows practical "
@@ -87,12 +94,21 @@ def run(args):
                 log(f"lag surface: chosen ny={ny} nu={nu} (fit {ch['fit']:.2f} %) from {len(surface['cells'])} cells")
         res = train(config, args.registry, name=args.name, version=args.version, progress=not quiet,
                     mc_paths=args.mc, ny=ny, nu=nu, report=not args.no_report, lag_surface=surface, log=log,
-                    scheduler=scheduler, model_overrides={"fit_backend": args.backend} if args.backend else None)
+                    scheduler=scheduler, model_overrides=_model_overrides(args))
     out = {"name": res["name"], "version": res["version"], "path": res["path"], "metrics": res["metrics"]}
     if surface is not None:
         out["lags"] = {"ny": ny, "nu": nu, "fit": surface["chosen"]["fit"], "cells": len(surface["cells"]),
                        "cached_cells": surface["cached_cells"]}
     return out
+
+
+def _model_overrides(args) -> dict | None:
+    """The [model] settings the command line overrides (None: the config's own)."""
+    if args.train_points is not None and args.train_points < 2:
+        raise CLIError(f"--train-points must be at least 2, got {args.train_points}")
+    over = {"fit_backend": args.backend, "mode": args.mode, "max_train_points": args.train_points}
+    over = {k: v for k, v in over.items() if v is not None}
+    return over or None
 
 
 def _choose_lags(args, config, scheduler, quiet) -> dict:

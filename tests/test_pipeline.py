@@ -407,3 +407,17 @@ def test_noise_calibration_on_the_lags_record_reaches_the_bundle(tmp_path):
     manifest = load_bundle(out["path"]).manifest
     assert manifest["noise_calibration"] == pytest.approx(nc)
     assert manifest["noise_var"] == pytest.approx(nc["noise_var"])
+
+
+def test_train_overrides_mode_and_training_points_from_the_command_line(small_config, tmp_path, capsys):
+    """`gpnarx train CONFIG --mode exact --train-points N` trains the config's model as the full GP on N rows
+    (the bundle says so); a count under 2 is refused naming the option."""
+    reg = tmp_path / "reg"
+    assert main(["train", str(small_config), "--registry", str(reg), "--no-report", "--mode", "exact",
+                 "--train-points", "120", "--json"]) == 0
+    capsys.readouterr()
+    b = load_bundle(reg / "bw-small" / "1")
+    assert b.manifest["mode"] == "exact" and b.manifest["n_train"] == 120
+    assert b.model.posterior_.kind == "exact" and b.model.posterior_.n_points == 120
+    assert main(["train", str(small_config), "--registry", str(reg), "--train-points", "1"]) != 0
+    assert "--train-points must be at least 2" in capsys.readouterr().err
