@@ -2,11 +2,17 @@
 ``simulate_mc`` (checked local model per step) against the previous code path, and the bands'
 agreement.
 
-Model: the ``bert-real`` bundle (sparse, M=256 inducing points, ny=16, nu=20, D=36), on three
+Each record class on its own (``pss_sine=``, ``pss_sweep=``, ``pss_noise=``, their ``ratio_*`` and
+``realtime_*``: record seconds per wall second at 1024 paths): on spread paths (start-ups, sweeps, noise)
+the local model falls back to exact evaluation, so the speed depends on the record.
+
+Model: the ``bert-real`` bundle (sparse, M=256 inducing points), on three
 segments of 1024 steps of a 64 s real record (default the 20 Hz sine, the held-out record nearest
 the first resonance): from rest at 0 s (the start-up towards resonance), from the measured outputs
 at 20 s (steady state) and at 51 s (the drive stops and the structure decays: the latent variance
-falls below the noise there while the paths are still spread, the hardest case for the local model).
+falls below the noise there while the paths are still spread, the hardest case for the local model);
+then (unless ``--sine-only``) the held-out 0.10 V sweep from rest at 0 s and from measured outputs at
+3 s (crossing the resonance), and the 0.10 V noise run at 0 s and 5 s.
 
 Product: ``model.freerun.simulate_mc`` (default ``local=True``): each step a second-order model of
 eq. 8-9 around the paths' mean regressor in the 16 output-lag coordinates, checked against eq. 8-9
@@ -45,10 +51,11 @@ def quick_model():
 
     pairs, _, r50 = C.protocol()
     m = GPNARX(ny=C.NY, nu=C.NU, mode="sparse", n_inducing=64, max_train_points=500).fit(pairs, theta=C.THETA_REF)
-    return m, [("50 N sweep from measured", r50.u[900:960], r50.y[900:960], r50.y[900: 900 + C.NY])], "quick"
+    seg = ("50 N sweep from measured", r50.u[900:960], r50.y[900:960], r50.y[900: 900 + C.NY], "sweep")
+    return m, [seg], "quick", 750.0
 
 
-def bert_model(registry, record):
+def bert_model(registry, record, classes=True):
     import bench_realtime as R
 
     from gpnarx.model.registry import Registry
@@ -60,12 +67,24 @@ def bert_model(registry, record):
     rec = read_record(str(path), fs_default=b.fs)
     fs = rec.fs
     ny = b.model.ny
-    segs = [(f"{path.name} 0 s from rest", rec.u[:1024], rec.y[:1024], None)]
-    for t0 in (20.0, 51.0):
-        s1 = int(round(t0 * fs))
-        segs.append((f"{path.name} {t0:.0f} s from measured", rec.u[s1: s1 + 1024 + ny], rec.y[s1: s1 + 1024 + ny],
-                     rec.y[s1: s1 + ny]))
-    return b.model, segs, f"{note}; {b.name}:{b.version}"
+    segs = segments(rec, path.name, "sine", (20.0, 51.0), ny)
+    if classes:  # a sweep through the resonance and a noise run too: the speed a user sees depends on the record
+        data = R.bert_data()
+        for sub, cls, starts in (("Chirp/Chirp0to40Hz/Chirp0p10", "sweep", (3.0,)),
+                                 ("Rand/Rand0p10", "noise", (5.0,))):
+            other = read_record(str(data / sub), fs_default=b.fs)
+            segs += segments(other, Path(sub).name, cls, starts, ny)
+    return b.model, segs, f"{note}; {b.name}:{b.version}", fs
+
+
+def segments(rec, name, cls, starts, ny, steps=1024):
+    """1024-step segments of a record: from rest at 0 s, and from its measured outputs at each start [s]."""
+    segs = [(f"{name} 0 s from rest", rec.u[:steps], rec.y[:steps], None, cls)]
+    for t0 in starts:
+        s1 = int(round(t0 * rec.fs))
+        segs.append((f"{name} {t0:.0f} s from measured", rec.u[s1: s1 + steps + ny], rec.y[s1: s1 + steps + ny],
+                     rec.y[s1: s1 + ny], cls))
+    return segs
 
 
 def coverage(y, run) -> float:
@@ -77,22 +96,24 @@ def main():
         ap.add_argument("--registry", default=None, help="registry holding bert-real (default: train into a cache)")
         ap.add_argument("--record", default=None, help="64 s record (default: BERT Sine_20Hz)")
         ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; 2 with --quick)")
+        ap.add_argument("--sine-only", action="store_true",
+                        help="only the sine record's segments (default: also a sweep and a noise run)")
 
     args = C.parse_args(__doc__, extra)
     q = args.quick
     P = 256 if q else 1024
     reps = args.reps or (2 if q else 3)
-    model, segs, note = quick_model() if q else bert_model(args.registry, args.record)
+    model, segs, note, fs = quick_model() if q else bert_model(args.registry, args.record, not args.sine_only)
     post = model.posterior_
 
     def run(fn, seg, seed=0):
-        _, u, _, y0 = seg
+        _, u, _, y0 = seg[:4]
         return fn(post, model.x_scaler_, model.y_scaler_, model.ny, model.nu, u, n_paths=P, seed=seed, y0=y0,
                   include_noise=model.include_noise)
 
     for seg in segs:  # warm-up
-        run(simulate_mc, (seg[0], seg[1][:40], None, seg[3]))
-        run(simulate_mc_reference, (seg[0], seg[1][:40], None, seg[3]))
+        run(simulate_mc, (seg[0], seg[1][:40], None, seg[3], seg[4]))
+        run(simulate_mc_reference, (seg[0], seg[1][:40], None, seg[3], seg[4]))
     load0 = C.load()
     t_new = [[0.0] * len(segs) for _ in range(reps)]
     t_ref = [[0.0] * len(segs) for _ in range(reps)]
@@ -144,10 +165,19 @@ def main():
     for name, dm, de, cn, cr, cr1 in rows:
         print(f"    {name:<34} max |mean diff| {dm:.2g} MC s.e.; max |band-edge diff| {de:.2g} MC s.e.; "
               f"coverage of measured y: product {cn:.2f} %, baseline {cr:.2f} % (seed 1: {cr1:.2f} %)")
+    per_class = {}
+    for cls in dict.fromkeys(seg[4] for seg in segs):  # each record class on its own: its segments' total
+        js = [j for j, seg in enumerate(segs) if seg[4] == cls]
+        tn = C.median([sum(t[j] for j in js) for t in t_new])
+        tr = C.median([sum(t[j] for j in js) for t in t_ref])
+        n_cls = P * sum(steps[j] for j in js)
+        per_class[f"pss_{cls}"] = n_cls / tn
+        per_class[f"ratio_{cls}"] = tr / tn
+        per_class[f"realtime_{cls}"] = sum(steps[j] for j in js) / fs / tn
     C.result(path_steps_per_s=ps_new, baseline=ps_ref, baseline_what="simulate_mc_reference-same-posterior-paths-seed",
              ratio=C.median(ratios), paths=P, steps=sum(steps), local_steps=sum(local.values()),
              max_mean_diff_se=worst["mean"], max_edge_diff_se=worst["edge"], cov_gap_points=cov_gap,
-             load=C.load(), blas_threads=C.blas_threads())
+             load=C.load(), blas_threads=C.blas_threads(), **per_class)
 
 
 if __name__ == "__main__":
