@@ -40,3 +40,18 @@ def test_docs_accelerator_page_is_the_render_of_its_stored_gpu_run():
     rows = json.loads((run / "rows_study.json").read_text())
     for r in rows["rows"]:
         assert f"| exact, N = {r['n_train']} |" in page
+
+
+def test_docs_exact_real_page_is_the_render_of_its_stored_run():
+    """docs/results-bert-real-exact.md is training.exact_study's render of docs/runs/bert-real-exact (and of the
+    shipped model's stored run it is set against)."""
+    from gpnarx.training.exact_study import render
+
+    summary = json.loads((DOCS / "runs" / "bert-real-exact" / "summary.json").read_text())
+    shipped = json.loads((DOCS / "runs" / "bert-real" / "summary.json").read_text())
+    page = (DOCS / "results-bert-real-exact.md").read_text()
+    assert page == render(summary, shipped), "docs/results-bert-real-exact.md differs from its run's render"
+    assert summary["mode"] == "exact"
+    for name, r in summary["real_table"]["records"].items():
+        if r["role"] == "validate":
+            assert f"| {name} | {r['whole_linear']['fit']:.1f} |" in page, name
