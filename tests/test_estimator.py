@@ -459,7 +459,8 @@ def test_scikit_learn_estimator_api():
     params = m.get_params()
     assert params["ny"] == 3 and params["nu"] == 4 and params["mode"] == "sparse" and params["seed"] == 7
     assert set(params) == {"ny", "nu", "kernel", "mode", "n_inducing", "max_train_points", "selection",
-                           "n_restarts", "seed", "include_noise", "sparse_max_rows", "hyper", "constant_cap", "fit_backend"}
+                           "n_restarts", "seed", "include_noise", "sparse_max_rows", "hyper", "constant_cap",
+                           "fit_backend"}
     with pytest.raises(TypeError):
         GPNARX(2, 2)  # keyword-only
     u = np.random.default_rng(0).normal(size=300)
