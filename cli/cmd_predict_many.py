@@ -54,6 +54,8 @@ def add_parser(sub):
     p.add_argument("--start", choices=("rest", "measured"), default="rest",
                    help="initial state of every free run: 'rest' (default) or 'measured' (each record's first ny "
                         "measured outputs)")
+    p.add_argument("--backend", choices=("numpy", "jax"), default=None,
+                   help="array backend of every free run (default: $GPNARX_BACKEND, else numpy; docs/accelerator.md)")
     p.add_argument("--blas-threads", type=int, default=None,
                    help="BLAS threads per free run (default: $GPNARX_BLAS_THREADS or 1; 0 leaves BLAS as it is)")
     p.set_defaults(func=run)
@@ -172,7 +174,7 @@ def _run(args, runner, mc: int) -> dict:
     # load_model has checked GPNARX_BLAS_THREADS; the same limit applies to every free run, on a worker too
     blas = args.blas_threads if args.blas_threads is not None else blas_threads_from_env()
     options = {"mc": mc, "seed": args.seed, "confidence": args.confidence, "method": args.method,
-               "start": args.start, "blas_threads": blas}
+               "start": args.start, "blas_threads": blas, "backend": args.backend}
     files = _file_names(args.records)
     entries = [{"record": str(p), "file": None, "status": "failed", "error": None} for p in args.records]
     bar = None

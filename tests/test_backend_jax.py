@@ -220,6 +220,12 @@ def test_cli_predict_with_the_jax_backend(sparse_model, data, tmp_path, capsys):
         outs[be] = json.loads(capsys.readouterr().out)
     assert outs["jax"]["backend"] == "jax" and outs["numpy"]["backend"] == "numpy"
     assert outs["jax"]["fit"] == pytest.approx(outs["numpy"]["fit"], abs=1e-6)
+    out = tmp_path / "many"
+    assert main(["predict-many", str(rec), "--registry", str(tmp_path / "reg"), "--model", "duffing", "--out",
+                 str(out), "--method", "linear", "--backend", "jax", "--json"]) == 0
+    capsys.readouterr()
+    many = json.loads(next(p for p in out.glob("*.json") if p.name != "index.json").read_text())
+    assert many["backend"] == "jax" and many["fit"] == pytest.approx(outs["jax"]["fit"], abs=1e-9)
     assert main(["predict", "--registry", str(tmp_path / "reg"), "--model", "duffing", str(rec), "--backend",
                  "cuda"]) != 0
     assert "invalid choice: 'cuda'" in capsys.readouterr().err
