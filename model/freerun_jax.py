@@ -33,7 +33,7 @@ from scipy.special import ndtri
 
 from .backend import require_jax
 from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, check_confidence, lagged_inputs, start_index
-from .kernels.jax_forms import jax_kernel, kernel_theta
+from .kernels.jax_forms import jax_kernel, kernel_structure, kernel_theta
 
 BLOCK_ELEMENTS = 1 << 23  # samples (steps x paths) of one block kept on the device: 64 MiB in float64
 MAX_BLOCK_STEPS = 4096
@@ -42,11 +42,10 @@ SCAN_UNROLL = 8  # steps per iteration of the compiled loop (fewer loop round tr
 
 def _posterior_arrays(posterior):
     """(Z, w, F, mean_shift): the points, mean weights and variance factor (eq. 9 = k(x,x) - |F k|^2)."""
-    if posterior.kind == "sparse":
-        if getattr(posterior, "G", None) is None:
-            raise NotImplementedError("a legacy sparse bundle (no variance factor G) runs on backend 'numpy' only")
-        return posterior.X, posterior.w, posterior.G, posterior.mean_shift
-    return posterior.X, posterior.alpha, posterior.Linv, posterior.mean_shift
+    F = posterior.variance_factor
+    if F is None:
+        raise NotImplementedError("a legacy sparse bundle (no variance factor G) runs on backend 'numpy' only")
+    return posterior.X, posterior.mean_weights, F, posterior.mean_shift
 
 
 def _block_steps(n_steps: int, P: int) -> int:
@@ -55,11 +54,6 @@ def _block_steps(n_steps: int, P: int) -> int:
 
 
 _CACHE: dict = {}  # compiled programs, by kernel structure and options (theta is an argument)
-
-
-def _structure(kernel) -> tuple:
-    parts = kernel.parts if hasattr(kernel, "parts") else [kernel]
-    return tuple((type(p).__name__, getattr(p, "constant_cap", None)) for p in parts)
 
 
 def _build_mc(jax, jnp, hi, jk, ny, lat, keep, dt, unroll):
@@ -170,7 +164,7 @@ def simulate_mc_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.ndarr
 
 
 def _build_cached(jax, jnp, kernel, ny, lat, keep, dt):
-    key = ("mc", _structure(kernel), ny, lat, keep, np.dtype(dt).name, SCAN_UNROLL)
+    key = ("mc", kernel_structure(kernel), ny, lat, keep, np.dtype(dt).name, SCAN_UNROLL)
     prog = _CACHE.get(key)
     if prog is None:
         prog = _CACHE[key] = _build_mc(jax, jnp, jax.lax.Precision.HIGHEST, jax_kernel(kernel), ny, lat, keep, dt,
@@ -233,7 +227,7 @@ def simulate_linear_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.n
     ym, ysc = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
     Ulag = (lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
     L = max(ny, int(cov_window or 0))
-    key = ("linear", _structure(posterior.kernel), ny, L)
+    key = ("linear", kernel_structure(posterior.kernel), ny, L)
     prog = _CACHE.get(key)
     if prog is None:
         prog = _CACHE[key] = _build_linear(jax, jnp, jax_kernel(posterior.kernel), ny, L)

@@ -110,6 +110,11 @@ class ExactPosterior:
         """w of the mean K(xs, X) w + mean_shift (eq. 8): alpha."""
         return self.alpha
 
+    @property
+    def variance_factor(self) -> np.ndarray:
+        """F of eq. 9's variance k(x, x) - |F k|^2: Linv."""
+        return self.Linv
+
     def mean_var_grad(self, Xs: np.ndarray, block: int = 256):
         """``mean_grad`` for many points at once: mean (eq. 8), latent variance (eq. 9) and
         d mean / d xs for every row of Xs, (rows,), (rows,), (rows, D); one kernel block per row block."""
@@ -155,7 +160,7 @@ def local_model(post, x: np.ndarray, ny: int, Xc: np.ndarray | None = None):
     at those rows, sharing the one product with F. Returns (m0, gm, Hm, v0, gv, Hv, mean_c, var_c);
     raises NotImplementedError for kernels without ``local_terms`` and for legacy bundles.
     """
-    F = getattr(post, "G", None) if post.kind == "sparse" else post.Linv
+    F = post.variance_factor
     if F is None:
         raise NotImplementedError("legacy sparse bundle (no variance factor G)")
     k, J, hess = post.kernel.local_terms(x, post.X, ny)
@@ -354,6 +359,11 @@ class SparsePosterior:
     def mean_weights(self) -> np.ndarray:
         """w of the mean K(xs, Z) w + mean_shift (eq. 8)."""
         return self.w
+
+    @property
+    def variance_factor(self) -> np.ndarray | None:
+        """F of eq. 9's variance k(x, x) - |F k|^2: G (None for a legacy bundle that stores only A)."""
+        return self.G
 
     def mean_var_grad(self, Xs, block: int = 256):
         """``mean_grad`` for many points at once (see ``ExactPosterior.mean_var_grad``)."""

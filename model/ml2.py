@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import linalg
 
+from .backend import BACKENDS
 from .kernels import Kernel, Sum
 from .linalg import JITTERS, LOG_2PI, NotPositiveDefiniteError, _potrf_inplace, chol_inverse, cholesky_jitter
 
@@ -297,7 +298,7 @@ def _nlml_jax(theta, kernel, X, y, ws):
 
 
 def _objective(backend: str):
-    if backend not in ("numpy", "jax"):
+    if backend not in BACKENDS:
         raise ValueError(f"backend must be 'numpy' or 'jax', got {backend!r}")
     return _nlml_jax if backend == "jax" else _nlml_ws
 

@@ -16,31 +16,23 @@ from __future__ import annotations
 import numpy as np
 
 from .backend import require_jax
-from .kernels.jax_forms import jax_kernel
+from .kernels.jax_forms import jax_kernel, kernel_structure, kernel_theta
 from .linalg import JITTERS, NotPositiveDefiniteError
 
 _CACHE: dict = {}
 
 
-def _structure(kernel) -> tuple:
-    parts = kernel.parts if hasattr(kernel, "parts") else [kernel]
-    return tuple((type(p).__name__, getattr(p, "constant_cap", None)) for p in parts)
-
-
 def _program(kernel):
-    key = _structure(kernel)
+    key = kernel_structure(kernel)
     if key in _CACHE:
         return _CACHE[key]
     jax = require_jax()
     jnp = jax.numpy
     jk = jax_kernel(kernel)
-    hi = jax.lax.Precision.HIGHEST
     nk = jk.n_params
 
     def nlml(theta, X, y, rel_jitter):
-        sq = jnp.sum(X * X, axis=1)
-        K = jk.cross(theta[:nk], jnp.matmul(X, X.T, precision=hi), sq, sq)
-        K = K + (jk.white(theta[:nk]) + jnp.exp(theta[nk])) * jnp.eye(X.shape[0], dtype=K.dtype)
+        K = jk.train_cov(theta[:nk], X, jnp.exp(theta[nk]))
         K = K + jax.lax.stop_gradient(rel_jitter * jnp.mean(jnp.diag(K))) * jnp.eye(X.shape[0], dtype=K.dtype)
         L = jnp.linalg.cholesky(K)
         a = jax.scipy.linalg.cho_solve((L, True), y)
@@ -86,14 +78,9 @@ def exact_solve_jax(kernel, noise_var: float, X: np.ndarray, y: np.ndarray) -> t
     """(alpha, Linv) of the exact posterior (``gp.ExactPosterior``), float64, on the JAX device."""
     jax = require_jax()
     jnp = jax.numpy
-    from .kernels.jax_forms import kernel_theta
-
-    jk = jax_kernel(kernel)
     theta = jnp.asarray(kernel_theta(kernel), dtype=jnp.float64)
-    Xd, yd = jnp.asarray(X, dtype=jnp.float64), jnp.asarray(y, dtype=jnp.float64)
-    sq = jnp.sum(Xd * Xd, axis=1)
-    K = jk.cross(theta, jnp.matmul(Xd, Xd.T, precision=jax.lax.Precision.HIGHEST), sq, sq)
-    K = K + (jk.white(theta) + noise_var) * jnp.eye(X.shape[0], dtype=K.dtype)
+    yd = jnp.asarray(y, dtype=jnp.float64)
+    K = jax_kernel(kernel).train_cov(theta, jnp.asarray(X, dtype=jnp.float64), noise_var)
     scale = float(jnp.mean(jnp.diag(K)))
     for rel in JITTERS:
         L = jnp.linalg.cholesky(K + (rel * scale) * jnp.eye(X.shape[0], dtype=K.dtype) if rel else K)
@@ -112,9 +99,7 @@ def predict_exact_jax(posterior, Xs: np.ndarray, block: int = 4096) -> tuple[np.
     device in row blocks: the held-out noise calibration of a posterior of N = 10-20 thousand rows."""
     jax = require_jax()
     jnp = jax.numpy
-    from .kernels.jax_forms import kernel_theta
-
-    key = ("predict", _structure(posterior.kernel))
+    key = ("predict", kernel_structure(posterior.kernel))
     prog = _CACHE.get(key)
     if prog is None:
         jk = jax_kernel(posterior.kernel)

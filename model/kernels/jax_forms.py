@@ -12,6 +12,10 @@ checks every kernel type here against its class, so the two cannot drift apart.
   (``Kernel.from_gram``); a white part adds nothing between points.
 * ``diag(theta, sq)``: k(x, x) for points of squared norm sq (``Kernel.diag``).
 * ``white(theta)``: the white parts' variance, added on the diagonal of a training covariance.
+* ``train_cov(theta, X, noise_var)``: K(X, X) + (white + noise_var) I, the training covariance of eq. 13.
+
+``kernel_structure(kernel)`` names what a compiled program depends on besides theta (the parts' types
+and caps): the key of the compiled-program caches.
 """
 from __future__ import annotations
 
@@ -79,6 +83,14 @@ class JaxKernel:
     diag: Callable
     white: Callable
 
+    def train_cov(self, theta, X, noise_var):
+        """K(X, X) + (white + noise_var) I at standardised rows X (N x D), one Gram product at full precision."""
+        jax = require_jax()
+        jnp = jax.numpy
+        sq = jnp.sum(X * X, axis=1)
+        K = self.cross(theta, jnp.matmul(X, X.T, precision=jax.lax.Precision.HIGHEST), sq, sq)
+        return K + (self.white(theta) + noise_var) * jnp.eye(X.shape[0], dtype=K.dtype)
+
 
 def _parts(kernel: Kernel) -> list[Kernel]:
     return list(kernel.parts) if isinstance(kernel, Sum) else [kernel]
@@ -128,6 +140,11 @@ def jax_kernel(kernel: Kernel) -> JaxKernel:
         return w
 
     return JaxKernel(off, cross, diag, white)
+
+
+def kernel_structure(kernel: Kernel) -> tuple:
+    """The parts' types and constant caps: all a compiled program depends on besides theta."""
+    return tuple((type(p).__name__, getattr(p, "constant_cap", None)) for p in _parts(kernel))
 
 
 def kernel_theta(kernel: Kernel) -> np.ndarray:
