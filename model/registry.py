@@ -427,6 +427,10 @@ class Registry:
     def names(self) -> list[str]:
         return sorted(self.bundles)
 
+    def listed(self) -> set[str]:
+        """``NAME:VERSION`` of every version the last scan listed, served or refused."""
+        return {f"{n}:{v}" for n, v in self._seen}
+
     def versions(self, name: str) -> list[str]:
         return sorted(self.bundles.get(name, {}), key=int)
 

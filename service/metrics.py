@@ -13,7 +13,12 @@
   ``prediction``, ``probe``), ``gpnarx_diverged_answers_total{model}`` answers with ``diverged_paths`` > 0,
   ``gpnarx_novelty_verdicts_total{model,verdict}``: the per-model counts alerting is built on. Model
   labels come from the registry's names, so the label set is bounded by the registry;
-- ``gpnarx_bundles_loaded`` / ``gpnarx_bundles_refused`` gauges, ``gpnarx_work_pending`` (running + waiting jobs).
+- ``gpnarx_bundles_loaded`` / ``gpnarx_bundles_refused`` gauges, ``gpnarx_work_pending`` (running + waiting jobs);
+- ``gpnarx_registry_scans_total{trigger,outcome}`` registry scans (trigger ``poll`` or ``reload``; outcome
+  ``changed``, ``unchanged``, ``held``: a scan that dropped too many versions was not served, ``error``: the store
+  could not be read), ``gpnarx_registry_held`` (1 while such a scan is held back),
+  ``gpnarx_registry_held_accepted_total`` (held listings served after confirmation or an admin action),
+  ``gpnarx_registry_versions_added_total`` / ``gpnarx_registry_versions_removed_total``.
 """
 from __future__ import annotations
 
@@ -60,6 +65,18 @@ class ServiceMetrics:
                            registry=r)
         self.built.set_function(lambda: self.state.registry.loaded_count())
         self.refused = Gauge("gpnarx_bundles_refused", "Model bundles refused (corrupt or invalid)", registry=r)
+        self.scans = Counter("gpnarx_registry_scans", "Registry scans by trigger (poll, reload) and outcome "
+                             "(changed, unchanged, held, error)", ["trigger", "outcome"], registry=r)
+        self.held = Gauge("gpnarx_registry_held", "1 while a registry scan that dropped too many versions is held "
+                          "back (the last good registry serves)", registry=r)
+        self.held.set_function(lambda: 1.0 if self.state.held else 0.0)
+        self.scans_accepted = Counter("gpnarx_registry_held_accepted", "Held registry listings served after "
+                                      "confirmation on consecutive scans or an admin reload with accept_removal",
+                                      registry=r)
+        self.versions_added = Counter("gpnarx_registry_versions_added", "Versions a registry scan added",
+                                      registry=r)
+        self.versions_removed = Counter("gpnarx_registry_versions_removed", "Versions a registry scan removed",
+                                        registry=r)
         self.pending = Gauge("gpnarx_work_pending", "Jobs running or waiting on the worker pool", registry=r)
         self.pending.set_function(lambda: self.state.executor.pending)
 

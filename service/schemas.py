@@ -395,11 +395,26 @@ class StartupStatus(BaseModel):
     done: bool = Field(..., description="True when nothing is building or pending.")
 
 
+class RegistryHeld(BaseModel):
+    """A registry scan that dropped every served version, or more than ``GPNARX_REGISTRY_DROP_SHARE``
+    of them, held back: the last good registry keeps serving until the same listing is seen on
+    ``GPNARX_REGISTRY_CONFIRM_SCANS`` consecutive scans or ``POST /v1/admin/reload?accept_removal=true``."""
+
+    detail: str
+    served: int = Field(description="Versions the served registry lists")
+    listed: int = Field(description="Versions the held scan lists")
+    dropped: list[str] = Field(description="`NAME:VERSION` the held scan drops (at most 50)")
+    scans: int = Field(description="Consecutive scans that showed the held listing")
+    needed: int = Field(description="Consecutive scans needed to serve it (GPNARX_REGISTRY_CONFIRM_SCANS)")
+
+
 class Ready(BaseModel):
     status: Literal["ready"]
     bundles: int
     models: dict[str, list[str]]
     refused: list[RefusedBundle]
+    registry_held: RegistryHeld | None = Field(None, description="Only while a registry scan that dropped too "
+                                               "many versions is held back (the service stays ready).")
     startup: StartupStatus | None = Field(None, description="Only while or after the server builds its default "
                                           "bundles (`gpnarx serve` without `--registry`); also in the 503 answer.")
 
@@ -410,3 +425,5 @@ class ReloadResponse(BaseModel):
     refused: list[RefusedBundle]
     added: list[str]
     removed: list[str]
+    held: RegistryHeld | None = Field(None, description="Only when the scan was held back: what is still served is "
+                                      "listed above")

@@ -77,6 +77,7 @@ def _setting(default: Any = None, *, label: str, exceeded: str = "-", shown: str
 _POSITIVE = "a positive integer"
 _NON_NEGATIVE = "a non-negative integer"
 _SECONDS = "a non-negative number of seconds"
+_SHARE = "a number from 0 to 1"
 
 #: the mapping ``Settings.from_env`` reads (None: ``Settings(...)`` reads no environment)
 _ENVIRON: ContextVar[Any] = ContextVar("gpnarx_settings_environ", default=None)
@@ -101,11 +102,11 @@ class _EnvironSource(PydanticBaseSettingsSource):
             kind = (field.json_schema_extra or {}).get("kind")
             if kind is None:  # text: api_key, registry
                 out[name] = raw
-            elif kind == _SECONDS:
+            elif kind in (_SECONDS, _SHARE):
                 try:
                     out[name] = float(raw)
                 except ValueError:
-                    raise ValueError(f"environment variable {var} must be a number of seconds, got {raw!r}") from None
+                    raise ValueError(f"environment variable {var} must be {kind}, got {raw!r}") from None
             else:  # the package's one integer-variable parser; the range is the field's to check
                 out[name] = env_int(var, None, env, minimum=None)
         return out
@@ -149,6 +150,15 @@ class Settings(BaseSettings):
                                    label="glibc's mmap threshold (0 = leave malloc)")
     registry_poll: float = _setting(30.0, ge=0, allow_inf_nan=False, kind=_SECONDS, shown="30 s",
                                     label="seconds between rescans of the registry (0 = none)")
+    registry_drop_share: float = _setting(0.5, ge=0, le=1, allow_inf_nan=False, kind=_SHARE,
+                                          label="share of the served versions one registry scan may drop; a scan "
+                                                "dropping more (or every version) is held",
+                                          exceeded="the last good registry keeps serving (`/health/ready` "
+                                                   "`registry_held`)")
+    registry_confirm_scans: int = _setting(3, ge=1, kind=_POSITIVE,
+                                           label="consecutive scans that must show the same held listing before "
+                                                 "it is served (1 = at once; `POST /v1/admin/reload?accept_removal="
+                                                 "true` serves it now)")
     max_loaded: int = _setting(8, ge=1, kind=_POSITIVE, label="built models kept in memory (least recently used "
                                                               "dropped first)")
     backend: Literal["numpy", "jax"] = _setting("numpy", kind=None, shown="numpy",

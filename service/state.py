@@ -50,6 +50,8 @@ class ServiceState:
         self.reload_lock = asyncio.Lock()
         self.reloads = 0
         self.polls = 0
+        self.held: dict | None = None  # a suspect scan held back (``_hold``); shown by /health/ready
+        self._pending: tuple | None = None  # (listing, consecutive scans that showed it) of a held scan
         self._reported = self._listed(self.registry)  # what the last reload answered against
 
     def refused(self, registry: Registry | None = None) -> list[dict]:
@@ -73,23 +75,34 @@ class ServiceState:
     def _listed(reg: Registry) -> set:
         return {f"{n}:{v}" for n, vs in reg.bundles.items() for v in vs}
 
-    async def reload(self, poll: bool = False) -> dict:
+    async def reload(self, poll: bool = False, accept_removal: bool = False) -> dict:
         """Rescan the registry and swap it in. ``added``/``removed`` compare with the previous reload
         (or the start), so versions a poll picked up meanwhile are still reported; a poll does not
-        move that reference."""
+        move that reference.
+
+        A scan that drops every listed version, or more than ``settings.registry_drop_share`` of
+        them, is held (``_hold``): the last good registry keeps serving until the same listing is
+        seen on ``settings.registry_confirm_scans`` consecutive scans, or ``accept_removal``."""
         if self.registry_dir is None:
             raise ProblemError(409, "no registry folder is configured; nothing to reload")
+        trigger = "poll" if poll else "reload"
         async with self.reload_lock:
             old = self.registry
             try:
                 new = await asyncio.to_thread(old.rescan)
             except StorageError as exc:
                 self.registry_error = str(exc)
+                self.metrics.scans.labels(trigger, "error").inc()
                 raise ProblemError(503, f"the registry could not be read ({exc}); the versions listed before "
                                         f"keep serving", headers={"Retry-After": str(self.settings.retry_after)}
                                    ) from None
-            self.registry = new  # atomic swap: in-flight requests keep the bundle they hold
             self.registry_error = None
+            held = self._hold(old, new, accept_removal)
+            if held is not None:
+                self.metrics.scans.labels(trigger, "held").inc()
+                return {"bundles": self.n_bundles(old), "models": self.models(old), "refused": self.refused(old),
+                        "added": [], "removed": [], "held": held}
+            self.registry = new  # atomic swap: in-flight requests keep the bundle they hold
             if poll:
                 self.polls += 1
             else:
@@ -97,13 +110,53 @@ class ServiceState:
             before, after = (self._listed(old), self._listed(new)) if poll else (self._reported, self._listed(new))
             if not poll:
                 self._reported = after
+            changed = self._listed(old) != self._listed(new) or len(old.refused) != len(new.refused)
+            self.metrics.scans.labels(trigger, "changed" if changed else "unchanged").inc()
+            self.metrics.versions_added.inc(len(self._listed(new) - self._listed(old)))
+            self.metrics.versions_removed.inc(len(self._listed(old) - self._listed(new)))
         self.metrics.update_bundles()
-        if not poll or before != after or len(old.refused) != len(new.refused):
-            log.info("registry %s: %d bundles, %d refused; added %s, removed %s", "polled" if poll else "reloaded",
-                     self.n_bundles(new), len(new.refused), sorted(after - before) or "none",
-                     sorted(before - after) or "none")
+        if not poll or changed:
+            (log.warning if before - after else log.info)(
+                "registry %s: %d bundles, %d refused; added %s, removed %s", "polled" if poll else "reloaded",
+                self.n_bundles(new), len(new.refused), sorted(after - before) or "none",
+                sorted(before - after) or "none")
         return {"bundles": self.n_bundles(new), "models": self.models(new), "refused": self.refused(new),
                 "added": sorted(after - before), "removed": sorted(before - after)}
+
+    def _hold(self, old: Registry, new: Registry, accept: bool) -> dict | None:
+        """None when ``new`` may replace ``old``; else what is held (``schemas.RegistryHeld``), logged.
+
+        A scan is suspect when it drops every version ``old`` listed, or more than
+        ``registry_drop_share`` of them (an emptied or wiped store, a wrong bucket or prefix, a
+        volume not mounted). A suspect listing is served once the same listing has been seen on
+        ``registry_confirm_scans`` consecutive scans, or at once with ``accept`` (the admin action).
+        """
+        before, after = old.listed(), new.listed()
+        dropped = before - after
+        share = self.settings.registry_drop_share
+        suspect = bool(before) and bool(dropped) and (dropped == before or len(dropped) > share * len(before))
+        if not suspect:
+            self.held = self._pending = None
+            return None
+        key = frozenset(after)
+        seen = self._pending[1] + 1 if self._pending is not None and self._pending[0] == key else 1
+        needed = self.settings.registry_confirm_scans
+        if accept or seen >= needed:
+            how = "by an admin reload with accept_removal" if accept else f"after {seen} consecutive scans"
+            log.warning("registry: a listing without %d of %d versions (%s) is served now, %s", len(dropped),
+                        len(before), ", ".join(sorted(dropped)[:10]), how)
+            self.held = self._pending = None
+            self.metrics.scans_accepted.inc()
+            return None
+        self._pending = (key, seen)
+        detail = (f"the last registry scan lists {len(after)} version(s) and drops {len(dropped)} of the "
+                  f"{len(before)} served ({'all' if dropped == before else f'more than {share:g} of them'}); "
+                  f"the last good registry keeps serving until the same listing is seen on {needed} consecutive "
+                  f"scans ({seen} so far) or POST /v1/admin/reload?accept_removal=true")
+        self.held = {"detail": detail, "served": len(before), "listed": len(after), "dropped": sorted(dropped)[:50],
+                     "scans": seen, "needed": needed}
+        log.warning("registry: %s", detail)
+        return self.held
 
     def reload_from_thread(self, timeout: float | None = 300.0) -> dict:
         """``reload()`` called from another thread (e.g. a launcher that has just written a bundle).

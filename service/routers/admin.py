@@ -1,7 +1,9 @@
 """Registry administration."""
 from __future__ import annotations
 
-from fastapi import APIRouter
+from typing import Annotated
+
+from fastapi import APIRouter, Query
 
 from ..deps import RECORD_PROBLEMS, V1, StateDep
 from ..responses import JSONBytesResponse
@@ -11,8 +13,11 @@ router = APIRouter(prefix="/v1", tags=["admin"], dependencies=V1)
 
 
 @router.post("/admin/reload", response_model=ReloadResponse, operation_id="reload",
-             summary="Rescan the registry (in-flight requests keep their bundle)",
+             summary="Rescan the registry (in-flight requests keep their bundle); a scan that drops too many "
+                     "versions is held unless accept_removal",
              responses={401: {"description": RECORD_PROBLEMS[401]},
                         409: {"description": "No registry folder configured"}})
-async def reload(state: StateDep):
-    return JSONBytesResponse(await state.reload())
+async def reload(state: StateDep, accept_removal: Annotated[bool, Query(
+        description="Serve the scan even if it drops every version or more than GPNARX_REGISTRY_DROP_SHARE of "
+                    "them (a deliberate removal); otherwise such a scan is held (`held`)")] = False):
+    return JSONBytesResponse(await state.reload(accept_removal=accept_removal))

@@ -25,6 +25,8 @@ async def health_ready(state: StateDep):
     n = state.n_bundles()
     startup = state.startup()
     extra = {} if startup is None else {"startup": startup}
+    if state.held:
+        extra["registry_held"] = state.held
     if n == 0:
         building = [*(startup or {}).get("building", []), *(startup or {}).get("pending", [])]
         raise ProblemError(503, "no model bundle is loaded" + (
