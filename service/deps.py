@@ -36,14 +36,24 @@ api_key_header = APIKeyHeader(name=API_KEY_HEADER, scheme_name="ApiKeyAuth", aut
                               description="Required on /v1 routes only when the server sets GPNARX_API_KEY.")
 
 
-async def require_api_key(state: StateDep, given: Annotated[str | None, Security(api_key_header)] = None) -> None:
-    """401 unless the server sets no key (``GPNARX_API_KEY``) or ``X-API-Key`` holds it."""
-    key = state.settings.api_key
+def key_problem(key: str | None, given: str | None) -> ProblemError | None:
+    """The 401 problem unless ``key`` is unset or ``given`` holds it (compared in constant time)."""
     if not key:
-        return
+        return None
     if not given or not hmac.compare_digest(given.encode("utf-8", "replace"), key.encode("utf-8")):
-        raise ProblemError(401, f"a valid API key is required in the {API_KEY_HEADER} header", API_KEY_HEADER,
-                           headers={"WWW-Authenticate": f'ApiKey header="{API_KEY_HEADER}"'})
+        return ProblemError(401, f"a valid API key is required in the {API_KEY_HEADER} header", API_KEY_HEADER,
+                            headers={"WWW-Authenticate": f'ApiKey header="{API_KEY_HEADER}"'})
+    return None
+
+
+async def require_api_key(state: StateDep, given: Annotated[str | None, Security(api_key_header)] = None) -> None:
+    """401 unless the server sets no key (``GPNARX_API_KEY``) or ``X-API-Key`` holds it.
+
+    ``service.middleware.GuardMiddleware`` checks the same before any body byte is read; this
+    dependency documents the scheme in OpenAPI and guards a route mounted outside /v1 by mistake."""
+    problem = key_problem(state.settings.api_key, given)
+    if problem is not None:
+        raise problem
 
 
 #: dependencies of every /v1 router

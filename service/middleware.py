@@ -1,6 +1,10 @@
-"""The outermost ASGI layer: body-size cap, request metrics and the last-resort 500 problem.
+"""The outermost ASGI layer: API key, body-size cap, request metrics and the last-resort 500 problem.
 
-The API key is a route dependency (``service.deps.require_api_key``), so OpenAPI documents it.
+With ``GPNARX_API_KEY`` set, a request to a ``/v1`` path without the key is answered 401 from its
+headers alone, before any body byte is read or parsed (so unauthenticated requests cost no memory
+beyond their headers), and a request to an open path (health, metrics, pages) may carry at most
+``UNAUTHENTICATED_BODY_BYTES``. The key is also a route dependency
+(``service.deps.require_api_key``), so OpenAPI documents it.
 """
 from __future__ import annotations
 
@@ -11,11 +15,20 @@ import uuid
 from fastapi import FastAPI
 from starlette.routing import Match
 
+from .deps import API_KEY_HEADER, key_problem
 from .problems import ProblemError
 from .responses import problem_response
 from .state import ServiceState
 
 log = logging.getLogger("gpnarx.service")
+
+#: body cap [bytes] of a request to an open path (no key needed there) when an API key is set
+UNAUTHENTICATED_BODY_BYTES = 64 * 1024
+
+
+def needs_key(path: str) -> bool:
+    """Whether ``path`` is under ``/v1`` (every ``/v1`` route needs the key when one is set)."""
+    return path == "/v1" or path.startswith("/v1/")
 
 
 class _BodyTooLarge(Exception):
@@ -50,6 +63,9 @@ class GuardMiddleware:
         t0 = time.perf_counter()
         ctx = {"status": None, "exceeded": False, "swallow": False}
         limit = st.settings.max_body_bytes
+        key = st.settings.api_key
+        if key and not needs_key(scope.get("path", "")):
+            limit = min(limit, UNAUTHENTICATED_BODY_BYTES)
         received = 0
 
         async def send_wrapper(message):
@@ -82,6 +98,11 @@ class GuardMiddleware:
             headers = {}
             for k, v in scope.get("headers", []):
                 headers.setdefault(k.decode("latin-1").lower(), v.decode("latin-1"))
+            if key and needs_key(scope.get("path", "")):
+                problem = key_problem(key, headers.get(API_KEY_HEADER.lower()))
+                if problem is not None:  # answered from the headers: the body is never read
+                    await reply(problem)
+                    return
             cl = headers.get("content-length")
             if cl is not None:
                 try:

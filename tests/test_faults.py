@@ -169,3 +169,78 @@ def test_emptied_object_store_keeps_serving_from_the_verified_copies(tmp_path, m
     finally:
         if fs.exists(f"/faults-{tmp_path.name}"):
             fs.rm(f"/faults-{tmp_path.name}", recursive=True)
+
+
+# ------------------------------------------------------------------------------------------ reject before reading
+def _rss() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * 4096
+
+
+def _raw_post(port: int, path: str, body: bytes, headers: str = "") -> int:
+    """POST ``body`` on a fresh connection; the answer's status (0 if the server closed first)."""
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=60) as s:
+        s.sendall(f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n{headers}"
+                  f"Content-Length: {len(body)}\r\n\r\n".encode())
+        try:
+            s.sendall(memoryview(body))
+        except OSError:
+            pass
+        head = s.recv(64)
+    return int(head.split()[1]) if head.startswith(b"HTTP/1.1 ") else 0
+
+
+def test_missing_key_is_refused_before_the_body_is_read():
+    import threading
+    import time
+
+    import httpx
+    from test_service_support import LiveServer
+
+    app = create_app(built_registry().root, _settings(api_key="s3cret"))
+    junk = b"[" * (30 * 1024 * 1024)  # 30 MiB of invalid JSON, one object shared by every client
+    valid = b'{"u": [' + b"1.0," * (7 * 1024 * 1024) + b'1.0], "fs": 750.0}'  # 28 MiB of valid JSON
+    with LiveServer(app) as srv, httpx.Client(base_url=srv.url, timeout=60) as c:
+        for body in (junk, valid):
+            t0 = time.perf_counter()
+            r = c.post("/v1/models/boucwen/predict", content=body, headers={"content-type": "application/json"})
+            took = time.perf_counter() - t0
+            assert r.status_code == 401, r.text[:300]
+            assert r.headers["content-type"].startswith(PROBLEM) and r.json()["field"] == "X-API-Key"
+            assert took < 5.0, took
+        # a wrong key is no better than none; an unknown /v1 path does not reveal itself either
+        assert c.post("/v1/batch", content=junk, headers={"X-API-Key": "wrong"}).status_code == 401
+        assert c.get("/v1/nothing-here").status_code == 401
+        # open paths take no big bodies when a key is set
+        r = c.post("/health/live", content=b"x" * (1024 * 1024))
+        assert r.status_code == 413 and r.json()["limit"] == 64 * 1024
+        # 16 unauthenticated posts at once: the server's memory does not grow by their bodies
+        base, peak, stop = _rss(), [0], threading.Event()
+
+        def watch():
+            while not stop.is_set():
+                peak[0] = max(peak[0], _rss())
+                time.sleep(0.01)
+
+        statuses = []
+
+        def flood():  # a raw socket: the client side copies nothing, so the RSS is the server's
+            statuses.append(_raw_post(srv.port, "/v1/models/boucwen/predict", junk))
+
+        w = threading.Thread(target=watch)
+        w.start()
+        threads = [threading.Thread(target=flood) for _ in range(16)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=60)
+        stop.set()
+        w.join()
+        assert statuses == [401] * 16
+        grew = (peak[0] - base) / 2**20
+        assert grew < 64, f"RSS grew by {grew:.0f} MiB under 16 unauthenticated 30 MiB posts"
+        # with the key, the same route works
+        body = _body()
+        assert c.post("/v1/models/boucwen/predict", json=body, headers={"X-API-Key": "s3cret"}).status_code == 200
