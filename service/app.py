@@ -115,9 +115,11 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
             except Exception:  # pragma: no cover - a poll must never stop polling
                 log.exception("registry poll failed")
 
-    # /docs and /redoc are served by service.ui from vendored assets (no CDN: they work offline)
+    # /docs and /redoc are served by service.ui from vendored assets (no CDN: they work offline);
+    # redirect_slashes=False: Starlette's slash redirect is built from the client's Host header (an open
+    # redirect to any host); a path with a trailing slash gets a 404 problem naming the path without it
     app = FastAPI(title=API_TITLE, version="1", description=api_description(), lifespan=lifespan,
-                  default_response_class=JSONBytesResponse, docs_url=None, redoc_url=None)
+                  default_response_class=JSONBytesResponse, docs_url=None, redoc_url=None, redirect_slashes=False)
     app.state.service = state
 
     # ---------------------------------------------------------------- exception handlers
@@ -134,7 +136,9 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
         status = exc.status_code
         field = None
         if status == 404:
-            detail = f"no such endpoint: {request.url.path[:200]} (see /openapi.json)"
+            path = request.url.path[:200]
+            hint = f"; without the trailing slash: {path.rstrip('/')}" if path.endswith("/") and path != "/" else ""
+            detail = f"no such endpoint: {path} (see /openapi.json{hint})"
         elif status == 405:
             detail = f"method {request.method} is not allowed on {request.url.path[:200]}"
         elif status == 400:

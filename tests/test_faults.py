@@ -244,3 +244,19 @@ def test_missing_key_is_refused_before_the_body_is_read():
         # with the key, the same route works
         body = _body()
         assert c.post("/v1/models/boucwen/predict", json=body, headers={"X-API-Key": "s3cret"}).status_code == 200
+
+
+# ------------------------------------------------------------------------------------------ host header
+def test_trailing_slash_is_not_redirected_to_the_client_host():
+    c = TestClient(create_app(built_registry().root, _settings()), raise_server_exceptions=False,
+                   follow_redirects=False)
+    for path in ("/v1/models/", "/v1/models/boucwen/", "/health/live/"):
+        r = c.get(path, headers={"Host": "evil.example"})
+        assert r.status_code == 404 and "location" not in r.headers, (path, r.status_code, r.headers)
+        assert r.headers["content-type"].startswith(PROBLEM)
+        assert f"without the trailing slash: {path.rstrip('/')}" in r.json()["detail"]
+    assert c.get("/v1/models", headers={"Host": "evil.example"}).status_code == 200
+    assert c.get("/v1/models/boucwen").status_code == 200
+    assert c.get("/static/ui/app.js").status_code == 200  # the static mount still routes
+    keyed = TestClient(create_app(built_registry().root, _settings(api_key="k")), follow_redirects=False)
+    assert keyed.get("/v1/models/", headers={"Host": "evil.example"}).status_code == 401
