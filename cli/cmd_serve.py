@@ -17,6 +17,9 @@ built in the background, lightest first, each loaded as soon as it is written
 (``cli.startup``); ``/health/ready`` lists them under ``startup``. Bounds and the optional API key come from
 ``GPNARX_*`` environment variables (``service.settings``); ``--workers``/``--queue`` override
 GPNARX_WORKERS/GPNARX_QUEUE_SIZE. SIGHUP rescans the registry (like ``POST /v1/admin/reload``).
+SIGTERM stops accepting connections and lets running requests finish for ``$GPNARX_DRAIN_TIMEOUT``
+seconds (default ``GPNARX_REQUEST_TIMEOUT`` + 10 s); a request still running then is answered 503
+with ``Retry-After``.
 
 ``export-openapi`` writes the OpenAPI document (sorted keys, indent 2) of the app with default
 settings; ``--out -`` prints it.
@@ -141,7 +144,10 @@ def run_serve(args):
         builder.on_built = _loader(state)
         builder.start()
     try:
-        uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, timeout_graceful_shutdown=30)
+        # drain: running requests get GPNARX_DRAIN_TIMEOUT s after SIGTERM (default GPNARX_REQUEST_TIMEOUT + 10 s);
+        # one still running then is answered 503 + Retry-After (service.middleware)
+        uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level,
+                    timeout_graceful_shutdown=settings.drain_seconds)
     finally:
         if builder is not None:
             builder.stop()

@@ -8,6 +8,7 @@ beyond their headers), and a request to an open path (health, metrics, pages) ma
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 import uuid
@@ -123,6 +124,18 @@ class GuardMiddleware:
             if ctx["exceeded"] and (ctx["status"] is None or ctx["swallow"]):
                 ctx["swallow"] = False
                 await reply(too_large)
+        except asyncio.CancelledError:
+            # the server cancels requests still running when its drain window (GPNARX_DRAIN_TIMEOUT) ends:
+            # a retryable 503 problem instead of uvicorn's bare text/plain 500
+            task = asyncio.current_task()
+            if task is not None:
+                task.uncancel()
+            if ctx["status"] is None:
+                log.warning("request %s %s cancelled at shutdown; answered 503", scope.get("method"),
+                            scope.get("path"))
+                await reply(ProblemError(503, "the server is shutting down and stopped this request; retry, "
+                                              "another replica will answer",
+                                         headers={"Retry-After": str(st.settings.retry_after)}))
         except Exception as exc:  # last resort: never a stack trace or a bare 500
             incident = uuid.uuid4().hex[:12]
             log.exception("unhandled error (incident %s) on %s %s", incident, scope.get("method"), scope.get("path"))

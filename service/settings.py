@@ -58,6 +58,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from gpnarx.model.runtime import DEFAULT_BLAS_THREADS, DEFAULT_MMAP_THRESHOLD, env_int
 
 MiB = 1024 * 1024
+DRAIN_MARGIN = 10.0  # [s] the default drain window's margin over GPNARX_REQUEST_TIMEOUT
 ENV_PREFIX = "GPNARX_"
 
 
@@ -140,6 +141,11 @@ class Settings(BaseSettings):
                                       label="time per predict/loops/novelty/batch request, queue wait included "
                                             "(0 = none)",
                                       exceeded="504 if its job was computing, 503 + `Retry-After` if still queued")
+    drain_timeout: float | None = _setting(None, ge=0, allow_inf_nan=False, kind=_SECONDS,
+                                           shown="`GPNARX_REQUEST_TIMEOUT` + 10 s (130 s)",
+                                           label="seconds `gpnarx serve` lets running requests finish after SIGTERM "
+                                                 "(deploy/k8s: `terminationGracePeriodSeconds` above it)",
+                                           exceeded="503 + `Retry-After` for a request still running")
     api_key: str | None = _setting(None, kind=None, shown="unset (off)",
                                    label="API key every `/v1` route then needs in `X-API-Key`", exceeded="401")
     registry: str | None = _setting(None, kind=None, shown="unset",
@@ -216,6 +222,14 @@ class Settings(BaseSettings):
     def with_(self, **changes) -> Settings:
         """A copy with ``changes`` (validated like the original)."""
         return type(self)(**{**self.model_dump(), **changes})
+
+    @property
+    def drain_seconds(self) -> float:
+        """Graceful-shutdown window [s]: ``drain_timeout``, else ``request_timeout`` + 10 s (130 s
+        when requests have no time limit), so the longest request a deadline allows can finish."""
+        if self.drain_timeout is not None:
+            return float(self.drain_timeout)
+        return (self.request_timeout if self.request_timeout > 0 else 120.0) + DRAIN_MARGIN
 
     def bounds(self) -> dict:
         """The request bounds in force (no secrets)."""

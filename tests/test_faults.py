@@ -9,6 +9,7 @@ redirects, shutdown in the middle of a request, overload and slow clients.
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
@@ -260,3 +261,77 @@ def test_trailing_slash_is_not_redirected_to_the_client_host():
     assert c.get("/static/ui/app.js").status_code == 200  # the static mount still routes
     keyed = TestClient(create_app(built_registry().root, _settings(api_key="k")), follow_redirects=False)
     assert keyed.get("/v1/models/", headers={"Host": "evil.example"}).status_code == 401
+
+
+# ------------------------------------------------------------------------------------------ shutdown
+def test_drain_window_setting_and_deploy_files_match():
+    import yaml
+
+    from gpnarx.service.settings import ENV
+
+    assert Settings().drain_seconds == 130.0 and Settings(request_timeout=300).drain_seconds == 310.0
+    assert Settings(drain_timeout=5).drain_seconds == 5.0 and ENV["drain_timeout"] == "GPNARX_DRAIN_TIMEOUT"
+    deploy = Path(__file__).resolve().parents[1] / "deploy"
+    dep = yaml.safe_load((deploy / "k8s" / "deployment.yaml").read_text())
+    spec = dep["spec"]["template"]["spec"]
+    env = {e["name"]: e["value"] for e in spec["containers"][0]["env"] if "value" in e}
+    drain = Settings.from_env(env).drain_seconds
+    assert spec["terminationGracePeriodSeconds"] >= drain + 5, (spec["terminationGracePeriodSeconds"], drain)
+    compose = yaml.safe_load((deploy / "compose.yaml").read_text())["services"]["gpnarx"]
+    assert float(compose["stop_grace_period"].rstrip("s")) >= drain + 5
+
+
+def test_request_cut_at_shutdown_is_a_503_problem_with_retry_after(monkeypatch):
+    """The drain window ends while a request computes: a problem detail, not uvicorn's text/plain 500."""
+    import socket
+    import threading
+    import time
+
+    import httpx
+    import uvicorn
+
+    from gpnarx.service import ops
+
+    started = threading.Event()
+
+    def slow(plan, req, token=None):
+        started.set()
+        for _ in range(200):  # 10 s unless cancelled
+            time.sleep(0.05)
+            if token is not None and token.cancelled:
+                break
+        return {"model": plan.bundle.name, "version": plan.bundle.version}, 0
+
+    monkeypatch.setattr(ops, "compute", slow)
+    app = create_app(built_registry().root, _settings(retry_after=4))
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, log_level="critical", timeout_graceful_shutdown=0.5))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    try:
+        t0 = time.monotonic()
+        while not server.started and time.monotonic() - t0 < 20:
+            time.sleep(0.02)
+        out = {}
+
+        def call():
+            with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as c:
+                out["r"] = c.post("/v1/models/boucwen/predict", json=_body())
+
+        t = threading.Thread(target=call)
+        t.start()
+        assert started.wait(20)
+        t_stop = time.monotonic()
+        server.should_exit = True  # what SIGTERM does
+        t.join(timeout=20)
+        r = out["r"]
+        assert r.status_code == 503, (r.status_code, r.headers.get("content-type"), r.text[:200])
+        assert r.headers["content-type"].startswith(PROBLEM) and r.headers["Retry-After"] == "4"
+        assert "shutting down" in r.json()["detail"]
+        assert time.monotonic() - t_stop < 5.0  # at the end of the drain window, not of the computation
+    finally:
+        server.should_exit = True
+        thread.join(timeout=20)
+        sock.close()
