@@ -51,7 +51,9 @@ BASELINE_CODE = (
 
 
 def bert_data() -> Path:
-    return Path(os.environ.get("GPNARX_BERT_DATA") or (C.ROOT.parent / "shared" / "data" / "bert-t5nm"))
+    from gpnarx.training.datapaths import bert_data_dir  # the package's one lookup of the lab data
+
+    return bert_data_dir()
 
 
 def _env():

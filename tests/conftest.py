@@ -18,7 +18,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-BERT_DATA = ROOT.parent / "shared" / "data" / "bert-t5nm"
+# the lab data: $GPNARX_BERT_DATA, then ../shared/data/bert-t5nm (the lookup the code uses, training.datapaths)
+from gpnarx.training.datapaths import bert_data_dir  # noqa: E402
+
+BERT_DATA = bert_data_dir()
 
 
 def sdof_simulate(u, fs=500.0, f_n=20.0, zeta=0.02, mass=1.0):

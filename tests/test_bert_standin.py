@@ -2,11 +2,11 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from gpnarx.training.datapaths import bert_data_dir
 from gpnarx.training.simulators.bert_standin import (
     BertStandin,
     calibration_table,
@@ -15,7 +15,7 @@ from gpnarx.training.simulators.bert_standin import (
     steady_amplitude,
 )
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared/data/bert-t5nm"
+DATA = bert_data_dir()
 needs_data = pytest.mark.skipif(not (DATA / "Sine").is_dir(), reason=f"BERT data not found at {DATA}")
 LISTED = [5, 5.5, 6, 6.5, 6.75, 8, 8.5, 9, 9.5, 9.75, 17, 19, 20]
 

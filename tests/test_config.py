@@ -9,9 +9,10 @@ import pytest
 
 from gpnarx.model.records import Record
 from gpnarx.training.config import ConfigError, DatasetConfig, load_config, parse_range
+from gpnarx.training.datapaths import bert_data_dir
 from gpnarx.training.records import write_record
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared/data/bert-t5nm"
+DATA = bert_data_dir()
 
 SMALL = """
 name = "bw-small"
@@ -293,7 +294,7 @@ def test_bert_standin_and_real_data_records(tmp_path, monkeypatch):
     rec = cfg.records_for("healthy")[0]
     assert rec.n == 1024 and rec.meta["torque"] == 9.0 and rec.units == {"u": "V", "y": "m/s"}
     if DATA.is_dir():
-        monkeypatch.delenv("GPNARX_BERT_DATA", raising=False)
+        monkeypatch.setenv("GPNARX_BERT_DATA", str(DATA))
         rig = load_config(cfg.path).records_for("verify")[0]
         assert rig.n == 2048 and rig.fs == 1024.0 and rig.units == {"u": "V", "y": "m/s"}
     monkeypatch.setenv("GPNARX_BERT_DATA", str(tmp_path / "elsewhere"))

@@ -11,6 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gpnarx.model.records import Record
+from gpnarx.training.datapaths import bert_data_dir
 from gpnarx.training.records import (
     RecordFileError,
     read_record,
@@ -19,7 +20,7 @@ from gpnarx.training.records import (
     write_record,
 )
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared/data/bert-t5nm"
+DATA = bert_data_dir()
 SINE_DIRS = sorted((DATA / "Sine").glob("Sine_*")) if DATA.is_dir() else []
 needs_data = pytest.mark.skipif(not SINE_DIRS, reason=f"BERT data not found at {DATA}")
 

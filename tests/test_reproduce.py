@@ -18,9 +18,10 @@ import pytest
 from scipy.special import ndtri
 
 from gpnarx.cli.main import main
+from gpnarx.training.datapaths import bert_data_dir
 from gpnarx.training.lagchoice import DEFAULT_TOLERANCE
 
-BERT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bert-t5nm"
+BERT_DATA = bert_data_dir()
 STANDIN_FULL_MC = 4096  # the protocol's Monte Carlo paths for the stand-in (section 4; --mc 4096)
 
 

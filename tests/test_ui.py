@@ -23,10 +23,11 @@ from gpnarx.model.records import Record
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
 from gpnarx.service.ui import STATIC_DIR, inline_images
+from gpnarx.training.datapaths import bert_data_dir
 from gpnarx.training.records import read_record, write_record
 
 ROOT = Path(__file__).resolve().parents[1]
-BERT_SINE = ROOT.parent / "shared" / "data" / "bert-t5nm" / "Sine" / "Sine_09Hz"
+BERT_SINE = bert_data_dir() / "Sine" / "Sine_09Hz"
 PROBLEM = "application/problem+json"
 PNG = base64.b64decode("iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mP8z8BQDwAEhQGAhKmMIQ"
                        "AAAABJRU5ErkJggg==")

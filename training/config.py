@@ -106,6 +106,7 @@ from gpnarx.model.records import Record, RecordError
 from gpnarx.training import config_schema as schema
 from gpnarx.training import simulation_specs as specs
 from gpnarx.training.config_schema import ConfigError, parse_range
+from gpnarx.training.datapaths import bert_data_dir
 from gpnarx.training.records import RecordFileError, read_record
 from gpnarx.training.simulators.bert_standin import BertStandin
 from gpnarx.training.simulators.boucwen import BoucWen
@@ -141,18 +142,6 @@ def _err(path, key: str, problem: str) -> ConfigError:
 
 
 # ============================================================================ paths
-def bert_data_dir() -> Path:
-    """Folder of the real BERT records: ``$GPNARX_BERT_DATA``, else the first existing of
-    ``<source checkout>/../shared/data/bert-t5nm`` and ``./shared/data/bert-t5nm`` or
-    ``../shared/data/bert-t5nm`` from the working directory (the first candidate when none exists)."""
-    env = os.environ.get("GPNARX_BERT_DATA")
-    if env:
-        return Path(env).expanduser()
-    tail = Path("shared") / "data" / "bert-t5nm"
-    candidates = [Path(__file__).resolve().parent.parent.parent / tail, Path.cwd() / tail, Path.cwd().parent / tail]
-    return next((c for c in candidates if c.is_dir()), candidates[0])
-
-
 def expand_path(raw: str, base: Path) -> Path:
     """Expand ``${BERT_DATA}`` and ``~`` and resolve relative to ``base`` (the config's folder)."""
     s = str(raw).replace("${BERT_DATA}", str(bert_data_dir())).replace("$BERT_DATA", str(bert_data_dir()))

@@ -88,7 +88,6 @@ sits slightly lower in frequency (see the FRF calibration above), so day-to-day 
 from __future__ import annotations
 
 import math
-import os
 import re
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -96,6 +95,7 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
+from gpnarx.training.datapaths import bert_data_dir
 from gpnarx.training.excitations import band_limited_noise
 from gpnarx.training.records import read_record
 
@@ -467,12 +467,7 @@ _SINE_DIR = re.compile(r"Sine_(\d+)(?:p(\d+))?Hz$")
 
 
 def _bert_data_dir(data_dir=None) -> Path:
-    if data_dir is not None:
-        return Path(data_dir)
-    env = os.environ.get("GPNARX_BERT_DATA")
-    if env:
-        return Path(env)
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "bert-t5nm"
+    return Path(data_dir) if data_dir is not None else bert_data_dir()
 
 
 def _drive_frequency(u: np.ndarray, fs: float, nominal: float | None) -> float:
