@@ -19,7 +19,8 @@ built in the background, lightest first, each loaded as soon as it is written
 GPNARX_WORKERS/GPNARX_QUEUE_SIZE. SIGHUP rescans the registry (like ``POST /v1/admin/reload``).
 SIGTERM stops accepting connections and lets running requests finish for ``$GPNARX_DRAIN_TIMEOUT``
 seconds (default ``GPNARX_REQUEST_TIMEOUT`` + 10 s); a request still running then is answered 503
-with ``Retry-After``.
+with ``Retry-After``. Slow or idle clients are cut: ``$GPNARX_HEADER_TIMEOUT``, ``$GPNARX_BODY_TIMEOUT``,
+``$GPNARX_KEEP_ALIVE_TIMEOUT``, ``$GPNARX_MAX_CONNECTIONS``, ``$GPNARX_MAX_HEADER_BYTES`` (``service.server``).
 
 ``export-openapi`` writes the OpenAPI document (sorted keys, indent 2) of the app with default
 settings; ``--out -`` prints it.
@@ -112,6 +113,7 @@ def run_serve(args):
     import uvicorn
 
     from gpnarx.service.app import create_app
+    from gpnarx.service.server import uvicorn_options
     from gpnarx.service.settings import Settings
 
     root, plan = _registry(args.registry)
@@ -146,8 +148,8 @@ def run_serve(args):
     try:
         # drain: running requests get GPNARX_DRAIN_TIMEOUT s after SIGTERM (default GPNARX_REQUEST_TIMEOUT + 10 s);
         # one still running then is answered 503 + Retry-After (service.middleware)
-        uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level,
-                    timeout_graceful_shutdown=settings.drain_seconds)
+        # and read deadlines, a connection limit and the request-head size (service.server)
+        uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, **uvicorn_options(settings))
     finally:
         if builder is not None:
             builder.stop()

@@ -36,6 +36,10 @@ class _BodyTooLarge(Exception):
     pass
 
 
+class _BodyTimeout(Exception):
+    pass
+
+
 class GuardMiddleware:
     """Outermost ASGI layer: body-size cap, metrics, and the last-resort 500 problem."""
 
@@ -62,7 +66,7 @@ class GuardMiddleware:
             return await self.app(scope, receive, send)
         st = self.state
         t0 = time.perf_counter()
-        ctx = {"status": None, "exceeded": False, "swallow": False}
+        ctx = {"status": None, "exceeded": False, "swallow": False, "timeout": False}
         limit = st.settings.max_body_bytes
         key = st.settings.api_key
         if key and not needs_key(scope.get("path", "")):
@@ -79,9 +83,21 @@ class GuardMiddleware:
                 return
             await send(message)
 
+        body_timeout = st.settings.body_timeout
+        body_done = False
+
         async def receive_wrapper():
-            nonlocal received
-            message = await receive()
+            nonlocal received, body_done
+            if body_done or not body_timeout:
+                message = await receive()
+            else:  # the whole body within GPNARX_BODY_TIMEOUT of the request's start (a slow client is cut)
+                try:
+                    message = await asyncio.wait_for(receive(), max(0.0, t0 + body_timeout - time.perf_counter()))
+                except asyncio.TimeoutError:
+                    ctx["exceeded"] = ctx["timeout"] = True
+                    raise _BodyTimeout() from None
+            if message["type"] == "http.request" and not message.get("more_body", False):
+                body_done = True
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > limit:
@@ -95,6 +111,9 @@ class GuardMiddleware:
             await resp(scope, receive, send)
 
         too_large = ProblemError(413, f"the request body exceeds the limit of {limit} bytes", "body", limit=limit)
+        too_slow = ProblemError(408, f"the request body was not received within {st.settings.body_timeout:g} s "
+                                     f"(GPNARX_BODY_TIMEOUT)", "body", limit=st.settings.body_timeout,
+                                headers={"Connection": "close"})
         try:
             headers = {}
             for k, v in scope.get("headers", []):
@@ -119,11 +138,11 @@ class GuardMiddleware:
                     return
             try:
                 await self.app(scope, receive_wrapper, send_wrapper)
-            except _BodyTooLarge:
+            except (_BodyTooLarge, _BodyTimeout):
                 pass
             if ctx["exceeded"] and (ctx["status"] is None or ctx["swallow"]):
                 ctx["swallow"] = False
-                await reply(too_large)
+                await reply(too_slow if ctx["timeout"] else too_large)
         except asyncio.CancelledError:
             # the server cancels requests still running when its drain window (GPNARX_DRAIN_TIMEOUT) ends:
             # a retryable 503 problem instead of uvicorn's bare text/plain 500
@@ -140,7 +159,7 @@ class GuardMiddleware:
             incident = uuid.uuid4().hex[:12]
             log.exception("unhandled error (incident %s) on %s %s", incident, scope.get("method"), scope.get("path"))
             if ctx["exceeded"] and not ctx["status"]:
-                await reply(too_large)
+                await reply(too_slow if ctx["timeout"] else too_large)
             elif ctx["status"] is None:
                 await reply(ProblemError(500, f"internal error (incident {incident}); the error was logged",
                                          incident=incident))

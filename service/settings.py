@@ -146,6 +146,20 @@ class Settings(BaseSettings):
                                            label="seconds `gpnarx serve` lets running requests finish after SIGTERM "
                                                  "(deploy/k8s: `terminationGracePeriodSeconds` above it)",
                                            exceeded="503 + `Retry-After` for a request still running")
+    header_timeout: float = _setting(10.0, ge=0, allow_inf_nan=False, kind=_SECONDS, shown="10 s",
+                                     label="seconds a connection may take to send a request head (0 = none)",
+                                     exceeded="408, connection closed")
+    body_timeout: float = _setting(60.0, ge=0, allow_inf_nan=False, kind=_SECONDS, shown="60 s",
+                                   label="seconds a request may take to send its body once its head is in (0 = none)",
+                                   exceeded="408, field `body`, connection closed")
+    keep_alive_timeout: float = _setting(5.0, ge=0, allow_inf_nan=False, kind=_SECONDS, shown="5 s",
+                                         label="seconds an idle connection is kept open between requests")
+    max_connections: int = _setting(256, ge=0, kind=_NON_NEGATIVE,
+                                    label="open connections per server process (0 = no limit)",
+                                    exceeded="503 + `Retry-After` at once, connection closed")
+    max_header_bytes: int = _setting(16 * 1024, ge=1024, kind="an integer of at least 1024", shown="16 KiB",
+                                     label="bytes of an incomplete request head the server buffers",
+                                     exceeded="400, connection closed")
     api_key: str | None = _setting(None, kind=None, shown="unset (off)",
                                    label="API key every `/v1` route then needs in `X-API-Key`", exceeded="401")
     registry: str | None = _setting(None, kind=None, shown="unset",

@@ -335,3 +335,158 @@ def test_request_cut_at_shutdown_is_a_503_problem_with_retry_after(monkeypatch):
         server.should_exit = True
         thread.join(timeout=20)
         sock.close()
+
+
+# ------------------------------------------------------------------------------------------ slow clients
+class _Server:
+    """uvicorn with ``gpnarx serve``'s options (``service.server.uvicorn_options``) on a free port."""
+
+    def __init__(self, settings: Settings, **overrides):
+        import socket
+        import threading
+
+        import uvicorn
+
+        from gpnarx.service.server import uvicorn_options
+
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        app = create_app(built_registry().root, settings)
+        self.server = uvicorn.Server(uvicorn.Config(app, log_level="critical",
+                                                    **{**uvicorn_options(settings), **overrides}))
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
+
+    def __enter__(self):
+        import time
+
+        self.thread.start()
+        t0 = time.monotonic()
+        while not self.server.started and time.monotonic() - t0 < 20:
+            time.sleep(0.02)
+        return self
+
+    def __exit__(self, *exc):
+        self.server.should_exit = True
+        self.thread.join(timeout=20)
+        self.sock.close()
+
+
+def _read_all(s, timeout: float) -> tuple[bytes, float]:
+    """Everything the server sends until it closes (or ``timeout``), and when it closed [s]."""
+    import time
+
+    t0, data = time.monotonic(), b""
+    s.settimeout(0.1)
+    while time.monotonic() - t0 < timeout:
+        try:
+            chunk = s.recv(65536)
+        except TimeoutError:
+            continue
+        except OSError:
+            break
+        if not chunk:
+            return data, time.monotonic() - t0
+        data += chunk
+    return data, float("inf")
+
+
+def test_slow_request_heads_are_answered_408_and_closed():
+    import socket
+    import threading
+    import time
+
+    with _Server(_settings(header_timeout=1.0)) as srv:
+        results = []
+
+        def slow_client():
+            with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as s:
+                t0 = time.monotonic()
+                s.sendall(b"GET /health/live HTTP/1.1\r\n")
+                closed_at = None
+                for i in range(40):  # one header line every 0.2 s: never a complete head
+                    time.sleep(0.2)
+                    try:
+                        s.sendall(f"X-Slow-{i}: 1\r\n".encode())
+                    except OSError:
+                        closed_at = time.monotonic() - t0
+                        break
+                data, _ = _read_all(s, 2.0)
+                results.append((data, closed_at))
+
+        threads = [threading.Thread(target=slow_client) for _ in range(20)]
+        for t in threads:
+            t.start()
+        # an idle connection that never sends a byte is closed too
+        with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as idle:
+            data, closed = _read_all(idle, 5.0)
+            assert data.startswith(b"HTTP/1.1 408") and closed < 3.0, (data[:100], closed)
+        for t in threads:
+            t.join(timeout=30)
+        assert len(results) == 20
+        for data, closed_at in results:
+            assert data.startswith(b"HTTP/1.1 408"), data[:200]
+            assert b"application/problem+json" in data and b"GPNARX_HEADER_TIMEOUT" in data
+            assert closed_at is not None and closed_at < 4.0, closed_at  # 1 s deadline, not 8 s of trickling
+        # ordinary clients, keep-alive included, are not affected
+        import httpx
+
+        with httpx.Client(base_url=srv.url, timeout=30) as c:
+            for _ in range(3):
+                assert c.get("/health/live").status_code == 200
+                time.sleep(0.4)
+            assert c.post("/v1/models/boucwen/predict", json=_body()).status_code == 200
+
+
+def test_slow_body_is_answered_408_and_closed():
+    import socket
+
+    with _Server(_settings(body_timeout=1.0, header_timeout=5.0)) as srv:
+        with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as s:
+            s.sendall(b"POST /v1/models/boucwen/predict HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                      b"Content-Length: 100000\r\n\r\n{\"u\": [1.0, ")
+            data, closed = _read_all(s, 6.0)
+        assert data.startswith(b"HTTP/1.1 408"), data[:200]
+        assert b'"field":"body"' in data.replace(b" ", b"") and b"GPNARX_BODY_TIMEOUT" in data
+        assert closed < 4.0, closed
+
+
+def test_connection_limit_and_head_size():
+    import socket
+
+    import httpx
+
+    with _Server(_settings(max_connections=3, header_timeout=30.0, retry_after=3)) as srv:
+        held = [socket.create_connection(("127.0.0.1", srv.port), timeout=10) for _ in range(3)]
+        try:
+            import time
+
+            time.sleep(0.3)
+            with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as extra:
+                data, closed = _read_all(extra, 3.0)
+            assert data.startswith(b"HTTP/1.1 503") and b"retry-after: 3" in data.lower(), data[:300]
+            assert b"GPNARX_MAX_CONNECTIONS" in data and closed < 3.0
+        finally:
+            for s in held:
+                s.close()
+        time.sleep(0.3)
+        with httpx.Client(base_url=srv.url, timeout=30) as c:
+            assert c.get("/health/live").status_code == 200
+        with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as s:
+            s.sendall(b"GET /health/live HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * (32 * 1024))
+            data, closed = _read_all(s, 3.0)
+        assert data.startswith(b"HTTP/1.1 400"), data[:200]  # past GPNARX_MAX_HEADER_BYTES (16 KiB), incomplete
+
+
+def test_server_settings_from_env():
+    from gpnarx.service.server import uvicorn_options
+
+    s = Settings.from_env({"GPNARX_HEADER_TIMEOUT": "2.5", "GPNARX_BODY_TIMEOUT": "30", "GPNARX_MAX_CONNECTIONS": "64",
+                           "GPNARX_KEEP_ALIVE_TIMEOUT": "7", "GPNARX_MAX_HEADER_BYTES": "32768"})
+    opts = uvicorn_options(s)
+    assert opts["http"].header_timeout == 2.5 and opts["http"].max_connections == 64
+    assert opts["timeout_keep_alive"] == 7 and opts["h11_max_incomplete_event_size"] == 32768
+    assert s.body_timeout == 30 and opts["timeout_graceful_shutdown"] == 130.0
+    with pytest.raises(ValueError, match="max_header_bytes must be an integer of at least 1024"):
+        Settings(max_header_bytes=10)
