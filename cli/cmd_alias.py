@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import os
 
-from gpnarx.cli.errors import CLIError
+from gpnarx.cli.errors import CLIError, UsageError
 
 
 def add_parser(sub):
@@ -49,7 +49,7 @@ def add_parser(sub):
 def _registry(args) -> str:
     reg = args.registry or os.environ.get("GPNARX_REGISTRY")
     if not reg:
-        raise CLIError("--registry is required (or set GPNARX_REGISTRY)")
+        raise UsageError("--registry is required (or set GPNARX_REGISTRY)")
     return reg
 
 
@@ -83,9 +83,9 @@ def run_set(args):
         check_alias(args.alias)
         check_version_ref(args.version)
     except BundleError as exc:
-        raise CLIError(str(exc)) from None
+        raise UsageError(str(exc)) from None
     if args.alias in IMPLICIT_ALIASES:
-        raise CLIError(f"alias {args.alias!r} is implicit (the newest version) and cannot be set")
+        raise UsageError(f"alias {args.alias!r} is implicit (the newest version) and cannot be set")
     registry = _scan(reg, args.name)
     try:
         version = registry.resolve(args.name, args.version)
@@ -107,7 +107,7 @@ def run_rm(args):
         check_name(args.name)
         check_alias(args.alias)
     except BundleError as exc:
-        raise CLIError(str(exc)) from None
+        raise UsageError(str(exc)) from None
     aliases = _current(reg, args.name)
     if args.alias not in aliases:
         raise CLIError(f"alias {args.alias!r} of model {args.name!r} is not set"
@@ -125,7 +125,7 @@ def run_list(args):
         try:
             check_name(args.name)
         except BundleError as exc:
-            raise CLIError(str(exc)) from None
+            raise UsageError(str(exc)) from None
     registry = _scan(reg, args.name)
     if args.name is not None and args.name not in registry.bundles:
         raise CLIError(f"model {args.name!r} not found in {registry.root}")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 
-from gpnarx.cli.errors import CLIError
+from gpnarx.cli.errors import CLIError, UsageError
 
 
 def add_parser(sub):
@@ -46,11 +46,11 @@ def run(args):
     from gpnarx.training.records import read_record
 
     if not 0.0 < args.false_alarm_rate < 0.5:
-        raise CLIError(f"--false-alarm-rate must be in (0, 0.5), got {args.false_alarm_rate}")
+        raise UsageError(f"--false-alarm-rate must be in (0, 0.5), got {args.false_alarm_rate}")
     if not 1 <= args.mc <= 65536:
-        raise CLIError(f"--mc must be between 1 and 65536, got {args.mc}")
+        raise UsageError(f"--mc must be between 1 and 65536, got {args.mc}")
     if len(args.records) < 2:
-        raise CLIError(f"at least 2 healthy records are needed, got {len(args.records)}")
+        raise UsageError(f"at least 2 healthy records are needed, got {len(args.records)}")
     tune_for_free_run(None)
     try:
         name, version = parse_model_ref(args.model)

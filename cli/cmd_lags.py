@@ -8,7 +8,7 @@ from __future__ import annotations
 import importlib.util
 import sys
 
-from gpnarx.cli.errors import CLIError
+from gpnarx.cli.errors import CLIError, UsageError
 
 
 def add_parser(sub):
@@ -37,15 +37,15 @@ def run(args):
     ny_spec = args.ny or cfg.lags.get("ny")
     nu_spec = args.nu or cfg.lags.get("nu")
     if ny_spec is None or nu_spec is None:
-        raise CLIError("give --ny and --nu ranges (or [lags] ny/nu in the config)")
+        raise UsageError("give --ny and --nu ranges (or [lags] ny/nu in the config)")
     try:
         ny_values = parse_range(ny_spec)
     except ValueError as exc:
-        raise CLIError(f"--ny: {exc}") from None
+        raise UsageError(f"--ny: {exc}") from None
     try:
         nu_values = parse_range(nu_spec)
     except ValueError as exc:
-        raise CLIError(f"--nu: {exc}") from None
+        raise UsageError(f"--nu: {exc}") from None
     if not cfg.names_for("lags"):
         raise CLIError(f"{args.config}: no record has role 'lags'")
     settings = {}

@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 
-from gpnarx.cli.errors import CLIError
+from gpnarx.cli.errors import CLIError, UsageError
 from gpnarx.model.atomicio import atomic_file
 from gpnarx.model.envelope import assess
 
@@ -45,9 +45,9 @@ def parse_window(spec: str) -> tuple[float, float]:
             raise ValueError
         t0, t1 = float(parts[0]), float(parts[1])
     except ValueError:
-        raise CLIError(f"--window must be START:END in seconds, got {spec!r}") from None
+        raise UsageError(f"--window must be START:END in seconds, got {spec!r}") from None
     if not (np.isfinite(t0) and np.isfinite(t1) and 0 <= t0 < t1):
-        raise CLIError(f"--window needs 0 <= START < END (finite seconds), got {spec!r}")
+        raise UsageError(f"--window needs 0 <= START < END (finite seconds), got {spec!r}")
     return t0, t1
 
 
@@ -106,7 +106,7 @@ def check_fs(rec, bundle) -> None:
 def check_mc(mc) -> int:
     mc = mc if mc is not None else 1024
     if not 1 <= mc <= 65536:
-        raise CLIError(f"--mc must be between 1 and 65536, got {mc}")
+        raise UsageError(f"--mc must be between 1 and 65536, got {mc}")
     return mc
 
 
@@ -117,13 +117,13 @@ def load_model(args):
     from gpnarx.model.runtime import tune_for_free_run
 
     if args.blas_threads is not None and args.blas_threads < 0:
-        raise CLIError(f"--blas-threads must be >= 0, got {args.blas_threads}")
+        raise UsageError(f"--blas-threads must be >= 0, got {args.blas_threads}")
     tune_for_free_run(args.blas_threads)  # one BLAS thread and no per-step mmaps (see model/runtime.py)
 
     try:
         name, version = parse_model_ref(args.model)
     except BundleError as exc:
-        raise CLIError(str(exc)) from None
+        raise UsageError(str(exc)) from None
     return open_model(resolve_registry(args.registry), name, version)
 
 

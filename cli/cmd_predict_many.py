@@ -25,7 +25,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from gpnarx.cli.errors import CLIError
+from gpnarx.cli.errors import CLIError, UsageError
 from gpnarx.model.atomicio import write_atomic
 
 INDEX = "index.json"
@@ -148,13 +148,13 @@ def run(args):
     from gpnarx.training.distributed import TaskRunner
 
     if args.scheduler is not None and not args.scheduler.strip():
-        raise CLIError("--scheduler must be a Dask scheduler address such as tcp://host:8786")
+        raise UsageError("--scheduler must be a Dask scheduler address such as tcp://host:8786")
     if args.scheduler and importlib.util.find_spec("distributed") is None:
         raise CLIError("--scheduler needs dask.distributed: pip install 'gpnarx[dask]'")
     if args.jobs == 0 or args.jobs < -1:
-        raise CLIError(f"--jobs must be a positive number of jobs or -1 (all cores), got {args.jobs}")
+        raise UsageError(f"--jobs must be a positive number of jobs or -1 (all cores), got {args.jobs}")
     if not 0 < args.confidence < 1:
-        raise CLIError(f"--confidence must be between 0 and 1 (exclusive), got {args.confidence}")
+        raise UsageError(f"--confidence must be between 0 and 1 (exclusive), got {args.confidence}")
     mc = check_mc(args.mc)
     # the cluster first: an unreachable scheduler fails before any folder is made or model loaded
     with TaskRunner(args.scheduler, jobs=1 if args.scheduler else args.jobs) as runner:

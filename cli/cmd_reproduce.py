@@ -38,11 +38,11 @@ def run(args):
     if args.table_only:
         from pathlib import Path
 
-        from gpnarx.cli.errors import CLIError
+        from gpnarx.cli.errors import CLIError, UsageError
         from gpnarx.training.reproduce import rescore_table
 
         if args.system != "bert-real" or args.table_mc is None:
-            raise CLIError("--table-only re-scores a bert-real run's every-record table: give bert-real and "
+            raise UsageError("--table-only re-scores a bert-real run's every-record table: give bert-real and "
                            "--table-mc N")
         if not (Path(out) / "summary.json").is_file():
             raise CLIError(f"--table-only: no summary.json in {out} (run gpnarx reproduce bert-real --out {out})")
@@ -50,11 +50,11 @@ def run(args):
         s = rescore_table(out, args.table_mc, jobs=args.jobs, docs_page=args.docs, log=log)
         return {"system": args.system, "out": out, "docs": args.docs, "real_table_checks": s["real_table"]["checks"]}
     if args.from_run:
-        from gpnarx.cli.errors import CLIError
+        from gpnarx.cli.errors import CLIError, UsageError
         from gpnarx.training.reproduce import render_from_run
 
         if not args.docs:
-            raise CLIError("--from-run re-renders the results page from the run folder --out: give --docs FILE")
+            raise UsageError("--from-run re-renders the results page from the run folder --out: give --docs FILE")
         import json
         from pathlib import Path
 

@@ -34,7 +34,7 @@ import os
 import sys
 from pathlib import Path
 
-from gpnarx.cli.errors import CLIError
+from gpnarx.cli.errors import CLIError, UsageError
 from gpnarx.model.atomicio import write_atomic
 
 DEFAULT_OPENAPI = os.path.join("openapi", "openapi.json")
@@ -108,7 +108,7 @@ def _loader(state):
 
 def run_serve(args):
     if not 0 < args.port < 65536:
-        raise CLIError(f"--port must be between 1 and 65535, got {args.port}")
+        raise UsageError(f"--port must be between 1 and 65535, got {args.port}")
     # start-up: the server and the app (FastAPI) only when serving (see gpnarx.cli)
     import uvicorn
 

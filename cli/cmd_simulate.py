@@ -53,7 +53,7 @@ import time
 
 import numpy as np
 
-from gpnarx.cli.errors import CLIError
+from gpnarx.cli.errors import CLIError, UsageError
 from gpnarx.model.atomicio import atomic_file
 from gpnarx.model.records import Record
 from gpnarx.training.records import write_record
@@ -108,13 +108,13 @@ def _number(args, name: str, *, positive: bool = False, nonnegative: bool = Fals
     try:
         v = float(raw)
     except (TypeError, ValueError):
-        raise CLIError(f"{flag} must be a number, got {raw!r}") from None
+        raise UsageError(f"{flag} must be a number, got {raw!r}") from None
     if not math.isfinite(v):
-        raise CLIError(f"{flag} must be finite, got {raw!r}")
+        raise UsageError(f"{flag} must be finite, got {raw!r}")
     if positive and v <= 0:
-        raise CLIError(f"{flag} must be > 0, got {raw}")
+        raise UsageError(f"{flag} must be > 0, got {raw}")
     if nonnegative and v < 0:
-        raise CLIError(f"{flag} must be >= 0, got {raw}")
+        raise UsageError(f"{flag} must be >= 0, got {raw}")
     return v
 
 
@@ -125,33 +125,33 @@ def _seed(args) -> int | None:
     try:
         s = int(raw)
     except (TypeError, ValueError):
-        raise CLIError(f"--seed must be a non-negative integer, got {raw!r}") from None
+        raise UsageError(f"--seed must be a non-negative integer, got {raw!r}") from None
     if s < 0:
-        raise CLIError(f"--seed must be a non-negative integer, got {raw}")
+        raise UsageError(f"--seed must be a non-negative integer, got {raw}")
     return s
 
 
 def _parse(args) -> dict:
     system = args.system
     if system is None:
-        raise CLIError(f"give the system to simulate: {' or '.join(SYSTEMS)}")
+        raise UsageError(f"give the system to simulate: {' or '.join(SYSTEMS)}")
     if system not in SYSTEMS:
-        raise CLIError(f"unknown system {system!r}; choose {' or '.join(SYSTEMS)}")
+        raise UsageError(f"unknown system {system!r}; choose {' or '.join(SYSTEMS)}")
     exc = args.excitation
     if exc not in EXCITATIONS:
-        raise CLIError(f"--excitation must be one of {', '.join(EXCITATIONS)}, got {exc!r}")
+        raise UsageError(f"--excitation must be one of {', '.join(EXCITATIONS)}, got {exc!r}")
     if args.amplitude is None:
-        raise CLIError("--amplitude is required (peak for sweep/sine, RMS for multisine/noise; N or V)")
+        raise UsageError("--amplitude is required (peak for sweep/sine, RMS for multisine/noise; N or V)")
     if not args.out:
-        raise CLIError("--out FILE is required (.npz or .csv)")
+        raise UsageError("--out FILE is required (.npz or .csv)")
     amplitude = _number(args, "amplitude", positive=True)
     spec = {"system": system, "excitation": exc, "amplitude": amplitude, "out": args.out}
     uses = USES[exc] | {"seed"} | ({"torque", "scatter"} if system == "bert-standin" else set())
     for name in ("f0", "f1", "rate", "freq", "duration", "seed", "torque", "scatter"):
         if getattr(args, name) is not None and name not in uses:
             if name in ("torque", "scatter"):
-                raise CLIError(f"--{name} applies only to bert-standin")
-            raise CLIError(f"--{name} does not apply to --excitation {exc}")
+                raise UsageError(f"--{name} applies only to bert-standin")
+            raise UsageError(f"--{name} does not apply to --excitation {exc}")
     defaults = DEFAULTS[system][exc]
     for name in ("f0", "f1", "rate", "freq", "duration"):
         if name in defaults:
@@ -165,7 +165,7 @@ def _parse(args) -> dict:
         spec["torque"] = 5.0 if t is None else t
         k = _number(args, "scatter", nonnegative=True)
         if k is not None and k > 100:
-            raise CLIError(f"--scatter must be between 0 and 100 (1 = calibrated default), got {k:g}")
+            raise UsageError(f"--scatter must be between 0 and 100 (1 = calibrated default), got {k:g}")
         spec["scatter"] = 1.0 if k is None else k
     nf = _number(args, "noise_fraction", nonnegative=True)
     spec["noise_fraction"] = 0.0 if nf is None else nf
@@ -266,7 +266,7 @@ def _write_record(path: str, u: np.ndarray, y: np.ndarray, fs: float, units: dic
     path = _atomic_target(path)
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".npz", ".csv"):
-        raise CLIError(f"--out: unsupported record extension {ext or '(none)'!r}; use .npz or .csv")
+        raise UsageError(f"--out: unsupported record extension {ext or '(none)'!r}; use .npz or .csv")
     u = np.ascontiguousarray(u, dtype=np.float64).ravel()
     y = np.ascontiguousarray(y, dtype=np.float64).ravel()
     with atomic_file(path) as fh:
@@ -300,7 +300,7 @@ def run(args) -> dict:
             if msg.startswith(name + " ") or msg.startswith(name + ":"):
                 msg = "--" + msg
                 break
-        raise CLIError(msg) from None
+        raise UsageError(msg) from None
     if system == "bouc-wen":
         y = _simulate_boucwen(u, exc, spec, fs)
     else:

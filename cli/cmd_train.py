@@ -17,7 +17,7 @@ import sys
 from contextlib import ExitStack
 from pathlib import Path
 
-from gpnarx.cli.errors import CLIError
+from gpnarx.cli.errors import CLIError, UsageError
 from gpnarx.configs import shipped_config, shipped_config_names
 
 
@@ -72,7 +72,7 @@ def run(args):
     from gpnarx.training.pipeline import train
 
     if args.scheduler is not None and not args.scheduler.strip():
-        raise CLIError("--scheduler must be a Dask scheduler address such as tcp://host:8786")
+        raise UsageError("--scheduler must be a Dask scheduler address such as tcp://host:8786")
     if args.scheduler and importlib.util.find_spec("distributed") is None:
         raise CLIError("--scheduler needs dask.distributed: pip install 'gpnarx[dask]'")
     config = resolve_config(args.config)
@@ -105,7 +105,7 @@ def run(args):
 def _model_overrides(args) -> dict | None:
     """The [model] settings the command line overrides (None: the config's own)."""
     if args.train_points is not None and args.train_points < 2:
-        raise CLIError(f"--train-points must be at least 2, got {args.train_points}")
+        raise UsageError(f"--train-points must be at least 2, got {args.train_points}")
     over = {"fit_backend": args.backend, "mode": args.mode, "max_train_points": args.train_points}
     over = {k: v for k, v in over.items() if v is not None}
     return over or None
@@ -116,7 +116,7 @@ def _choose_lags(args, config, scheduler, quiet) -> dict:
     from gpnarx.training.lags import edge_message, lag_surface
 
     if args.ny is not None or args.nu is not None:
-        raise CLIError("--choose-lags picks ny and nu itself: drop --ny/--nu (the ranges are the config's [lags])")
+        raise UsageError("--choose-lags picks ny and nu itself: drop --ny/--nu (the ranges are the config's [lags])")
     cfg = load_config(config)
     ranges = []
     for axis in ("ny", "nu"):

@@ -3,9 +3,10 @@
 Each subcommand lives in its own module exposing ``add_parser(subparsers)`` which registers the
 subcommand and sets ``func`` to a callable ``run(args) -> dict | None``. A returned dict is printed as
 one JSON object on stdout when ``--json`` is given (else a short human summary); a command may set
-``args.exit_code`` (``predict-many``: 1 when some record failed). Any
-``CLIError``/``ValueError``/``OSError``/``KeyError`` raised by a command becomes one line on stderr and
-exit code 2.
+``args.exit_code`` (``predict-many``: 1 when some record failed). Exit codes: 2 for a usage error
+(argparse, ``UsageError``: the command line itself is wrong), 1 for a runtime error (``CLIError``,
+``ValueError``, ``OSError``, ``KeyError``, ``LookupError`` raised by a command: unknown model,
+unreadable record, ...), each one line on stderr. ``gpnarx --version`` prints the package version.
 """
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ import sys
 
 import numpy as np
 
-from gpnarx.cli.errors import CLIError
+from gpnarx import __version__
+from gpnarx.cli.errors import EXIT_RUNTIME, EXIT_USAGE, CLIError, UsageError
 from gpnarx.model.jsonsafe import dumps_json
 
 # Subcommand modules, in the order shown by --help.
@@ -37,7 +39,7 @@ class _Parser(argparse.ArgumentParser):
     """argparse parser whose usage errors are one line on stderr and exit code 2."""
 
     def error(self, message):  # noqa: D401
-        raise CLIError(f"{message} (see '{self.prog} --help')")
+        raise UsageError(f"{message} (see '{self.prog} --help')")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -46,6 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="GP-NARX surrogate of hysteretic bolted structures: simulate, train, predict, serve.",
     )
     parser.add_argument("--json", action="store_true", help="print one machine-readable JSON object on stdout")
+    parser.add_argument("--version", action="version", version=f"gpnarx {__version__}",
+                        help="print the package version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for mod_name in COMMAND_MODULES:
         importlib.import_module(mod_name).add_parser(sub)
@@ -69,13 +73,13 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except CLIError as exc:
         print(f"gpnarx: error: {exc}", file=sys.stderr)
-        return 2
-    except SystemExit as exc:  # --help
+        return EXIT_USAGE
+    except SystemExit as exc:  # --help, --version
         return int(exc.code or 0)
     args.json = as_json
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
-        return 2
+        return EXIT_USAGE
     try:
         result = args.func(args)
     except KeyboardInterrupt:
@@ -86,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(exc, KeyError):
             msg = f"missing key {exc}"
         print(f"gpnarx {args.command}: error: {msg}", file=sys.stderr)
-        return 2
+        return getattr(exc, "exit_code", EXIT_RUNTIME)
     if result is not None:
         if as_json:
             sys.stdout.write(dumps_json(result).decode() + "\n")

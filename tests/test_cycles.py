@@ -267,7 +267,7 @@ def test_calibrate_cli_http_and_novelty(calibrated, capsys):
     assert ok["probe_match"] is True and "probe" not in ok["out_of_range"]
     off = _cli_json(capsys, ["novelty", "--registry", str(root), "--model", "boucwen:3", str(tmp / "off.npz"),
                              "--mc", "64"])
-    assert off["probe_match"] is False and "probe" in off["out_of_range"] and off["verdict"] == "healthy"
+    assert off["probe_match"] is False and "probe" in off["out_of_range"] and off["verdict"] == "unjudged"
     assert "25" in off["probe_reasons"][0]
     # HTTP: the model detail states the probe; novelty flags the mismatch and counts it in /metrics
     c = TestClient(create_app(root, Settings(workers=1, queue_size=4)), raise_server_exceptions=False)
@@ -277,15 +277,20 @@ def test_calibrate_cli_http_and_novelty(calibrated, capsys):
     d = np.load(tmp / "off.npz")
     body = {"u": d["u"].tolist(), "y": d["y"].tolist(), "fs": FS, "mc_paths": 32}
     r = c.post("/v1/models/boucwen/novelty", json=body).json()
-    assert r["out_of_range"] == ["probe"] and r["probe_match"] is False
-    assert r["drive"]["frequency"] == pytest.approx(25.0, abs=0.01)
+    assert r["out_of_range"] == ["probe"] and r["probe_match"] is False and r["verdict"] == "unjudged"
+    assert r["drive"]["frequency"] == pytest.approx(25.0, abs=0.01) and r["score"] > 0  # the score is kept
+    # batch answers the same verdict
+    b = c.post("/v1/batch", json={"requests": [{"model": "boucwen", "operation": "novelty", **body}]}).json()
+    assert b["results"][0]["verdict"] == "unjudged" and b["results"][0]["probe_reasons"]
     r = c.post("/v1/models/boucwen/novelty", json={**body, "start": "rest"}).json()
     assert any("start" in s for s in r["probe_reasons"])
     h = np.load(recs[0])
     r = c.post("/v1/models/boucwen/novelty", json={"u": h["u"].tolist(), "y": h["y"].tolist(), "fs": FS,
                                                    "mc_paths": 32}).json()
     assert r["probe_match"] is True and r["out_of_range"] == []
-    assert 'gpnarx_out_of_range_total{field="probe",model="boucwen"} 2.0' in c.get("/metrics").text
+    metrics = c.get("/metrics").text
+    assert 'gpnarx_out_of_range_total{field="probe",model="boucwen"} 3.0' in metrics
+    assert 'gpnarx_novelty_verdicts_total{model="boucwen",verdict="unjudged"} 3.0' in metrics
 
 
 def test_calibrate_cli_refusals(calibrated, capsys):
@@ -294,7 +299,7 @@ def test_calibrate_cli_refusals(calibrated, capsys):
     tmp, root, recs = calibrated
     assert main(["calibrate", "--registry", str(root), "--model", "boucwen", str(recs[0])]) == 2
     assert "at least 2" in capsys.readouterr().err
-    assert main(["calibrate", "--registry", str(root), "--model", "nosuch", *map(str, recs)]) == 2
+    assert main(["calibrate", "--registry", str(root), "--model", "nosuch", *map(str, recs)]) == 1
     assert "not found" in capsys.readouterr().err
     assert main(["calibrate", "--registry", str(root), "--model", "boucwen", *map(str, recs),
                  "--false-alarm-rate", "0.7"]) == 2

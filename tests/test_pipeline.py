@@ -269,18 +269,20 @@ def test_segment_median_novelty_method_reaches_bundle_cli_and_service(small_conf
     assert r.json()["score_method"] == SEGMENT_METHOD and r.json()["score"] == pytest.approx(cli["score"], rel=1e-9)
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["predict", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "2"], "--window must be START:END"),
-    (["predict", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "0.05:0.01"], "START < END"),
-    (["novelty", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "0:9"], "outside the record"),
-    (["predict", "--registry", "{reg}", "--model", "nope", "{rec}"], "not found"),
-    (["predict", "--registry", "{reg}", "--model", "../etc", "{rec}"], "invalid"),
-    (["predict", "--registry", "{reg}", "--model", "bw-small", "{missing}"], "missing.npz"),
-    (["train", "{badcfg}", "--registry", "{reg}"], "name"),
-    (["train", "{reg}/nothing.toml", "--registry", "{reg}"], "nothing.toml"),
-    (["lags", "{cfg}", "--ny", "x:y", "--out", "{reg}/s.json"], "ny"),
+# exit code 2: the command line itself is wrong; 1: the work failed (unknown model, unreadable record or config)
+@pytest.mark.parametrize("argv, needle, code", [
+    (["predict", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "2"], "--window must be START:END",
+     2),
+    (["predict", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "0.05:0.01"], "START < END", 2),
+    (["novelty", "--registry", "{reg}", "--model", "bw-small", "{rec}", "--window", "0:9"], "outside the record", 1),
+    (["predict", "--registry", "{reg}", "--model", "nope", "{rec}"], "not found", 1),
+    (["predict", "--registry", "{reg}", "--model", "../etc", "{rec}"], "invalid", 2),
+    (["predict", "--registry", "{reg}", "--model", "bw-small", "{missing}"], "missing.npz", 1),
+    (["train", "{badcfg}", "--registry", "{reg}"], "name", 1),
+    (["train", "{reg}/nothing.toml", "--registry", "{reg}"], "nothing.toml", 1),
+    (["lags", "{cfg}", "--ny", "x:y", "--out", "{reg}/s.json"], "ny", 2),
 ])
-def test_cli_errors_are_one_line_exit_2(argv, needle, trained, small_config, tmp_path, capsys):
+def test_cli_errors_are_one_line_with_their_exit_code(argv, needle, code, trained, small_config, tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text("[system]\nfs = 750.0\n")
     rec = tmp_path / "r.csv"
@@ -289,7 +291,7 @@ def test_cli_errors_are_one_line_exit_2(argv, needle, trained, small_config, tmp
            "cfg": str(small_config)}
     rc = main([a.format(**fmt) for a in argv])
     err = capsys.readouterr().err
-    assert rc == 2
+    assert rc == code, err
     assert len(err.strip().splitlines()) == 1, err
     assert needle in err
 

@@ -409,11 +409,11 @@ def test_cli_on_a_registry_url(mem, tmp_path, capsys):
     assert main(["alias", "list", "--registry", url, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["aliases"] == {"m": {"latest": "2", "production": "1"}}
     # errors are one line naming what is wrong
-    for argv, needle in ((["alias", "set", "--registry", url, "m", "latest", "1"], "implicit"),
-                         (["alias", "set", "--registry", url, "m", "prod", "7"], "version '7'"),
-                         (["predict", "--registry", url, "--model", "m:staging", str(rec)], "alias 'staging'"),
-                         (["serve", "--registry", "nosuchproto://x/y"], "nosuchproto")):
-        assert main(argv) == 2, argv
+    for argv, needle, code in ((["alias", "set", "--registry", url, "m", "latest", "1"], "implicit", 2),
+                               (["alias", "set", "--registry", url, "m", "prod", "7"], "version '7'", 1),
+                               (["predict", "--registry", url, "--model", "m:staging", str(rec)], "alias 'staging'", 1),
+                               (["serve", "--registry", "nosuchproto://x/y"], "nosuchproto", 1)):
+        assert main(argv) == code, argv
         err = capsys.readouterr().err
         assert needle in err and err.count("\n") == 1, err
 

@@ -1,0 +1,77 @@
+"""`gpnarx --version` and the CLI's exit codes: 1 for a runtime error, 2 for a usage error."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import gpnarx
+from gpnarx.cli.errors import CLIError, UsageError
+from gpnarx.cli.main import main
+
+
+def test_version_prints_the_package_version(capsys):
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"gpnarx {gpnarx.__version__}"
+
+
+def test_version_from_the_console_entry_point():
+    r = subprocess.run([sys.executable, "-m", "gpnarx", "--version"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == f"gpnarx {gpnarx.__version__}", r
+
+
+def test_error_types_carry_their_codes():
+    assert CLIError("x").exit_code == 1 and UsageError("x").exit_code == 2
+    assert issubclass(UsageError, CLIError)
+
+
+@pytest.fixture()
+def registry(tmp_path):
+    reg = tmp_path / "reg"
+    reg.mkdir()
+    rec = tmp_path / "r.npz"
+    np.savez(rec, u=np.zeros(32), fs=750.0)
+    return reg, rec
+
+
+@pytest.mark.parametrize("argv, needle, code", [
+    (["predict", "--registry", "{reg}", "--model", "nosuch", "{rec}"], "not found", 1),  # unknown model
+    (["novelty", "--registry", "{reg}", "--model", "nosuch", "{rec}"], "not found", 1),
+    (["predict", "--registry", "{reg}/absent", "--model", "m", "{rec}"], "does not exist", 1),
+    (["predict", "--registry", "{reg}", "--model", "../x", "{rec}"], "invalid", 2),  # bad model name syntax
+    (["predict", "--registry", "{reg}", "--model", "m"], "required", 2),  # missing RECORD
+    (["predict", "--registry", "{reg}", "--model", "m", "{rec}", "--no-such-option"], "--no-such-option", 2),
+    (["no-such-command"], "no-such-command", 2),
+    (["simulate", "bouc-wen", "--amplitude", "-1", "--out", "{tmp}/o.npz"], "--amplitude", 2),
+    (["simulate", "bouc-wen", "--amplitude", "1", "--out", "{tmp}/absent/o.npz"], "does not exist", 1),
+    (["calibrate", "--registry", "{reg}", "--model", "m", "{rec}", "{rec}", "--false-alarm-rate", "0.9"],
+     "--false-alarm-rate", 2),
+])
+def test_exit_codes(argv, needle, code, registry, tmp_path, capsys):
+    reg, rec = registry
+    rc = main([a.format(reg=reg, rec=rec, tmp=tmp_path) for a in argv])
+    err = capsys.readouterr().err
+    assert rc == code, err
+    assert needle in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_unreadable_record_is_a_runtime_error(tmp_path, capsys):
+    from conftest import sdof_simulate
+
+    from gpnarx.model.bundle import save_bundle
+    from gpnarx.model.estimator import GPNARX
+
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal(300)
+    model = GPNARX(ny=2, nu=2, max_train_points=120, n_restarts=0).fit([(u, sdof_simulate(u))])
+    reg = tmp_path / "reg"
+    save_bundle(model, reg, "m", fs=500.0, units={"u": "N", "y": "m"})
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip archive")
+    rc = main(["predict", "--registry", str(reg), "--model", "m", str(bad)])
+    err = capsys.readouterr().err
+    assert rc == 1 and "bad.npz" in err and len(err.strip().splitlines()) == 1, err
+    good = tmp_path / "good.npz"
+    np.savez(good, u=u[:50], fs=500.0)
+    assert main(["predict", "--registry", str(reg), "--model", "m", str(good), "--mc", "0"]) == 2  # usage
+    assert main(["predict", "--registry", str(reg), "--model", "m", str(good), "--mc", "4"]) == 0
