@@ -18,11 +18,11 @@ import shlex
 import shutil
 import subprocess
 import sys
-import venv
 from importlib import metadata
 from pathlib import Path
 
 import pytest
+from venv_support import make_venv
 
 yaml = pytest.importorskip("yaml")
 
@@ -170,11 +170,11 @@ def test_dockerfile_steps_build_the_wheel_install_it_and_run_the_image_command(t
     _run(wheel_cmd, cwd=tmp_path, timeout=240)
     built = list(wheels.glob("gpnarx-*.whl"))
     assert len(built) == 1, built
-    # a fresh venv; it sees this machine's packages so nothing is downloaded, and gpnarx must then
-    # resolve to the wheel installed in it, not to the checkout
+    # a fresh venv; it sees the running environment's packages (the user's venv or the machine's
+    # interpreter, tests/venv_support.py) so nothing is downloaded, and gpnarx must then resolve to
+    # the wheel installed in it, not to the checkout
     env_dir = tmp_path / "venv"
-    venv.EnvBuilder(system_site_packages=True, with_pip=True).create(env_dir)
-    py = env_dir / "bin" / "python"
+    py = make_venv(env_dir, with_pip=True)
     install = [a for k, a in run["instructions"] if k == "RUN" and "pip install" in a][0]
     requirement = re.search(r'"(gpnarx[^"]*)"|\b(gpnarx\[[^\]]*\]|gpnarx)\b', install)
     requirement = requirement.group(1) or requirement.group(2)

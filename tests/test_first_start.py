@@ -27,6 +27,8 @@ from gpnarx.service.settings import Settings
 from gpnarx.training import defaults
 
 ROOT = Path(__file__).resolve().parents[1]
+# how long the tests wait for the port: generous, a functional bound under load (the target is bench/'s)
+LIVE_WAIT_S = 180.0
 
 
 def _wait(cond, timeout=30.0, what="condition"):
@@ -259,8 +261,10 @@ def _stop(proc):
 
 
 def test_serve_on_empty_registry_opens_its_port_at_once(tmp_path):
-    """Live within 10 s while the lightest default builds; ready says it is building; stopping the
-    server stops the build."""
+    """The port opens before the lightest default is built: /health/live answers while /health/ready
+    still says it is building; stopping the server stops the build. How fast it opens is a figure of
+    bench/bench_first_start.py (``live_s`` against ``live_target_s``), not a limit here: a loaded
+    machine may take long to start Python, but never long enough to build the default first."""
     registry = tmp_path / "empty-registry"
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
@@ -268,13 +272,13 @@ def test_serve_on_empty_registry_opens_its_port_at_once(tmp_path):
     proc = _serve(registry, port, "bouc-wen")
     try:
         _wait(lambda: proc.poll() is None and (lambda r: r is not None and r.status_code == 200 and r)(
-            _get(url + "/health/live")), timeout=10, what="/health/live 200")
+            _get(url + "/health/live")), timeout=LIVE_WAIT_S, what="/health/live 200")
         live_s = time.monotonic() - t0
         ready = _get(url + "/health/ready")
         assert ready.status_code == 503, ready.text
         st = ready.json()["startup"]
         assert st["building"] == ["bouc-wen"] and st["built"] == [] and not st["done"], st
-        assert _wait(lambda: _children_with(str(registry)) and True, timeout=10, what="build child")
+        assert _wait(lambda: _children_with(str(registry)) and True, timeout=60, what="build child")
         print(f"live after {live_s:.1f} s")
     finally:
         _stop(proc)
@@ -293,8 +297,8 @@ def test_serve_first_start_builds_then_predicts(tmp_path):
     t0 = time.monotonic()
     proc = _serve(registry, port, "bouc-wen")
     try:
-        _wait(lambda: (lambda r: r is not None and r.status_code == 200)(_get(url + "/health/live")), timeout=10,
-              what="/health/live 200")
+        _wait(lambda: (lambda r: r is not None and r.status_code == 200)(_get(url + "/health/live")),
+              timeout=LIVE_WAIT_S, what="/health/live 200")
         live_s = time.monotonic() - t0
         seen_building = _get(url + "/health/ready").json()["startup"]["building"] == ["bouc-wen"]
         ready = _wait(lambda: (lambda r: r is not None and r.status_code == 200 and r.json())(

@@ -3,9 +3,9 @@
 Builds a wheel from a clean copy of the sources (a stale ``build/`` folder in the checkout could
 otherwise leak deleted modules into it), checks its file list, installs it into a fresh venv and
 runs the console script and an import of every layer from an empty folder. The venv sees the
-machine's packages (``--system-site-packages``) so no dependency is downloaded; the check that
-``gpnarx`` resolves inside the venv guards against the editable install of the checkout (a finder
-in the system site-packages) answering instead of the wheel.
+packages of the environment the tests run in (tests/venv_support.py: the user's venv or the
+machine's interpreter) so no dependency is downloaded; the check that ``gpnarx`` resolves inside
+the venv guards against the editable install of the checkout answering instead of the wheel.
 """
 from __future__ import annotations
 
@@ -14,19 +14,24 @@ import os
 import shutil
 import subprocess
 import sys
-import venv
 import zipfile
 from importlib import metadata
 from pathlib import Path
 
 import pytest
+from venv_support import make_venv
 
 ROOT = Path(__file__).resolve().parents[1]
 GENERIC_TOP_LEVEL = {"model", "service", "training", "configs", "cli", "tests", "bench"}
 SHIPPED = {"bouc-wen", "bert-standin", "bert-standin-monitor", "bert-real"}
-_COPY_IGNORE = shutil.ignore_patterns(".git", "build", "dist", "*.egg-info", "__pycache__", "*.pyc", ".hypothesis",
-                                      ".pytest_cache", ".benchmarks", ".lagcache", "runs", "registry", "reports",
-                                      ".venv", "tests", "bench")
+_IGNORE_NAMES = shutil.ignore_patterns(".git", "build", "dist", "*.egg-info", "__pycache__", "*.pyc", ".hypothesis",
+                                       ".pytest_cache", ".benchmarks", ".lagcache", "runs", "registry", "reports",
+                                       ".venv", ".ci-venv", "tests", "bench")
+
+
+def _COPY_IGNORE(folder, names):
+    """The names above, and any virtual environment (a folder with pyvenv.cfg) whatever the user called it."""
+    return set(_IGNORE_NAMES(folder, names)) | {n for n in names if (Path(folder) / n / "pyvenv.cfg").is_file()}
 
 
 def _clean_env() -> dict:
@@ -95,9 +100,8 @@ print(json.dumps({"prefix": sys.prefix, "gpnarx": gpnarx.__file__, "model": gpna
 def test_wheel_installs_into_a_fresh_venv_and_runs_from_an_empty_folder(wheel, tmp_path):
     env_dir = tmp_path / "venv"
     # no pip inside the venv (ensurepip is the slow part); the running pip installs into it
-    venv.EnvBuilder(system_site_packages=True, with_pip=False, symlinks=os.name != "nt").create(env_dir)
-    bindir = env_dir / ("Scripts" if os.name == "nt" else "bin")
-    py = bindir / ("python.exe" if os.name == "nt" else "python")
+    py = make_venv(env_dir, with_pip=False)
+    bindir = py.parent
     _run([sys.executable, "-m", "pip", "--python", py, "install", "--no-deps", "--no-index", "-q", wheel],
          cwd=tmp_path)
     empty = tmp_path / "empty"
