@@ -49,9 +49,12 @@ def test_docs_exact_real_page_is_the_render_of_its_stored_run():
 
     summary = json.loads((DOCS / "runs" / "bert-real-exact" / "summary.json").read_text())
     shipped = json.loads((DOCS / "runs" / "bert-real" / "summary.json").read_text())
+    split = json.loads((DOCS / "runs" / "bert-real-exact" / "split_study.json").read_text())
     page = (DOCS / "results-bert-real-exact.md").read_text()
-    assert page == render(summary, shipped), "docs/results-bert-real-exact.md differs from its run's render"
+    assert page == render(summary, shipped, split), "docs/results-bert-real-exact.md differs from its run's render"
     assert summary["mode"] == "exact"
+    for cell in split["cells"]:  # every cell of the split study is on the page, with its worst 'lags' fit
+        assert f"| {cell['noise_split']:g} | " in page and f"{cell['worst_lags_fit']:.1f}" in page
     for name, r in summary["real_table"]["records"].items():
         if r["role"] == "validate":
             assert f"| {name} | {r['whole_linear']['fit']:.1f} |" in page, name
