@@ -30,6 +30,7 @@ imported to build the parser (``gpnarx.cli.main``), so each command loads only w
 """
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from pathlib import Path
@@ -38,6 +39,8 @@ from gpnarx.cli.errors import CLIError, UsageError
 from gpnarx.model.atomicio import write_atomic
 
 DEFAULT_OPENAPI = os.path.join("openapi", "openapi.json")
+
+log = logging.getLogger("gpnarx.serve")
 
 
 def add_parser(sub):
@@ -84,15 +87,14 @@ def _registry(arg) -> tuple[Path | str, dict | None]:
 
 
 def _log(msg: str) -> None:
-    print(f"[gpnarx] {msg}", file=sys.stderr, flush=True)
+    log.info(msg)
 
 
 def _builder(root: Path, plan: dict):
     """The background builder of the missing defaults (``cli.startup``); started by run_serve."""
     from gpnarx.cli.startup import ChildBuild, DefaultBuilder
 
-    return DefaultBuilder(plan["missing"], ChildBuild(root, log=lambda line: print(line, file=sys.stderr,
-                                                                                   flush=True)),
+    return DefaultBuilder(plan["missing"], ChildBuild(root, log=log.info),
                           present=plan["present"], skipped=plan["skipped"], log=_log)
 
 
@@ -113,6 +115,7 @@ def run_serve(args):
     import uvicorn
 
     from gpnarx.service.app import create_app
+    from gpnarx.service.observability import configure_logging, logging_config
     from gpnarx.service.server import uvicorn_options
     from gpnarx.service.settings import Settings
 
@@ -122,6 +125,7 @@ def run_serve(args):
                                      sighup_reload=True)
     except (TypeError, ValueError) as exc:
         raise CLIError(str(exc)) from None
+    configure_logging(settings.log_format, args.log_level)  # GPNARX_LOG_FORMAT: text or json lines on stderr
     builder = _builder(root, plan) if plan is not None else None
     try:
         app = create_app(root, settings, startup_status=builder.status if builder is not None else None)
@@ -129,14 +133,12 @@ def run_serve(args):
         raise CLIError(str(exc)) from None
     state = app.state.service
     if state.registry_error:
-        print(f"[gpnarx] the registry could not be read (retried every poll): {state.registry_error}",
-              file=sys.stderr)
+        log.error("the registry could not be read (retried every poll): %s", state.registry_error)
     n = state.n_bundles()
-    print(f"[gpnarx] serving {n} bundle(s) from {root} on http://{args.host}:{args.port}"
-          f" ({len(state.registry.refused)} refused; API key {'on' if settings.api_key else 'off'})",
-          file=sys.stderr)
+    log.info("serving %d bundle(s) from %s on http://%s:%d (%d refused; API key %s)", n, root, args.host, args.port,
+             len(state.registry.refused), "on" if settings.api_key else "off")
     for r in state.refused():
-        print(f"[gpnarx] refused {r['path']}: {r['reason']}", file=sys.stderr)
+        log.warning("refused %s: %s", r["path"], r["reason"])
     if builder is not None:
         for name, why in plan["skipped"].items():
             _log(f"{why}: skipping {name}")
@@ -149,7 +151,8 @@ def run_serve(args):
         # drain: running requests get GPNARX_DRAIN_TIMEOUT s after SIGTERM (default GPNARX_REQUEST_TIMEOUT + 10 s);
         # one still running then is answered 503 + Retry-After (service.middleware)
         # and read deadlines, a connection limit and the request-head size (service.server)
-        uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, **uvicorn_options(settings))
+        uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level,
+                    log_config=logging_config(settings.log_format, args.log_level), **uvicorn_options(settings))
     finally:
         if builder is not None:
             builder.stop()

@@ -17,6 +17,7 @@ from fastapi import FastAPI
 from starlette.routing import Match
 
 from .deps import API_KEY_HEADER, key_problem
+from .observability import REQUEST_ID, REQUEST_ID_HEADER, request_id_for
 from .problems import ProblemError
 from .responses import problem_response
 from .state import ServiceState
@@ -30,6 +31,14 @@ UNAUTHENTICATED_BODY_BYTES = 64 * 1024
 def needs_key(path: str) -> bool:
     """Whether ``path`` is under ``/v1`` (every ``/v1`` route needs the key when one is set)."""
     return path == "/v1" or path.startswith("/v1/")
+
+
+def _header(scope, name: bytes) -> str | None:
+    """The first value of header ``name`` (lower case) of an ASGI scope, or None."""
+    for k, v in scope.get("headers") or ():
+        if k.lower() == name:
+            return v.decode("latin-1")
+    return None
 
 
 class _BodyTooLarge(Exception):
@@ -66,6 +75,10 @@ class GuardMiddleware:
             return await self.app(scope, receive, send)
         st = self.state
         t0 = time.perf_counter()
+        rid = request_id_for(_header(scope, b"x-request-id"))  # echoed on every answer, in logs and problems
+        scope.setdefault("state", {})["request_id"] = rid
+        rid_token = REQUEST_ID.set(rid)
+        rid_header = (REQUEST_ID_HEADER.lower().encode(), rid.encode())
         ctx = {"status": None, "exceeded": False, "swallow": False, "timeout": False}
         limit = st.settings.max_body_bytes
         key = st.settings.api_key
@@ -79,6 +92,9 @@ class GuardMiddleware:
                     ctx["swallow"] = True
                     return
                 ctx["status"] = message["status"]
+                headers = list(message.get("headers") or [])
+                if not any(k.lower() == rid_header[0] for k, _ in headers):
+                    message = {**message, "headers": [*headers, rid_header]}
             elif ctx["swallow"]:
                 return
             await send(message)
@@ -168,4 +184,5 @@ class GuardMiddleware:
             label = self._route_label(scope)
             status = ctx["status"] or 500
             st.metrics.observe(scope.get("method", "GET"), label, status, time.perf_counter() - t0)
+            REQUEST_ID.reset(rid_token)
 

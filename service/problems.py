@@ -3,6 +3,8 @@
 Every error the service returns is a JSON object with ``type``, ``title``, ``status``, ``detail``
 and, when one request field is to blame, ``field`` (a dotted path into the request body, e.g.
 ``u``, ``mc_paths`` or ``requests.2.mc_paths``; path parameters are named ``name``/``version``).
+Inside a request every problem also carries ``request_id`` (the request's ``X-Request-ID``,
+``service.observability``).
 Validation errors also carry ``errors``: one ``{field, message, type}`` per problem found. A
 stack trace is never returned.
 """
@@ -11,6 +13,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from http import HTTPStatus
 from typing import Any
+
+from .observability import REQUEST_ID
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_BASE = "https://gpnarx.dev/problems/"
@@ -66,6 +70,9 @@ class ProblemError(Exception):
             if k == "errors" and field_prefix is not None and isinstance(v, list):
                 v = [{**e, "field": f"{field_prefix}.{e['field']}" if e.get("field") else field_prefix} for e in v]
             d[k] = v
+        rid = REQUEST_ID.get()
+        if rid is not None and "request_id" not in d:  # the request's X-Request-ID (service.observability)
+            d["request_id"] = rid
         return d
 
 

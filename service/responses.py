@@ -8,6 +8,7 @@ from starlette.responses import JSONResponse
 
 from gpnarx.model.jsonsafe import dumps_json
 
+from .observability import REQUEST_ID, REQUEST_ID_HEADER
 from .problems import PROBLEM_MEDIA_TYPE, ProblemError
 
 try:  # fast JSON for long float arrays
@@ -54,4 +55,8 @@ class ProblemResponse(JSONBytesResponse):
 
 
 def problem_response(p: ProblemError) -> ProblemResponse:
-    return ProblemResponse(p.to_dict(), status_code=p.status, headers=p.headers)
+    headers = dict(p.headers)
+    rid = REQUEST_ID.get()
+    if rid is not None:
+        headers.setdefault(REQUEST_ID_HEADER, rid)
+    return ProblemResponse(p.to_dict(), status_code=p.status, headers=headers)

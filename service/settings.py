@@ -79,6 +79,8 @@ _POSITIVE = "a positive integer"
 _NON_NEGATIVE = "a non-negative integer"
 _SECONDS = "a non-negative number of seconds"
 _SHARE = "a number from 0 to 1"
+_BOOL = "true or false"
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 #: the mapping ``Settings.from_env`` reads (None: ``Settings(...)`` reads no environment)
 _ENVIRON: ContextVar[Any] = ContextVar("gpnarx_settings_environ", default=None)
@@ -103,6 +105,10 @@ class _EnvironSource(PydanticBaseSettingsSource):
             kind = (field.json_schema_extra or {}).get("kind")
             if kind is None:  # text: api_key, registry
                 out[name] = raw
+            elif kind == _BOOL:
+                if raw.strip().lower() not in _TRUE + _FALSE:
+                    raise ValueError(f"environment variable {var} must be {kind}, got {raw!r}")
+                out[name] = raw.strip().lower() in _TRUE
             elif kind in (_SECONDS, _SHARE):
                 try:
                     out[name] = float(raw)
@@ -185,6 +191,19 @@ class Settings(BaseSettings):
                                                 label="array backend of the free run when a body names none "
                                                       "('jax': docs/accelerator.md)",
                                                 exceeded="422 on a request if 'jax' is not installed")
+    log_format: Literal["text", "json"] = _setting("text", kind=None, shown="text",
+                                                   label="log lines of `gpnarx serve`: `text`, or `json` (one object "
+                                                         "per line: time, level, logger, message, request_id)")
+    audit_log: str | None = _setting(None, kind=None, shown="unset (stdout)",
+                                     label="audit trail, one JSON line per novelty verdict: a file, an fsspec URL, "
+                                           "`-` (stdout) or `off`",
+                                     exceeded="a failed write is counted (`/metrics`, `/health/ready` `audit`); the "
+                                              "answer is sent")
+    audit_predicts: bool = _setting(False, kind=_BOOL, shown="false", label="also write an audit line for each predict")
+    audit_queue: int = _setting(10000, ge=1, kind=_POSITIVE, label="audit lines waiting to be written",
+                                exceeded="the line is dropped and counted; the answer is sent")
+    drift_window: int = _setting(200, ge=1, kind=_POSITIVE,
+                                 label="answers per model in the rolling window of the drift gauges on `/metrics`")
     #: reload the registry on SIGHUP (only where the event loop runs in the main thread); not an env setting
     sighup_reload: bool = False
 

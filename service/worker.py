@@ -18,6 +18,7 @@ its progress hook every 256 samples), which frees the slot; the caller gets ``Ti
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import threading
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -118,7 +119,7 @@ class BoundedExecutor:
                 raise Overloaded(f"all {self.workers} workers are busy and {self.queue_size} jobs are waiting")
             self._pending += 1
         try:
-            fut = self._pool.submit(fn, *args)
+            fut = self._pool.submit(contextvars.copy_context().run, fn, *args)  # the request's id for its logs
         except BaseException:
             self._release()
             raise
