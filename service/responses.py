@@ -4,12 +4,13 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from starlette.responses import JSONResponse
+from starlette.responses import JSONResponse, Response
 
 from gpnarx.model.jsonsafe import dumps_json
 
 from .observability import REQUEST_ID, REQUEST_ID_HEADER
 from .problems import PROBLEM_MEDIA_TYPE, ProblemError
+from .wire import etag_of, not_modified
 
 try:  # fast JSON for long float arrays
     import orjson as _orjson
@@ -60,3 +61,17 @@ def problem_response(p: ProblemError) -> ProblemResponse:
     if rid is not None:
         headers.setdefault(REQUEST_ID_HEADER, rid)
     return ProblemResponse(p.to_dict(), status_code=p.status, headers=headers)
+
+
+def conditional(request, body: bytes, media_type: str, cache_control: str, headers: dict | None = None):
+    """``body`` with an ETag and ``Cache-Control``, or a 304 when the request's ``If-None-Match`` names it.
+
+    Behind an API key the answer is ``private`` (no shared cache keeps it).
+    """
+    etag = etag_of(body)
+    keyed = bool(request.app.state.service.settings.api_key)
+    cc = f"private, {cache_control}" if keyed else cache_control
+    hdrs = {**(headers or {}), "ETag": etag, "Cache-Control": cc}
+    if not_modified(request.headers.get("if-none-match"), etag):
+        return Response(status_code=304, headers={"ETag": etag, "Cache-Control": cc})
+    return Response(body, media_type=media_type, headers=hdrs)

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py",
            "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
            "bench_sparse_accuracy.py", "bench_sparse_variance.py", "bench_mc_speed.py", "bench_realtime.py",
-           "bench_gpu.py"]
+           "bench_gpu.py", "bench_wire.py"]
 # fields of some RESULT lines that must be finite positive numbers (besides ratio and baseline)
 FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_extrapolated", "user_ratio"),
           "bench_predict_e2e.py": ("wall_s", "baseline_wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s",
@@ -27,7 +27,8 @@ FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_e
           "bench_fit.py": ("eval_s", "fit_ratio_plain", "user_ratio"),
           "bench_mc_speed.py": ("path_steps_per_s", "max_edge_diff_se"),
           "bench_realtime.py": ("rt_factor", "rt_factor_cpu", "wall_s", "cpu_s"),
-          "bench_gpu.py": ("pss", "realtime", "pss_segment", "band_median_se", "numpy_seeds_band_median_se")}
+          "bench_gpu.py": ("pss", "realtime", "pss_segment", "band_median_se", "numpy_seeds_band_median_se"),
+          "bench_wire.py": ("json_bytes", "gzip_bytes", "npz_bytes", "json_ms", "gzip_ms", "npz_ms")}
 # the baselines' numerics agree with the product's (same model on both sides of ratio=)
 MATCH = {"bench_freerun.py": "max_mean_diff", "bench_modes.py": "max_mean_diff",
          "bench_bert_scale.py": "ref_max_mean_diff", "bench_predict_e2e.py": "ref_max_mean_diff"}
@@ -57,6 +58,9 @@ def test_bench_quick(script):
         assert key in kv and math.isfinite(float(kv[key])) and float(kv[key]) > 0, (key, kv)
     if script == "bench_sparse_variance.py":  # the factored variance matches the QR reference
         assert float(kv["product_rel_err"]) < 1e-6 < float(kv["baseline_rel_err"]), kv
+    if script == "bench_wire.py":  # the compact formats are smaller than JSON and answer the same numbers
+        assert int(kv["gzip_bytes"]) < int(kv["json_bytes"]) and int(kv["npz_bytes"]) < int(kv["json_bytes"]), kv
+        assert float(kv["max_mean_diff"]) == 0.0, kv
     if script in MATCH:
         assert float(kv[MATCH[script]]) < 1e-8, kv
     if script == "bench_mc_speed.py":  # same draws: the bands agree far inside their Monte Carlo error

@@ -1,12 +1,13 @@
 """Model metadata: the list, a model's latest version, one version (no model is built)."""
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 
 from ..deps import RECORD_PROBLEMS, V1, NameP, StateDep, VersionP
-from ..responses import JSONBytesResponse
+from ..responses import JSONBytesResponse, conditional, render_json
 from ..schemas import ModelDetail, ModelList
 from ..state import ServiceState
+from ..wire import REVALIDATE
 
 router = APIRouter(prefix="/v1", tags=["models"], dependencies=V1)
 
@@ -51,8 +52,21 @@ async def get_model(state: StateDep, name: NameP):
     return JSONBytesResponse(detail_of(state, state.lookup(name, None, build=False)))
 
 
+CONDITIONAL_GET = {
+    304: {"description": "Not modified: the request's If-None-Match names the answer's ETag (no body)"},
+}
+ETAG_HEADERS = {
+    "ETag": {"description": "Weak validator of the answer; send it back in If-None-Match for a 304",
+             "schema": {"type": "string"}},
+    "Cache-Control": {"description": "`no-cache` (revalidate: the versions and aliases listed change), "
+                                     "`private, ...` when the server sets an API key", "schema": {"type": "string"}},
+}
+
+
 @router.get("/models/{name}/versions/{version}", response_model=ModelDetail, operation_id="get_model_version",
-            summary="Metadata of one version of a model",
-            responses={k: {"description": RECORD_PROBLEMS[k]} for k in (401, 404)})
-async def get_model_version(state: StateDep, name: NameP, version: VersionP):
-    return JSONBytesResponse(detail_of(state, state.lookup(name, version, build=False)))
+            summary="Metadata of one version of a model (with an ETag; If-None-Match gives 304)",
+            responses={200: {"headers": ETAG_HEADERS}, **CONDITIONAL_GET,
+                       **{k: {"description": RECORD_PROBLEMS[k]} for k in (401, 404)}})
+async def get_model_version(request: Request, state: StateDep, name: NameP, version: VersionP):
+    body = render_json(detail_of(state, state.lookup(name, version, build=False)))
+    return conditional(request, body, "application/json", REVALIDATE)

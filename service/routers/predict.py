@@ -4,17 +4,70 @@ from __future__ import annotations
 import time
 
 from fastapi import APIRouter, Request
+from fastapi.routing import APIRoute
+from starlette.responses import Response
 
 from .. import ops
 from ..deps import RECORD_PROBLEMS, V1, NameP, StateDep, VersionP
 from ..responses import JSONBytesResponse
 from ..schemas import LoopsResponse, NoveltyRequest, NoveltyResponse, PredictResponse, RecordRequest
 from ..state import ServiceState
+from ..wire import NPZ_MEDIA_TYPE, npz_request_fields, render_npz, wants_npz
 from ..worker import CancelToken
 
-router = APIRouter(prefix="/v1", tags=["predict"], dependencies=V1)
+
+class RecordRoute(APIRoute):
+    """A record route that also takes an NPZ body (``service.wire``): the archive's arrays and the
+    query's fields become the JSON body the route's schema validates (same limits, same problems)."""
+
+    def get_route_handler(self):
+        handler = super().get_route_handler()
+
+        async def route_handler(request: Request) -> Response:
+            ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+            if ctype != NPZ_MEDIA_TYPE:
+                return await handler(request)
+            settings = request.app.state.service.settings
+            fields = npz_request_fields(await request.body(), request.query_params, settings.max_body_bytes,
+                                        settings.max_samples)
+            headers = [(k, v) for k, v in request.scope["headers"] if k.lower() != b"content-type"]
+            scope = {**request.scope, "headers": [*headers, (b"content-type", b"application/json")],
+                     "query_string": b""}
+            as_json = Request(scope, request.receive)
+            as_json._body = b"npz"  # already read; FastAPI only needs it non-empty
+            as_json._json = fields
+            return await handler(as_json)
+
+        return route_handler
+
+
+router = APIRouter(prefix="/v1", tags=["predict"], dependencies=V1, route_class=RecordRoute)
+
+#: the NPZ body and answer of the record routes, merged into their OpenAPI operations
+NPZ_OPENAPI = {
+    "requestBody": {"content": {NPZ_MEDIA_TYPE: {"schema": {
+        "type": "string", "format": "binary",
+        "description": "An .npz archive with the 1-D arrays `u`, `y`, `y0` (integer or floating point) and the "
+                       "scalar `fs` [Hz]; the other fields are query parameters. Read without pickle; its "
+                       "decompressed size is bounded by GPNARX_MAX_BODY_BYTES (413 naming the array); a body "
+                       "that is not a zip archive is a 400, a corrupt member or a wrong dtype a 422 naming the "
+                       "array."}}}},
+    "parameters": [
+        {"name": n, "in": "query", "required": False, "description": f"With an NPZ body only: the body field `{n}`.",
+         "schema": sch}
+        for n, sch in (("fs", {"type": "number"}), ("mc_paths", {"type": "integer"}), ("seed", {"type": "integer"}),
+                       ("confidence", {"type": "number"}), ("method", {"type": "string", "enum": ["mc", "linear"]}),
+                       ("backend", {"type": "string", "enum": ["numpy", "jax"]}),
+                       ("start", {"type": "string", "enum": ["rest", "measured"]}))],
+}
+NPZ_ANSWER = {NPZ_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary", "description": (
+    "With `Accept: application/x-npz`: each list of numbers of the JSON answer as a float64 array (`mean`, "
+    "`lower`, `upper`, `std`, ...; null as NaN), each number a 0-d array, each string a 0-d unicode array, "
+    "the other fields as a JSON object in the 0-d unicode array `json`. Uncompressed; gzip applies when "
+    "accepted.")}}}
 
 op_problems = {k: {"description": v} for k, v in RECORD_PROBLEMS.items()}
+op_problems[200] = {"content": NPZ_ANSWER}
 loops_problems = {**op_problems, 409: {"description": "The bundle has no physical constants (mass)"}}
 novelty_problems = {**op_problems, 409: {"description": "The bundle has no novelty calibration"}}
 
@@ -32,46 +85,54 @@ async def single(state: ServiceState, request: Request, operation: str, body: Re
     plan = ops.plan(operation, body, bundle, state.settings)
     token = CancelToken()
     out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter(), token,
-                                                   request=request, token=token)
+                                                   request=request, token=token, work=plan.work)
     state.metrics.path_steps.inc(steps)
     state.metrics.answered(operation, out)
-    return JSONBytesResponse(out, headers={
-        "Server-Timing": f"queue;dur={waited * 1e3:.2f}, compute;dur={computed * 1e3:.2f}"})
+    state.telemetry.answered(request, operation, out, body, waited + computed)  # audit line, drift, latency
+    headers = {"Server-Timing": f"queue;dur={waited * 1e3:.2f}, compute;dur={computed * 1e3:.2f}",
+               "Vary": "Accept"}
+    if wants_npz(request.headers.get("accept")):
+        return Response(render_npz(out), media_type=NPZ_MEDIA_TYPE, headers=headers)
+    return JSONBytesResponse(out, headers=headers)
 
 
 @router.post("/models/{name}/predict", response_model=PredictResponse, operation_id="predict",
-             summary="Free-run prediction with a Monte Carlo band (latest version)", responses=op_problems)
+             summary="Free-run prediction with a Monte Carlo band (latest version)",
+             responses=op_problems, openapi_extra=NPZ_OPENAPI)
 async def predict(request: Request, state: StateDep, name: NameP, body: RecordRequest):
     return await single(state, request, "predict", body, name, None)
 
 
 @router.post("/models/{name}/versions/{version}/predict", response_model=PredictResponse,
-             operation_id="predict_version", summary="Free-run prediction with one version", responses=op_problems)
+             operation_id="predict_version", summary="Free-run prediction with one version",
+             responses=op_problems, openapi_extra=NPZ_OPENAPI)
 async def predict_version(request: Request, state: StateDep, name: NameP, version: VersionP, body: RecordRequest):
     return await single(state, request, "predict", body, name, version)
 
 
 @router.post("/models/{name}/loops", response_model=LoopsResponse, operation_id="loops",
              summary="Restoring-force loops of the predicted response and its band (latest version)",
-             responses=loops_problems)
+             responses=loops_problems, openapi_extra=NPZ_OPENAPI)
 async def loops(request: Request, state: StateDep, name: NameP, body: RecordRequest):
     return await single(state, request, "loops", body, name, None)
 
 
 @router.post("/models/{name}/versions/{version}/loops", response_model=LoopsResponse, operation_id="loops_version",
-             summary="Restoring-force loops with one version", responses=loops_problems)
+             summary="Restoring-force loops with one version",
+             responses=loops_problems, openapi_extra=NPZ_OPENAPI)
 async def loops_version(request: Request, state: StateDep, name: NameP, version: VersionP, body: RecordRequest):
     return await single(state, request, "loops", body, name, version)
 
 
 @router.post("/models/{name}/novelty", response_model=NoveltyResponse, operation_id="novelty",
              summary="Novelty score, threshold and verdict of a measured record (latest version)",
-             responses=novelty_problems)
+             responses=novelty_problems, openapi_extra=NPZ_OPENAPI)
 async def novelty(request: Request, state: StateDep, name: NameP, body: NoveltyRequest):
     return await single(state, request, "novelty", body, name, None)
 
 
 @router.post("/models/{name}/versions/{version}/novelty", response_model=NoveltyResponse,
-             operation_id="novelty_version", summary="Novelty score with one version", responses=novelty_problems)
+             operation_id="novelty_version", summary="Novelty score with one version",
+             responses=novelty_problems, openapi_extra=NPZ_OPENAPI)
 async def novelty_version(request: Request, state: StateDep, name: NameP, version: VersionP, body: NoveltyRequest):
     return await single(state, request, "novelty", body, name, version)

@@ -18,7 +18,7 @@ from gpnarx.model.record_formats import FORMATS, RecordFileError
 
 from ..deps import V1, SettingsDep, StateDep
 from ..problems import ProblemError
-from ..responses import JSONBytesResponse
+from ..responses import JSONBytesResponse, conditional
 from ..state import ServiceState
 from ..ui import (
     _FS_PROBLEMS,
@@ -39,6 +39,7 @@ from ..ui import (
     parse_uploads,
     read_report,
 )
+from ..wire import IMMUTABLE
 
 pages = APIRouter()
 router = APIRouter(prefix="/v1", dependencies=V1)
@@ -87,14 +88,18 @@ async def redoc(request: Request):
 
 
 # ---------------------------------------------------------------- reports
-async def report_of(state: ServiceState, name: str, version: str | None) -> HTMLResponse:
+async def report_of(state: ServiceState, name: str, version: str | None, request: Request | None = None):
     bundle = state.lookup(name, version, build=False)  # the report is a file: no model needed
     html = await asyncio.to_thread(read_report, bundle.path)
     if html is None:
         raise ProblemError(404, f"model {bundle.name} version {bundle.version} has no training report "
                                 f"(no {REPORT_FILE.as_posix()} in its bundle; bundles written by `gpnarx train` "
                                 f"carry one)", "version")
-    return HTMLResponse(html, headers={"Content-Security-Policy": REPORT_CSP, "X-Content-Type-Options": "nosniff"})
+    headers = {"Content-Security-Policy": REPORT_CSP, "X-Content-Type-Options": "nosniff"}
+    if request is None:
+        return HTMLResponse(html, headers=headers)
+    # a version's report is a file of an immutable bundle: cached for good, revalidated by its ETag
+    return conditional(request, html.encode(), "text/html; charset=utf-8", IMMUTABLE, headers)
 
 
 report_responses = {200: {"content": {"text/html": {"schema": {"type": "string"}}},
@@ -109,11 +114,22 @@ async def get_report(state: StateDep, name: NameP):
     return await report_of(state, name, None)
 
 
+version_report_responses = {
+    **report_responses,
+    200: {**report_responses[200], "headers": {
+        "ETag": {"description": "Weak validator of the report; send it back in If-None-Match for a 304",
+                 "schema": {"type": "string"}},
+        "Cache-Control": {"description": "`max-age=31536000, immutable` (`private, ...` behind an API key)",
+                          "schema": {"type": "string"}}}},
+    304: {"description": "Not modified: the request's If-None-Match names the report's ETag (no body)"},
+}
+
+
 @router.get("/models/{name}/versions/{version}/report", tags=["models"], operation_id="get_report_version",
-            response_class=HTMLResponse, responses=report_responses,
-            summary="Training report of one version (self-contained HTML)")
-async def get_report_version(state: StateDep, name: NameP, version: VersionP):
-    return await report_of(state, name, version)
+            response_class=HTMLResponse, responses=version_report_responses,
+            summary="Training report of one version (self-contained HTML; ETag, immutable, If-None-Match gives 304)")
+async def get_report_version(request: Request, state: StateDep, name: NameP, version: VersionP):
+    return await report_of(state, name, version, request)
 
 
 # ---------------------------------------------------------------- record files

@@ -1,0 +1,235 @@
+"""Wire formats beyond JSON: NPZ request bodies and answers, ETags and conditional GETs.
+
+NPZ request bodies (``content-type: application/x-npz``) on the record routes (predict, loops,
+novelty): the archive holds the arrays ``u``, ``y``, ``y0`` (1-D, integer or floating point) and
+optionally the scalar ``fs`` [Hz]; every other field of the JSON body (``mc_paths``, ``seed``,
+``confidence``, ``method``, ``backend``, ``start``, and ``fs`` when the archive has none) is a query
+parameter. The archive is hostile input: it is read without pickle, at most ``MAX_MEMBERS``
+members, each array's size is checked from the archive directory and the ``.npy`` header *before*
+anything is decompressed or allocated, and the decompressed total is bounded (413 naming the array).
+A body that is not a zip archive is a 400 (``body``); a member that is corrupt, of an unknown name,
+of a wrong dtype (complex, strings, objects, records) or shape is a 422 naming the array. The
+arrays then go through the same request schema as a JSON body (same limits and messages).
+
+NPZ answers (``Accept: application/x-npz``): each top-level field that is a list of numbers
+becomes a float64 array (``mean``, ``lower``, ``upper``, ``std``, ...; ``null`` becomes NaN), a
+number a 0-d array, a string a 0-d unicode array; the other fields (lists of strings, objects,
+booleans, ``null``) go into one 0-d unicode array ``json`` holding a JSON object. Read it with
+``numpy.load(io.BytesIO(body), allow_pickle=False)``.
+
+ETags: ``etag_of(body)`` is a weak validator (``W/"<sha256 prefix>"``: the same answer gzip-encoded
+or not); ``not_modified(request, etag)`` is true when ``If-None-Match`` lists it (or ``*``).
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import re
+import zipfile
+
+import numpy as np
+
+from .problems import ProblemError
+
+NPZ_MEDIA_TYPE = "application/x-npz"
+#: arrays an NPZ request body may hold
+NPZ_ARRAYS = ("u", "y", "y0")
+#: members an NPZ body may hold (more is a 422)
+MAX_MEMBERS = 8
+#: largest .npy header read from a request [bytes]
+MAX_NPY_HEADER = 4096
+_INT = re.compile(r"[+-]?\d+")
+
+
+# ---------------------------------------------------------------------------------------- requests
+def _bad(field: str, detail: str, status: int = 422, **extra) -> ProblemError:
+    return ProblemError(status, f"{field}: {detail}", field, **extra)
+
+
+def _member_name(info: zipfile.ZipInfo) -> str:
+    name = info.filename
+    return name[:-4] if name.endswith(".npy") else name
+
+
+def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, field: str):
+    """(shape, dtype, header bytes) of one member, read from its first bytes only."""
+    try:
+        with zf.open(info) as fh:
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh, max_header_size=MAX_NPY_HEADER)
+            elif version in ((2, 0), (3, 0)):
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh, max_header_size=MAX_NPY_HEADER)
+            else:  # pragma: no cover - read_magic refuses other versions
+                raise ValueError(f"unsupported .npy version {version}")
+            return shape, dtype, fh.tell()
+    except (ValueError, EOFError, OSError, zipfile.BadZipFile, NotImplementedError, RuntimeError) as exc:
+        raise _bad(field, f"not a readable .npy array in the archive ({type(exc).__name__}: {exc})"[:300]) from None
+
+
+def read_npz_body(raw: bytes, max_bytes: int, max_samples: int) -> dict:
+    """The fields of an NPZ request body (arrays as lists, ``fs`` as a float): see the module doc.
+
+    max_bytes: bound on the decompressed size of all members together [bytes]; max_samples: bound on
+    the samples of one array. Raises ``ProblemError`` (400, 413 or 422) naming the array.
+    """
+    try:
+        zf = zipfile.ZipFile(io.BytesIO(raw))
+    except (zipfile.BadZipFile, ValueError, OSError) as exc:
+        raise ProblemError(400, f"the {NPZ_MEDIA_TYPE} body is not a zip archive (.npz): {exc}"[:300], "body") \
+            from None
+    with zf:
+        infos = [i for i in zf.infolist() if not i.is_dir()]
+        if len(infos) > MAX_MEMBERS:
+            raise ProblemError(422, f"the archive holds {len(infos)} members; at most {MAX_MEMBERS} "
+                                    f"(arrays {', '.join(NPZ_ARRAYS)} and fs)", "body", limit=MAX_MEMBERS)
+        declared = sum(i.file_size for i in infos)
+        if declared > max_bytes:
+            worst = max(infos, key=lambda i: i.file_size)
+            raise _bad(_member_name(worst), f"the archive decompresses to {declared} bytes; the limit is "
+                                            f"{max_bytes} bytes (GPNARX_MAX_BODY_BYTES)", 413, limit=max_bytes)
+        out: dict = {}
+        for info in infos:
+            field = _member_name(info)
+            if field not in (*NPZ_ARRAYS, "fs"):
+                raise _bad(field, f"unexpected array in the archive; an NPZ body holds {', '.join(NPZ_ARRAYS)} "
+                                  f"and fs (the other fields are query parameters)")
+            if field in out:
+                raise _bad(field, "appears twice in the archive")
+            shape, dtype, header = _npy_header(zf, info, field)
+            if dtype.hasobject or dtype.names is not None or dtype.kind not in "iuf":
+                raise _bad(field, f"must be an integer or floating-point array, got dtype {dtype.str!r}")
+            count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+            nbytes = count * dtype.itemsize
+            if field != "fs" and count > max_samples:
+                raise _bad(field, f"holds {count} samples; the limit is {max_samples} (GPNARX_MAX_SAMPLES)", 413,
+                           limit=max_samples)
+            if nbytes + header != info.file_size:  # the directory and the .npy header disagree
+                raise _bad(field, f"corrupt array: its header says {nbytes} data bytes, the archive "
+                                  f"{info.file_size - header}")
+            try:
+                with zf.open(info) as fh:
+                    arr = np.lib.format.read_array(fh, allow_pickle=False, max_header_size=MAX_NPY_HEADER)
+            except (ValueError, EOFError, OSError, zipfile.BadZipFile, RuntimeError) as exc:
+                raise _bad(field, f"corrupt array in the archive ({type(exc).__name__}: {exc})"[:300]) from None
+            if field == "fs":
+                if arr.size != 1:
+                    raise _bad("fs", f"must be a scalar sampling frequency in Hz, got shape {arr.shape}")
+                out["fs"] = float(arr.reshape(()))
+            else:
+                if arr.ndim != 1:
+                    raise _bad(field, f"must be a 1-D array, got shape {arr.shape}")
+                out[field] = arr.astype(np.float64, copy=False).tolist()
+        return out
+
+
+def query_fields(params) -> dict:
+    """Query parameters as body fields: integers, numbers, ``true``/``false``, else strings.
+
+    The request schema then checks each (a wrong type or an unknown name is a 422 naming it).
+    """
+    out: dict = {}
+    for key, value in params.multi_items():
+        if key in out:
+            raise ProblemError(422, f"{key}: given more than once in the query", key)
+        v: object = value
+        if _INT.fullmatch(value):
+            v = int(value)
+        elif value in ("true", "false"):
+            v = value == "true"
+        else:
+            try:
+                f = float(value)
+            except ValueError:
+                pass
+            else:
+                if key in ("fs", "confidence"):
+                    v = f
+        out[key] = v
+    return out
+
+
+def npz_request_fields(raw: bytes, params, max_bytes: int, max_samples: int) -> dict:
+    """The JSON-equivalent body of an NPZ request: the archive's arrays and the query's fields."""
+    body = read_npz_body(raw, max_bytes, max_samples)
+    extra = query_fields(params)
+    for key in extra:
+        if key in body:
+            raise ProblemError(422, f"{key}: given both in the archive and in the query", key)
+    return {**body, **extra}
+
+
+# ---------------------------------------------------------------------------------------- answers
+def _numeric_list(v) -> bool:
+    return isinstance(v, list) and bool(v) and all(
+        x is None or (isinstance(x, (int, float)) and not isinstance(x, bool)) for x in v)
+
+
+def render_npz(content: dict) -> bytes:
+    """An answer as an NPZ archive (see the module doc); uncompressed, so it is cheap to write."""
+    arrays: dict = {}
+    rest: dict = {}
+    for key, v in content.items():
+        if isinstance(v, np.ndarray) and v.dtype.kind in "iuf":
+            arrays[key] = v
+        elif _numeric_list(v):
+            arrays[key] = np.array([np.nan if x is None else x for x in v], dtype=np.float64)
+        elif isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool):
+            arrays[key] = np.asarray(v)
+        elif isinstance(v, str):
+            arrays[key] = np.asarray(v)
+        else:
+            rest[key] = v
+    if rest:
+        from gpnarx.model.jsonsafe import dumps_json
+
+        arrays["json"] = np.asarray(dumps_json(rest).decode())
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def wants_npz(accept: str | None) -> bool:
+    """True when the Accept header prefers NPZ (listed with a non-zero quality)."""
+    if not accept:
+        return False
+    for part in accept.split(","):
+        bits = [b.strip() for b in part.split(";")]
+        if bits[0].lower() == NPZ_MEDIA_TYPE:
+            q = next((b[2:] for b in bits[1:] if b.lower().startswith("q=")), "1")
+            try:
+                return float(q) > 0
+            except ValueError:
+                return False
+    return False
+
+
+# ---------------------------------------------------------------------------------------- ETags
+def etag_of(body: bytes) -> str:
+    """A weak ETag of an answer's bytes."""
+    return f'W/"{hashlib.sha256(body).hexdigest()[:32]}"'
+
+
+def not_modified(if_none_match: str | None, etag: str) -> bool:
+    """True when ``If-None-Match`` names ``etag`` (weak comparison) or is ``*``."""
+    if not if_none_match:
+        return False
+    ours = etag.removeprefix("W/")
+    for tag in if_none_match.split(","):
+        tag = tag.strip()
+        if tag == "*" or tag.removeprefix("W/") == ours:
+            return True
+    return False
+
+
+#: Cache-Control of what never changes for a version (its training report): a year, immutable
+IMMUTABLE = "max-age=31536000, immutable"
+#: Cache-Control of a version's metadata: it also lists the model's versions and aliases, which change, so a
+#: cache revalidates with its ETag (a 304 when nothing changed)
+REVALIDATE = "no-cache"
+
+
+def json_loads_npz_meta(arr) -> dict:
+    """The ``json`` member of an NPZ answer as a dict (for clients and tests)."""
+    return json.loads(str(np.asarray(arr).item()))
