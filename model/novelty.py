@@ -31,14 +31,15 @@ when fewer than 1/false_alarm_rate healthy records are available.
 Probe contract: the threshold also holds only for the excitation it was calibrated with. A bundle
 calibrated from healthy records states that probe (``novelty["probe"]``: kind, frequency, amplitude
 range, start rule; ``model.probe``), and a record whose drive does not match it is reported with
-"probe" in ``out_of_range`` and is not judged by its score (``verdict``).
+"probe" in ``out_of_range`` and the verdict "unjudged": the score is kept, not compared (``verdict``).
 
 Calibration envelope: the score is only meaningful in the regime the threshold was calibrated in.
 A record far outside it (a probe switched off, a sensor gain error, values around 1e30) can make the
 predicted band diverge with it and score like a healthy record. So calibration also stores the
 range of peak |u| and peak |y| over the healthy records (``record_envelope``), and a record whose
 peak |u| or |y| lies outside that range widened ``ENVELOPE_FACTOR`` (2x) each way is reported in
-``out_of_range`` and judged "novel" whatever its score (``verdict``). Bundles calibrated before the
+``out_of_range`` and judged "novel" whatever its score, unless its drive does not match the probe
+("unjudged", ``verdict``). Bundles calibrated before the
 envelope existed have none and skip this check.
 """
 from __future__ import annotations
@@ -147,22 +148,25 @@ def calibrate_threshold(healthy_scores, false_alarm_rate: float = 0.01) -> dict:
             "log_mean": mu, "log_std": sd, "healthy_scores": [float(v) for v in s]}
 
 
-def verdict(score: float, threshold: float, out_of_range=(), probe_match: bool | None = None) -> str:
-    """'novel' when the record left the calibration envelope (``out_of_range`` non-empty, see
-    ``outside_envelope``) or, when its drive matches the monitor's probe, when the score exceeds the
-    threshold; else 'healthy'.
+VERDICTS = ("healthy", "novel", "unjudged")
 
-    ``probe_match`` False (the drive is not the probe the threshold was calibrated for, see
-    ``model.probe``): the score is not compared with the threshold, since it measures the model's
-    accuracy at another excitation, not a change of the structure. The verdict is then 'healthy'
-    unless the envelope was left: it means "no change this monitor can judge", not evidence of
-    health; the answer carries "probe" in its out_of_range and ``probe_match`` false, which is what
-    an alerting rule should read. None (a bundle without a probe contract) or True: the score decides.
+
+def verdict(score: float, threshold: float, out_of_range=(), probe_match: bool | None = None) -> str:
+    """The one place a novelty verdict is decided (HTTP, batch, CLI and training reports all call it).
+
+    'unjudged' when ``probe_match`` is False: the drive is not the probe the threshold was calibrated
+    for (``model.probe``), so the score measures the model's accuracy at another excitation, not a
+    change of the structure; neither healthy nor an alarm. The answer keeps the score, "probe" in
+    its out_of_range and the ``probe_reasons``. This comes first: a wrong drive also moves the
+    response out of the calibration envelope, which is then no evidence of damage.
+    Else 'novel' when the record left the calibration envelope (``out_of_range`` non-empty, see
+    ``outside_envelope``) or the score exceeds the threshold; else 'healthy'. ``probe_match`` None
+    (a bundle without a probe contract) or True: the envelope and the score decide.
     """
+    if probe_match is False:
+        return "unjudged"
     if len(out_of_range) > 0:
         return "novel"
-    if probe_match is False:
-        return "healthy"
     return "novel" if score > threshold else "healthy"
 
 

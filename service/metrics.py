@@ -94,7 +94,7 @@ class ServiceMetrics:
             self.out_of_range.labels(model, str(f)).inc()
         if int(out.get("diverged_paths") or 0) > 0:
             self.diverged.labels(model).inc()
-        if operation == "novelty" and out.get("verdict") in ("healthy", "novel"):
+        if operation == "novelty" and out.get("verdict") in ("healthy", "novel", "unjudged"):
             self.verdicts.labels(model, out["verdict"]).inc()
 
     def update_bundles(self) -> None:

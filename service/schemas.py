@@ -287,13 +287,11 @@ class NoveltyResponse(_Knowledge):
         "rms_standardised_residual", description="How the score was computed: the bundle's calibrated method, "
         "so score and threshold are always comparable.")
     threshold: float = Field(..., description="Score above which the record is 'novel'.")
-    verdict: Literal["healthy", "novel"] = Field(..., description="'novel' when the record left the calibration "
-                                                 "envelope ('u' or 'y' in out_of_range) or, its drive matching the "
-                                                 "monitor's probe, when score > threshold; else 'healthy'. When the "
-                                                 "drive does not match the probe ('probe' in out_of_range, "
-                                                 "`probe_match` false) the score is not compared with the "
-                                                 "threshold and 'healthy' means only 'no change this monitor can "
-                                                 "judge'.")
+    verdict: Literal["healthy", "novel", "unjudged"] = Field(
+        ..., description="'unjudged' when the drive does not match the monitor's probe ('probe' in out_of_range, "
+        "`probe_match` false, `probe_reasons` say why): the score is kept but not compared with the threshold, "
+        "and the verdict is neither healthy nor an alarm. Else 'novel' when the record left the calibration "
+        "envelope ('u' or 'y' in out_of_range) or score > threshold; else 'healthy'.")
     probe_match: bool | None = Field(None, description="Whether the request's drive (and start rule) matches the "
                                      "probe the threshold was calibrated for (the model's `probe`); null when "
                                      "the bundle states no probe.")

@@ -41,7 +41,9 @@ def test_flags_envelope_and_probe_are_merged_in_order():
     nov = _calibration()
     u, y = _record(10.0, f=9.0)  # 10x the healthy peak and another frequency
     j = judge(nov, 0.5, u, y, FS, flags={"out_of_range": ["u"]})
-    assert j["verdict"] == "novel" and j["out_of_range"][0] == "u" and j["out_of_range"][-1] == "probe"
+    # the drive is not the probe: unjudged (the envelope left with it is no evidence of damage), reasons kept
+    assert j["verdict"] == "unjudged" and j["out_of_range"][0] == "u" and j["out_of_range"][-1] == "probe"
+    assert j["probe_reasons"] and j["drive"]["frequency"] == pytest.approx(9.0, abs=0.2)
     assert j["out_of_range"].count("u") == 1 and "y" in j["out_of_range"] and j["probe_match"] is False
     assert judge(nov, 0.5, u, y, FS, check_probe=False)["out_of_range"] == ["u", "y"]
 
@@ -55,3 +57,14 @@ def test_an_unusable_probe_contract_is_its_own_error():
     with pytest.raises(ValueError) as err:  # a record that cannot be scored is a plain ValueError
         assess_novelty(_calibration(), u[:5], y[:5], FS, SimpleNamespace(mean=y[:5], std=np.zeros(5)))
     assert not isinstance(err.value, UnusableProbeContract)
+
+
+def test_verdict_unjudged_on_a_probe_mismatch_whatever_the_score_and_envelope():
+    from gpnarx.model.novelty import VERDICTS, verdict
+
+    assert VERDICTS == ("healthy", "novel", "unjudged")
+    assert verdict(0.041, 1.01, ["y", "probe"], probe_match=False) == "unjudged"  # low score: not "healthy"
+    assert verdict(9.0, 1.01, ["probe"], probe_match=False) == "unjudged"  # high score: not an alarm either
+    assert verdict(0.5, 1.0, ["y"], probe_match=True) == "novel"  # the envelope left on the probe: an alarm
+    assert verdict(1.5, 1.0, [], probe_match=True) == "novel" and verdict(0.5, 1.0, [], None) == "healthy"
+    assert verdict(1.5, 1.0, [], None) == "novel"
