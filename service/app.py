@@ -49,6 +49,7 @@ from .responses import JSONBytesResponse, parse_json, problem_response, render_j
 from .routers import ROUTERS
 from .settings import Settings
 from .state import ServiceState
+from .telemetry import Telemetry
 from .ui import STATIC_DIR
 
 log = logging.getLogger("gpnarx.service")
@@ -78,6 +79,7 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
     if registry_dir is None and settings.registry:
         registry_dir = settings.registry
     state = ServiceState(registry_dir, settings, startup_status)
+    state.telemetry = Telemetry(state)  # audit trail, drift gauges, per-model latency (service.telemetry)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -109,6 +111,7 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
                 poller.cancel()
             state.loop = None
             state.executor.shutdown()
+            state.telemetry.close()  # writes the queued audit lines
 
     async def _poll(every: float):
         """Rescan the registry every ``every`` seconds (new versions, aliases, changed or removed objects)."""

@@ -406,6 +406,18 @@ class RegistryHeld(BaseModel):
     needed: int = Field(description="Consecutive scans needed to serve it (GPNARX_REGISTRY_CONFIRM_SCANS)")
 
 
+class AuditStatus(BaseModel):
+    target: str = Field(..., description="`stdout`, `off`, the file or the fsspec URL (without credentials) of "
+                        "GPNARX_AUDIT_LOG.")
+    ok: bool = Field(..., description="Whether the last write to the target succeeded (true before any write).")
+    written: int = Field(..., description="Audit lines written since the start.")
+    failed: int = Field(..., description="Audit lines lost to failed writes (unwritable or full target).")
+    dropped: int = Field(..., description="Audit lines dropped because GPNARX_AUDIT_QUEUE lines were waiting.")
+    queued: int = Field(..., description="Audit lines waiting to be written.")
+    last_error: str | None = Field(None, description="The last failed write's error.")
+    last_error_time: str | None = Field(None, description="When it failed (UTC, ISO 8601).")
+
+
 class Ready(BaseModel):
     status: Literal["ready"]
     bundles: int
@@ -415,6 +427,8 @@ class Ready(BaseModel):
                                                "many versions is held back (the service stays ready).")
     startup: StartupStatus | None = Field(None, description="Only while or after the server builds its default "
                                           "bundles (`gpnarx serve` without `--registry`); also in the 503 answer.")
+    audit: AuditStatus | None = Field(None, description="The audit trail's target and counts: a failing target "
+                                      "shows here (`ok` false) without failing readiness; also in the 503 answer.")
 
 
 class ReloadResponse(BaseModel):

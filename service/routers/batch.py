@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import time
 import uuid
 
 from fastapi import APIRouter, Request
@@ -74,10 +75,12 @@ async def batch(request: Request, state: StateDep):
         for i, plan, req in todo:
             token.check()  # deadline passed or client gone: stop between records
             try:
+                t0 = time.perf_counter()
                 out, s = ops.compute(plan, req, token)
                 steps += s
                 done.append((i, out))
                 state.metrics.answered(plan.operation, out)
+                state.telemetry.answered(request, plan.operation, out, req, time.perf_counter() - t0, slot=i)
             except Cancelled:
                 raise
             except ProblemError as exc:

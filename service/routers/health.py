@@ -25,6 +25,7 @@ async def health_ready(state: StateDep):
     n = state.n_bundles()
     startup = state.startup()
     extra = {} if startup is None else {"startup": startup}
+    extra["audit"] = state.telemetry.ready()  # a failing audit target shows here; readiness does not fail
     if state.held:
         extra["registry_held"] = state.held
     if n == 0:

@@ -1,0 +1,242 @@
+"""The audit trail: one JSON line per novelty verdict (and per predict with ``GPNARX_AUDIT_PREDICTS``).
+
+``GPNARX_AUDIT_LOG`` names the target: a file path (appended to), an fsspec URL (opened in append
+mode through fsspec; a store that cannot append counts failed writes), ``-`` or unset for stdout,
+``off`` for none. Each line holds::
+
+    time            UTC, ISO 8601 with milliseconds
+    request_id      the request's X-Request-ID (service.observability)
+    client          the API key's id: the first 12 hex digits of its SHA-256 (never the key);
+                    "anonymous" when the request sent no key
+    operation       "novelty" or "predict"
+    slot            the record's index in a batch; null for a single call
+    model, version  the bundle that answered
+    record_sha256   SHA-256 of the record: u then y (when sent) as little-endian float64 bytes
+    n_samples       samples of u
+    score, threshold, verdict   the novelty answer (null for a predict)
+    out_of_range, diverged_paths
+
+Writing never blocks or fails an answer: ``record`` only puts the line on a bounded queue
+(``GPNARX_AUDIT_QUEUE``; a full queue drops the line and counts it) and one background thread
+writes. A write that fails (unwritable path, full disk, unreachable store) counts its lines as
+failed, keeps the error for ``/health/ready`` (``audit``; readiness is not failed) and reopens the
+target on the next line. ``/metrics``: ``gpnarx_audit_lines_total{outcome}`` (written, failed,
+dropped) and ``gpnarx_audit_write_failures_total``.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import queue
+import sys
+import threading
+import time
+from datetime import datetime, timezone
+
+import numpy as np
+
+log = logging.getLogger("gpnarx.service.audit")
+
+OFF = "off"
+STDOUT = "-"
+#: lines written per batch of the writer thread (then flushed)
+_CHUNK = 256
+
+
+def client_id(api_key: str | None) -> str:
+    """The id of the API key a request sent: its SHA-256's first 12 hex digits, or 'anonymous'."""
+    if not api_key:
+        return "anonymous"
+    return hashlib.sha256(api_key.encode("utf-8", "replace")).hexdigest()[:12]
+
+
+def record_sha256(u, y=None) -> str:
+    """SHA-256 of u then y (when given) as little-endian float64 bytes."""
+    h = hashlib.sha256(np.ascontiguousarray(np.asarray(u, dtype="<f8")).tobytes())
+    if y is not None:
+        h.update(np.ascontiguousarray(np.asarray(y, dtype="<f8")).tobytes())
+    return h.hexdigest()
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def _number(v):
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return None
+    return v if np.isfinite(v) else None
+
+
+def shown_target(target: str | None) -> str:
+    """The target as /health/ready shows it: no user or password of a URL."""
+    if not target or target == STDOUT:
+        return "stdout"
+    if "://" in target and "@" in target.split("://", 1)[1].split("/", 1)[0]:
+        scheme, rest = target.split("://", 1)
+        host_path = rest.split("@", 1)[1]
+        return f"{scheme}://{host_path}"
+    return target
+
+
+class AuditTrail:
+    """A bounded queue of audit lines and the thread that appends them to the target."""
+
+    def __init__(self, target: str | None = None, queue_size: int = 10000, predicts: bool = False):
+        target = (target or "").strip() or STDOUT
+        self.enabled = target.lower() != OFF
+        self.target = target
+        self.predicts = bool(predicts)
+        self.queue: queue.Queue = queue.Queue(maxsize=max(1, int(queue_size)))
+        self.written = 0
+        self.failed = 0  # lines whose write failed
+        self.failures = 0  # failed write attempts
+        self.dropped = 0  # lines refused by a full queue
+        self.last_error: str | None = None
+        self.last_error_time: str | None = None
+        self._last_ok = True  # whether the last write attempt succeeded
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._fh = None
+        self._closed = False
+
+    @classmethod
+    def from_settings(cls, settings) -> AuditTrail:
+        return cls(settings.audit_log, settings.audit_queue, settings.audit_predicts)
+
+    # ------------------------------------------------------------------ the request side
+    def wants(self, operation: str) -> bool:
+        return self.enabled and (operation == "novelty" or (operation == "predict" and self.predicts))
+
+    def record(self, operation: str, out: dict, req, request_id: str | None, client: str,
+               slot: int | None = None) -> None:
+        """Queue the audit line of one answer (never raises; a full queue drops the line and counts it)."""
+        if not self.wants(operation):
+            return
+        try:
+            y = getattr(req, "y", None)
+            line = {"time": _now(), "request_id": request_id, "client": client, "operation": operation,
+                    "slot": slot, "model": out.get("model"), "version": out.get("version"),
+                    "record_sha256": record_sha256(req.u, y), "n_samples": len(req.u),
+                    "score": _number(out.get("score")), "threshold": _number(out.get("threshold")),
+                    "verdict": out.get("verdict"), "out_of_range": list(out.get("out_of_range") or []),
+                    "diverged_paths": int(out.get("diverged_paths") or 0)}
+            self._put(json.dumps(line, ensure_ascii=False, separators=(",", ":")))
+        except Exception:  # an answer is never lost to its audit line
+            log.exception("audit line not queued")
+            with self._lock:
+                self.dropped += 1
+
+    def _put(self, text: str) -> None:
+        self._start()
+        try:
+            self.queue.put_nowait(text)
+        except queue.Full:
+            with self._lock:
+                self.dropped += 1
+            if self.dropped == 1 or self.dropped % 1000 == 0:
+                log.warning("audit queue full (GPNARX_AUDIT_QUEUE=%d): %d line(s) dropped so far",
+                            self.queue.maxsize, self.dropped)
+
+    def _start(self) -> None:
+        if self._thread is not None or self._closed:
+            return
+        with self._lock:
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="gpnarx-audit", daemon=True)
+                self._thread.start()
+
+    # ------------------------------------------------------------------ the writer thread
+    def _open(self):
+        if self.target == STDOUT:
+            return sys.stdout
+        if "://" in self.target and not self.target.startswith("file://"):
+            import fsspec
+
+            return fsspec.open(self.target, "a", encoding="utf-8").open()
+        path = self.target.removeprefix("file://")
+        return open(path, "a", encoding="utf-8")  # noqa: SIM115 - kept open by the writer thread
+
+    def _close_fh(self) -> None:
+        fh, self._fh = self._fh, None
+        if fh is not None and fh is not sys.stdout:
+            try:
+                fh.close()
+            except Exception:  # pragma: no cover - a broken target
+                pass
+
+    def _write(self, lines: list[str]) -> None:
+        try:
+            if self._fh is None:
+                self._fh = self._open()
+            self._fh.write("".join(line + "\n" for line in lines))
+            self._fh.flush()
+        except Exception as exc:
+            self._close_fh()  # reopened on the next line
+            with self._lock:
+                self.failed += len(lines)
+                self.failures += 1
+                self.last_error = f"{type(exc).__name__}: {exc}"[:500]
+                self.last_error_time = _now()
+                self._last_ok = False
+            if self.failures == 1 or self.failures % 100 == 0:
+                log.error("audit trail %s: write failed (%d line(s) lost so far): %s", shown_target(self.target),
+                          self.failed, self.last_error)
+            return
+        with self._lock:
+            self.written += len(lines)
+            self._last_ok = True
+
+    def _run(self) -> None:
+        while True:
+            first = self.queue.get()
+            if first is None:
+                return
+            lines, stop = [first], False
+            while len(lines) < _CHUNK:
+                try:
+                    nxt = self.queue.get_nowait()
+                except queue.Empty:
+                    break
+                if nxt is None:
+                    stop = True
+                    break
+                lines.append(nxt)
+            self._write(lines)
+            for _ in range(len(lines) + stop):
+                self.queue.task_done()
+            if stop:
+                self._close_fh()
+                return
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Wait until the queued lines are written or failed (tests, shutdown); False on timeout."""
+        deadline = time.monotonic() + timeout
+        while self.queue.unfinished_tasks and time.monotonic() < deadline:
+            time.sleep(0.005)
+        return not self.queue.unfinished_tasks
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Write what is queued (up to ``timeout`` s) and stop the thread."""
+        if self._thread is None:
+            self._closed = True
+            return
+        self.flush(timeout)
+        self._closed = True
+        try:
+            self.queue.put(None, timeout=max(0.1, timeout))
+        except queue.Full:  # pragma: no cover - the writer is stuck
+            return
+        self._thread.join(timeout)
+
+    def status(self) -> dict:
+        """What /health/ready shows under ``audit``."""
+        with self._lock:
+            return {"target": shown_target(self.target) if self.enabled else OFF,
+                    "ok": self._last_ok,
+                    "written": self.written, "failed": self.failed, "dropped": self.dropped,
+                    "queued": self.queue.qsize(), "last_error": self.last_error,
+                    "last_error_time": self.last_error_time}
