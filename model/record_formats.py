@@ -1,4 +1,6 @@
-"""Record file formats parsed from their contents: CSV, NPZ, NPY, MATLAB v5 .mat, LMS Test.Lab.
+"""Record file formats parsed from their contents: CSV, NPZ, NPY, MATLAB .mat (v5, and v7.3 with the
+extra ``formats``), LMS Test.Lab, and with the extra ``formats`` UFF-58, TDMS and HDF5
+(``model.record_formats_lab``).
 
 No filesystem access here: callers hand over the bytes (or an open binary file) and a file name
 that picks the format. ``training.records.read_record`` opens files and LMS folders and calls
@@ -6,7 +8,8 @@ these parsers; the service parses uploaded files with them (``POST /v1/records/p
 formats are documented in ``training.records``.
 
 - :func:`parse_record` ``(data, filename, fs=None, name=None, fs_default=None, source=None)``:
-  ``.csv``, ``.npz``, ``.npy`` or ``.mat`` by the extension of ``filename``.
+  ``.csv``, ``.npz``, ``.npy``, ``.mat``, ``.uff``/``.unv``, ``.tdms`` or ``.h5``/``.hdf5`` by the
+  extension of ``filename``.
 - :func:`parse_lms` ``(shaker, time, ...)``: the two files of an LMS Test.Lab export
   (``TimeShaker.mat``: input u, ``Time.mat``: output y).
 
@@ -24,6 +27,7 @@ from pathlib import PurePath
 
 import numpy as np
 
+from .record_formats_lab import LAB_FORMATS
 from .records import Record, RecordError
 
 __all__ = [
@@ -56,8 +60,10 @@ _UNIT_ALIASES = {
     "g0": "g", "G": "g", "none": "", "1": "-",
 }
 
-#: Extensions :func:`parse_record` reads.
-FORMATS = (".csv", ".npz", ".npy", ".mat")
+#: Extensions :func:`parse_record` reads (those of ``LAB_FORMATS`` need the extra ``formats``).
+FORMATS = (".csv", ".npz", ".npy", ".mat", *LAB_FORMATS)
+#: How an unsupported-format message lists what is read.
+FORMATS_TEXT = ", ".join(FORMATS) + " or an LMS folder"
 #: (file name, struct name) of the input and output channels of an LMS Test.Lab export.
 LMS_INPUT = ("TimeShaker.mat", "Time_Shaker__X")
 LMS_OUTPUT = ("Time.mat", "Time_Laser__X")
@@ -111,7 +117,7 @@ def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, so
     """Parse the contents of a record file into a :class:`Record`.
 
     data: bytes or a seekable binary file. filename: its name; the extension picks the format
-    (``.csv``, ``.npz``, ``.npy``, ``.mat``). fs: sampling frequency [Hz]; required when the file
+    (``FORMATS``). fs: sampling frequency [Hz]; required when the file
     has none, checked against the file's otherwise (0.1 %). fs_default: used only when the file
     carries no sampling information. name: record name (default: the file name's stem).
     source: what error messages and ``meta["source"]`` call the file (default: ``filename``).
@@ -126,8 +132,7 @@ def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, so
     ext = PurePath(fname).suffix.lower()
     if ext not in FORMATS:
         raise RecordFileError(
-            src, f"unsupported record format {PurePath(fname).suffix or '(no extension)'!r}; "
-                 f"use .csv, .npz, .npy, .mat or an LMS folder"
+            src, f"unsupported record format {PurePath(fname).suffix or '(no extension)'!r}; use {FORMATS_TEXT}"
         )
     stem = PurePath(fname).stem
     try:
@@ -138,6 +143,8 @@ def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, so
             return _read_npz(src, fh, fs, name, stem)
         if ext == ".npy":
             return _read_npy(src, fh, fs, name or stem, fs_default)
+        if ext in LAB_FORMATS:
+            return _read_lab(src, fh, ext, fs, name or stem)
         return _read_mat(src, fh, fs, name or stem)
     except RecordFileError:
         raise
@@ -426,7 +433,26 @@ def _loadmat(p, fh) -> dict:
         raise RecordFileError(p, f"corrupt or truncated MATLAB file ({type(exc).__name__}: {exc})") from None
 
 
+def _read_lab(p, fh, ext, fs, name) -> Record:
+    """UFF-58, TDMS, HDF5 or MATLAB v7.3 (``model.record_formats_lab``)."""
+    from . import record_formats_lab as lab
+
+    reader = {".uff": lab.read_uff, ".unv": lab.read_uff, ".tdms": lab.read_tdms, ".h5": lab.read_hdf5,
+              ".hdf5": lab.read_hdf5, ".mat": lab.read_hdf5}[ext]
+    got = reader(p, fh)
+    fs = _reconcile_fs(p, got["fs"], fs)
+    return _make(p, got["u"], got["y"], fs, got["units"], name, got["meta"])
+
+
+def _is_hdf5_mat(fh) -> bool:
+    head = fh.read(128)
+    fh.seek(0)
+    return head[:19] == b"MATLAB 7.3 MAT-file" or head[:8] == b"\x89HDF\r\n\x1a\n"
+
+
 def _read_mat(p, fh, fs, name) -> Record:
+    if _is_hdf5_mat(fh):  # saved with -v7.3: an HDF5 file (h5py, extra formats)
+        return _read_lab(p, fh, ".mat", fs, name)
     d = _loadmat(p, fh)
     keys = {k for k in d if not k.startswith("__")}
     if "u" not in keys:

@@ -20,6 +20,9 @@ service's ``POST /v1/records/parse``):
 - ``.mat`` (MATLAB v5, ``scipy.io.loadmat``): variables ``u``, optional ``y``, ``fs`` (or the
   argument), optional strings ``units_u``, ``units_y``. A ``Time.mat``/``TimeShaker.mat`` file of an
   LMS export is read as its folder (below).
+- with the extra ``formats``: UFF-58 (``.uff``, ``.unv``), TDMS (``.tdms``), HDF5 (``.h5``,
+  ``.hdf5``) and MATLAB v7.3 ``.mat`` files; how u, y and fs are found in each is in
+  :mod:`gpnarx.model.record_formats_lab`.
 - a folder holding ``Time.mat`` and ``TimeShaker.mat`` (LMS Test.Lab MATLAB export, as in the
   UNESP-BERT records): input ``u`` is the struct ``Time_Shaker__X`` of ``TimeShaker.mat`` (shaker
   amplifier voltage, ``V``), output ``y`` the struct ``Time_Laser__X`` of ``Time.mat`` (free-end
@@ -70,6 +73,7 @@ from gpnarx.model.atomicio import atomic_file
 # parse uploaded files without importing training; this module opens files and folders.
 from gpnarx.model.record_formats import (
     FORMATS,
+    FORMATS_TEXT,
     KNOWN_UNITS,
     LMS_INPUT,
     LMS_OUTPUT,
@@ -123,8 +127,7 @@ def read_record(path, fs=None, name=None, fs_default=None) -> Record:
         return read_lms(p.parent, fs=fs, name=name)
     if ext not in FORMATS:
         raise RecordFileError(
-            p, f"unsupported record format {p.suffix or '(no extension)'!r}; "
-            "use .csv, .npz, .npy, .mat or an LMS folder"
+            p, f"unsupported record format {p.suffix or '(no extension)'!r}; use {FORMATS_TEXT}"
         )
     try:
         with open(p, "rb") as fh:

@@ -1,0 +1,221 @@
+"""Record formats of data-acquisition software, read with optional packages (extra ``formats``).
+
+``model.record_formats.parse_record`` dispatches here by extension; each reader takes the file's
+contents (a seekable binary file) and returns the pieces ``record_formats._make`` builds a
+:class:`Record` from. The optional packages are imported when a file of their format is read; a
+missing one raises :class:`RecordFileError` naming the extra (``pip install 'gpnarx[formats]'``).
+
+How u, y and fs are found:
+
+- **UFF-58** (``.uff``, ``.unv``; Simcenter / LMS Test.Lab universal files, ASCII or binary, read
+  with pyuff): the type-58 (function) data sets whose ``id1`` (the first ID line) is ``u`` and ``y``
+  (case-insensitive); a file with exactly one or two type-58 sets and no such names is read as u
+  then y. fs = 1 / ``abscissa_inc`` [s], rounded to 6 significant digits (the ASCII header keeps 6);
+  both sets must be evenly spaced (``abscissa_spacing`` 1) with the same increment and length.
+  Units: ``ordinate_axis_units_lab`` (kept in ``meta`` when it is not a known unit).
+- **TDMS** (``.tdms``; NI LabVIEW / DAQmx, read with npTDMS): the channels named ``u`` and ``y``
+  (case-insensitive) of the first group that has a ``u``; fs = 1 / ``wf_increment`` [s] (the NI
+  waveform property), else a ``fs`` property [Hz] of the channel, its group or the file. Units: the
+  channel property ``unit_string``.
+- **HDF5 and MATLAB v7.3** (``.h5``, ``.hdf5``, and ``.mat`` files saved with ``-v7.3``; read with
+  h5py): the datasets ``u``, ``y`` (optional) and ``fs`` (scalar [Hz]) at the root, as MATLAB
+  writes the variables ``u``, ``y``, ``fs`` (an ``n x 1`` or ``1 x n`` vector is fine); ``fs`` may
+  instead be an attribute of the root or of ``u``. Units: the MATLAB char variables ``units_u`` /
+  ``units_y`` or a ``units`` attribute of each dataset.
+"""
+from __future__ import annotations
+
+import importlib
+import math
+import os
+import tempfile
+
+import numpy as np
+
+#: extension -> (format name, the optional package it needs, its import name)
+LAB_FORMATS = {
+    ".uff": ("UFF-58", "pyuff", "pyuff"),
+    ".unv": ("UFF-58", "pyuff", "pyuff"),
+    ".tdms": ("TDMS", "npTDMS", "nptdms"),
+    ".h5": ("HDF5", "h5py", "h5py"),
+    ".hdf5": ("HDF5", "h5py", "h5py"),
+}
+EXTRA = "formats"
+
+
+def need(p, module: str, package: str, what: str):
+    """The optional module ``module``, or a RecordFileError naming the extra that installs it."""
+    from .record_formats import RecordFileError
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise RecordFileError(p, f"reading {what} files needs the optional package {package}: "
+                                 f"pip install 'gpnarx[{EXTRA}]'") from None
+
+
+def _unit(label) -> tuple[str, str]:
+    """(normalised unit or "", raw label) of a lab file's unit label."""
+    from .record_formats import RecordFileError, normalize_unit
+
+    raw = str(label or "").strip()
+    try:
+        return normalize_unit(raw), raw
+    except RecordFileError:
+        return "", raw
+
+
+# ---------------------------------------------------------------------------------------- UFF-58
+def read_uff(p, fh) -> dict:
+    """u, y, fs, units and meta of a UFF-58 file (see the module doc)."""
+    from .record_formats import RecordFileError
+
+    pyuff = need(p, "pyuff", "pyuff", "UFF-58")
+    # pyuff reads a named file: the contents go to a temporary one, removed at once
+    fd, tmp = tempfile.mkstemp(suffix=".uff")
+    try:
+        with os.fdopen(fd, "wb") as out:
+            fh.seek(0)
+            while chunk := fh.read(1 << 20):
+                out.write(chunk)
+        uff = pyuff.UFF(tmp)
+        types = [int(t) for t in np.atleast_1d(uff.get_set_types())]
+        sets = [uff.read_sets(i) for i, t in enumerate(types) if t == 58]
+    finally:
+        os.unlink(tmp)
+    if not sets:
+        raise RecordFileError(p, f"no UFF-58 (function) data set in the file (set types: "
+                                 f"{', '.join(map(str, types)) or 'none'})")
+    by_name = {str(s.get("id1", "")).strip().lower(): s for s in sets}
+    if "u" in by_name:
+        su, sy = by_name["u"], by_name.get("y")
+    elif len(sets) <= 2:
+        su, sy = sets[0], (sets[1] if len(sets) == 2 else None)
+    else:
+        names = ", ".join(repr(str(s.get("id1", "")).strip()) for s in sets)
+        raise RecordFileError(p, f"{len(sets)} UFF-58 data sets and none named 'u' in its first ID line "
+                                 f"(id1: {names}); name the input 'u' and the output 'y'")
+    incs = []
+    for label, s in (("u", su), ("y", sy)):
+        if s is None:
+            continue
+        if int(s.get("abscissa_spacing", 1)) != 1:
+            raise RecordFileError(p, f"{label}: uneven abscissa (abscissa_spacing 0); a record needs even sampling")
+        inc = float(s.get("abscissa_inc", 0.0))
+        if not math.isfinite(inc) or inc <= 0:
+            raise RecordFileError(p, f"{label}: abscissa_inc must be a positive sample period in s, got {inc!r}")
+        incs.append(inc)
+        if np.iscomplexobj(s.get("data")):
+            raise RecordFileError(p, f"{label}: complex data (a spectrum or FRF?); a time record is required")
+    if len(incs) == 2 and abs(incs[0] - incs[1]) > 1e-5 * incs[0]:
+        raise RecordFileError(p, f"u and y have different sample periods ({incs[0]:g} s and {incs[1]:g} s)")
+    fs = float(f"{1.0 / incs[0]:.6g}")
+    uu, ru = _unit(su.get("ordinate_axis_units_lab"))
+    yu, ry = _unit(sy.get("ordinate_axis_units_lab")) if sy is not None else ("", "")
+    meta = {"format": "uff-58", "u_id": str(su.get("id1", "")).strip(),
+            "y_id": "" if sy is None else str(sy.get("id1", "")).strip(), "u_unit_label": ru, "y_unit_label": ry}
+    return {"u": np.asarray(su["data"]), "y": None if sy is None else np.asarray(sy["data"]), "fs": fs,
+            "units": {"u": uu, "y": yu}, "meta": meta}
+
+
+# ---------------------------------------------------------------------------------------- TDMS
+def read_tdms(p, fh) -> dict:
+    """u, y, fs, units and meta of a TDMS file (see the module doc)."""
+    from .record_formats import RecordFileError
+
+    nptdms = need(p, "nptdms", "npTDMS", "TDMS")
+    fh.seek(0)
+    tdms = nptdms.TdmsFile.read(fh)
+    group = None
+    for g in tdms.groups():
+        names = {c.name.strip().lower(): c for c in g.channels()}
+        if "u" in names:
+            group, chans = g, names
+            break
+    if group is None:
+        found = ", ".join(f"{g.name}/{c.name}" for g in tdms.groups() for c in g.channels()) or "none"
+        raise RecordFileError(p, f"no channel named 'u' in any group (channels: {found[:300]})")
+    cu, cy = chans["u"], chans.get("y")
+    fs = None
+    for source in (cu, group, tdms):
+        props = source.properties
+        if source is cu and props.get("wf_increment"):
+            inc = float(props["wf_increment"])
+            if not math.isfinite(inc) or inc <= 0:
+                raise RecordFileError(p, f"u: wf_increment must be a positive sample period in s, got {inc!r}")
+            fs = float(f"{1.0 / inc:.12g}")
+            break
+        if "fs" in props:
+            fs = float(props["fs"])
+            break
+    if cy is not None and cu.properties.get("wf_increment") and cy.properties.get("wf_increment"):
+        a, b = float(cu.properties["wf_increment"]), float(cy.properties["wf_increment"])
+        if abs(a - b) > 1e-9 * a:
+            raise RecordFileError(p, f"u and y have different wf_increment ({a:g} s and {b:g} s)")
+    uu, ru = _unit(cu.properties.get("unit_string"))
+    yu, ry = _unit(cy.properties.get("unit_string")) if cy is not None else ("", "")
+    meta = {"format": "tdms", "group": group.name, "u_unit_label": ru, "y_unit_label": ry}
+    return {"u": cu[:], "y": None if cy is None else cy[:], "fs": fs, "units": {"u": uu, "y": yu}, "meta": meta}
+
+
+# ---------------------------------------------------------------------------------------- HDF5 / MAT v7.3
+def _h5_string(ds) -> str:
+    """A MATLAB char variable (uint16 codes) or an HDF5 string as str."""
+    a = ds[()]
+    if isinstance(a, bytes):
+        return a.decode("utf-8", "replace")
+    if isinstance(a, str):
+        return a
+    a = np.asarray(a)
+    if a.dtype.kind in "iu":
+        return "".join(chr(int(c)) for c in a.ravel() if int(c))
+    if a.dtype.kind == "S":
+        return b"".join(a.ravel().tolist()).decode("utf-8", "replace")
+    return str(a.ravel()[0]) if a.size else ""
+
+
+def _attr_str(v) -> str:
+    if isinstance(v, bytes):
+        return v.decode("utf-8", "replace")
+    a = np.asarray(v)
+    if a.dtype.kind == "S":
+        return b"".join(a.ravel().tolist()).decode("utf-8", "replace")
+    return str(a.ravel()[0]) if a.size else ""
+
+
+def read_hdf5(p, fh) -> dict:
+    """u, y, fs, units and meta of an HDF5 / MATLAB v7.3 file (see the module doc)."""
+    from .record_formats import RecordFileError
+
+    h5py = need(p, "h5py", "h5py", "HDF5 / MATLAB v7.3")
+    fh.seek(0)
+    with h5py.File(fh, "r") as f:
+        keys = sorted(f.keys())
+        if "u" not in f or not isinstance(f["u"], h5py.Dataset):
+            raise RecordFileError(p, f"missing dataset 'u' at the root (datasets and groups: "
+                                     f"{', '.join(keys) or 'none'})")
+        matlab = "MATLAB_class" in f["u"].attrs
+        u = np.asarray(f["u"][()])
+        y = np.asarray(f["y"][()]) if "y" in f and isinstance(f["y"], h5py.Dataset) else None
+        fs = None
+        if "fs" in f and isinstance(f["fs"], h5py.Dataset):
+            fs = f["fs"][()]
+        elif "fs" in f.attrs:
+            fs = f.attrs["fs"]
+        elif "fs" in f["u"].attrs:
+            fs = f["u"].attrs["fs"]
+        if fs is not None:
+            a = np.asarray(fs)
+            if a.size != 1 or a.dtype.kind not in "biuf":
+                raise RecordFileError(p, f"fs must be a numeric scalar, got shape {a.shape} dtype {a.dtype}")
+            fs = float(a.reshape(()))
+        units = {}
+        for k in ("u", "y"):
+            if f"units_{k}" in f and isinstance(f[f"units_{k}"], h5py.Dataset):
+                units[k] = _h5_string(f[f"units_{k}"])
+            elif k in f and "units" in f[k].attrs:
+                units[k] = _attr_str(f[k].attrs["units"])
+            else:
+                units[k] = ""
+    return {"u": u, "y": y, "fs": fs, "units": units,
+            "meta": {"format": "matlab-v7.3" if matlab else "hdf5"}}
