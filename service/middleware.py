@@ -28,6 +28,16 @@ log = logging.getLogger("gpnarx.service")
 UNAUTHENTICATED_BODY_BYTES = 64 * 1024
 
 
+_COMPUTE = ("/predict", "/loops", "/novelty")
+
+
+def is_compute(scope) -> bool:
+    """A request whose answer runs on the worker pool (predict, loops, novelty, batch)."""
+    path = scope.get("path", "")
+    return scope.get("method") == "POST" and (path == "/v1/batch" or (path.startswith("/v1/models/")
+                                                                      and path.endswith(_COMPUTE)))
+
+
 def needs_key(path: str) -> bool:
     """Whether ``path`` is under ``/v1`` (every ``/v1`` route needs the key when one is set)."""
     return path == "/v1" or path.startswith("/v1/")
@@ -137,6 +147,11 @@ class GuardMiddleware:
             if key and needs_key(scope.get("path", "")):
                 problem = key_problem(key, headers.get(API_KEY_HEADER.lower()))
                 if problem is not None:  # answered from the headers: the body is never read
+                    await reply(problem)
+                    return
+            if is_compute(scope):  # shed before reading the body: a refused request costs no parsing
+                problem = st.busy()
+                if problem is not None:
                     await reply(problem)
                     return
             cl = headers.get("content-length")

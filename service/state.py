@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from pathlib import Path
 
 from fastapi import Request
@@ -15,7 +16,7 @@ from gpnarx.model.storage import StorageError
 from .metrics import ServiceMetrics
 from .problems import ProblemError
 from .settings import Settings
-from .worker import Abandoned, BoundedExecutor, CancelToken, Overloaded, QueueTimeout, TimedOut
+from .worker import Abandoned, BoundedExecutor, CancelToken, Overloaded, QueueTimeout, TimedOut, WontStart
 
 log = logging.getLogger("gpnarx.service")
 
@@ -210,24 +211,56 @@ class ServiceState:
             return self.lookup(name, version)
         return await asyncio.to_thread(self.lookup, name, version)
 
-    async def run(self, fn, *args, request: Request | None = None, token: CancelToken | None = None):
+    def retry_after(self) -> int:
+        """``Retry-After`` [s] of a busy answer: the time the queued work needs (``BoundedExecutor.
+        wait_estimate``), at least ``settings.retry_after``, at most an hour."""
+        wait = self.executor.wait_estimate()
+        base = self.settings.retry_after
+        return base if not wait else int(min(max(base, math.ceil(wait)), 3600))
+
+    def busy(self) -> ProblemError | None:
+        """The 503 a compute request gets before its body is read, when the queue is full or the work
+        queued ahead would keep it waiting past its deadline (``service.middleware``); else None."""
+        ex, timeout = self.executor, self.settings.request_timeout
+        if ex.pending >= ex.capacity:
+            why = f"all {ex.workers} workers are busy and {ex.queue_size} jobs are waiting"
+        else:
+            wait = ex.wait_estimate()
+            if not (timeout and wait is not None and wait > timeout):
+                return None
+            why = f"the work queued ahead needs about {wait:.0f} s, more than the time limit of {timeout:g} s"
+        self.metrics.shed.inc()
+        after = self.retry_after()
+        return ProblemError(503, f"the service is busy ({why}); retry after {after} s",
+                            headers={"Retry-After": str(after)})
+
+    async def run(self, fn, *args, request: Request | None = None, token: CancelToken | None = None,
+                  work: float = 1.0):
         """Run ``fn(*args)`` on the worker pool under the request deadline; cancel it if the client goes.
 
-        ``token`` (the caller passes it to ``fn`` too) is set when a running job must stop.
+        ``token`` (the caller passes it to ``fn`` too) is set when a running job must stop; ``work``
+        (Monte Carlo path-steps) sizes the job for the queue's wait estimate.
         """
         timeout = self.settings.request_timeout or None
         watch = (lambda: _client_gone(request)) if request is not None else None
         try:
-            return await self.executor.run(fn, *args, timeout=timeout, watch=watch, token=token)
+            return await self.executor.run(fn, *args, timeout=timeout, watch=watch, token=token, work=work)
         except QueueTimeout:
             self.metrics.timed_out.labels("queued").inc()
+            after = self.retry_after()
             raise ProblemError(503, f"the service is busy: the request waited its whole time limit of {timeout:g} s "
-                                    f"(GPNARX_REQUEST_TIMEOUT) for a worker; retry after {self.settings.retry_after} s",
-                               headers={"Retry-After": str(self.settings.retry_after)}, limit=timeout) from None
+                                    f"(GPNARX_REQUEST_TIMEOUT) for a worker; retry after {after} s",
+                               headers={"Retry-After": str(after)}, limit=timeout) from None
+        except WontStart as exc:
+            self.metrics.shed.inc()
+            after = self.retry_after()
+            raise ProblemError(503, f"the service is busy ({exc}); retry after {after} s",
+                               headers={"Retry-After": str(after)}, limit=timeout) from None
         except Overloaded as exc:
             self.metrics.shed.inc()
-            raise ProblemError(503, f"the service is busy ({exc}); retry after {self.settings.retry_after} s",
-                               headers={"Retry-After": str(self.settings.retry_after)}) from None
+            after = self.retry_after()
+            raise ProblemError(503, f"the service is busy ({exc}); retry after {after} s",
+                               headers={"Retry-After": str(after)}) from None
         except TimedOut:
             self.metrics.timed_out.labels("running").inc()
             raise ProblemError(504, f"the request did not finish within its time limit of {timeout:g} s "

@@ -490,3 +490,86 @@ def test_server_settings_from_env():
     assert s.body_timeout == 30 and opts["timeout_graceful_shutdown"] == 130.0
     with pytest.raises(ValueError, match="max_header_bytes must be an integer of at least 1024"):
         Settings(max_header_bytes=10)
+
+
+# ------------------------------------------------------------------------------------------ overload
+def test_job_that_cannot_start_in_time_is_refused_at_once():
+    import asyncio
+    import threading
+    import time
+
+    from gpnarx.service.worker import BoundedExecutor, WontStart
+
+    async def scenario():
+        ex = BoundedExecutor(1, 4)
+        assert ex.wait_estimate() == 0.0  # a worker is free
+        await ex.run(time.sleep, 0.2, work=1000)  # measured: about 0.2 ms per work unit
+        assert 1e-4 < ex._sec_per_work < 1e-3
+        release = threading.Event()
+        running = asyncio.ensure_future(ex.run(release.wait, 10, work=10000))  # about 2 s by the measure
+        await asyncio.sleep(0.1)
+        assert ex.wait_estimate() > 1.0
+        t0 = time.perf_counter()
+        try:
+            await ex.run(time.sleep, 0, timeout=0.5, work=10)
+            raise AssertionError("not refused")
+        except WontStart as exc:
+            assert exc.timeout == 0.5 and exc.wait > 0.5
+        assert time.perf_counter() - t0 < 0.1  # at once, not at its deadline
+        assert ex.pending == 1  # the refused job took no slot
+        release.set()
+        await running
+
+    asyncio.run(scenario())
+
+
+def test_queued_job_is_refused_once_the_estimate_shows_it_cannot_start():
+    """No job has finished yet when B queues; A's progress gives the rate; B is dropped long before its deadline."""
+    import asyncio
+    import threading
+    import time
+
+    from gpnarx.service.worker import BoundedExecutor, CancelToken, WontStart
+
+    async def scenario():
+        ex = BoundedExecutor(1, 4)
+        token, release = CancelToken(), threading.Event()
+
+        def long_job():
+            time.sleep(0.5)
+            token.progress(5, 100)  # 5 % in 0.5 s: about 10 s for the whole job
+            release.wait(30)
+
+        a = asyncio.ensure_future(ex.run(long_job, work=10000, token=token))
+        await asyncio.sleep(0.05)
+        t0 = time.perf_counter()
+        try:
+            await ex.run(time.sleep, 0, timeout=8.0, work=100)
+            raise AssertionError("not refused")
+        except WontStart as exc:
+            assert exc.wait > 8.0
+        took = time.perf_counter() - t0
+        assert took < 3.0, took  # refused within a slice of the estimate, not at the 8 s deadline
+        assert ex.pending == 1
+        release.set()
+        await a
+
+    asyncio.run(scenario())
+
+
+def test_busy_answer_before_the_body_is_read_with_retry_after_from_the_queue():
+    app = create_app(built_registry().root, Settings(workers=1, queue_size=0, retry_after=2, registry_poll=0))
+    state = app.state.service
+    ex = state.executor
+    with TestClient(app, raise_server_exceptions=False) as c:
+        assert state.retry_after() == 2  # idle: the configured floor
+        ex._sec_per_work, ex._pending, ex._pending_work = 0.01, 1, 1000.0  # one job of about 10 s running
+        r = c.post("/v1/models/boucwen/predict", content=b"{not json", headers={"content-type": "application/json"})
+        assert r.status_code == 503, r.text  # not 400: the body was never parsed
+        assert r.headers["Retry-After"] == "10" and r.headers["content-type"].startswith(PROBLEM)
+        assert "retry after 10 s" in r.json()["detail"]
+        assert c.post("/v1/batch", content=b"{").status_code == 503
+        assert c.get("/health/live").status_code == 200 and c.get("/v1/models").status_code == 200
+        assert "gpnarx_requests_shed_total 2.0" in c.get("/metrics").text
+        ex._pending, ex._pending_work = 0, 0.0
+        assert c.post("/v1/models/boucwen/predict", json=_body()).status_code == 200

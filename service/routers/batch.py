@@ -94,7 +94,8 @@ async def batch(request: Request, state: StateDep):
 
     if todo:
         token = CancelToken()
-        done, steps = await state.run(run_all, token, request=request, token=token)
+        done, steps = await state.run(run_all, token, request=request, token=token,
+                                      work=sum(plan.work for _, plan, _ in todo))
         state.metrics.path_steps.inc(steps)
         for i, out in done:
             results[i] = out
