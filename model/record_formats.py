@@ -439,9 +439,19 @@ def _read_lab(p, fh, ext, fs, name) -> Record:
 
     reader = {".uff": lab.read_uff, ".unv": lab.read_uff, ".tdms": lab.read_tdms, ".h5": lab.read_hdf5,
               ".hdf5": lab.read_hdf5, ".mat": lab.read_hdf5}[ext]
-    got = reader(p, fh)
+    try:
+        got = reader(p, fh)
+    except lab.LabFormatError as exc:
+        raise RecordFileError(p, str(exc)) from None
     fs = _reconcile_fs(p, got["fs"], fs)
-    return _make(p, got["u"], got["y"], fs, got["units"], name, got["meta"])
+    units, meta = {}, dict(got["meta"])
+    for k, label in got["units"].items():  # lab software spells units its own way: unknown = not stated
+        try:
+            units[k] = normalize_unit(label, p)
+        except RecordFileError:
+            units[k] = ""
+            meta[f"{k}_unit_label"] = label
+    return _make(p, got["u"], got["y"], fs, units, name, meta)
 
 
 def _is_hdf5_mat(fh) -> bool:

@@ -3,7 +3,8 @@
 ``model.record_formats.parse_record`` dispatches here by extension; each reader takes the file's
 contents (a seekable binary file) and returns the pieces ``record_formats._make`` builds a
 :class:`Record` from. The optional packages are imported when a file of their format is read; a
-missing one raises :class:`RecordFileError` naming the extra (``pip install 'gpnarx[formats]'``).
+missing one raises :class:`LabFormatError` naming the extra (``pip install 'gpnarx[formats]'``), which
+``record_formats`` turns into a ``RecordFileError`` naming the file (this module imports nothing of it).
 
 How u, y and fs are found:
 
@@ -22,6 +23,9 @@ How u, y and fs are found:
   writes the variables ``u``, ``y``, ``fs`` (an ``n x 1`` or ``1 x n`` vector is fine); ``fs`` may
   instead be an attribute of the root or of ``u``. Units: the MATLAB char variables ``units_u`` /
   ``units_y`` or a ``units`` attribute of each dataset.
+
+A unit label that is not one of ``record_formats.KNOWN_UNITS`` is read as "not stated" and kept in
+``Record.meta`` (``u_unit_label``, ``y_unit_label``): lab software spells units its own way.
 """
 from __future__ import annotations
 
@@ -43,33 +47,22 @@ LAB_FORMATS = {
 EXTRA = "formats"
 
 
-def need(p, module: str, package: str, what: str):
-    """The optional module ``module``, or a RecordFileError naming the extra that installs it."""
-    from .record_formats import RecordFileError
+class LabFormatError(ValueError):
+    """A lab file cannot be read; ``record_formats`` turns it into a ``RecordFileError`` naming the file."""
 
+
+def need(p, module: str, package: str, what: str):
+    """The optional module ``module``, or a LabFormatError naming the extra that installs it."""
     try:
         return importlib.import_module(module)
     except ImportError:
-        raise RecordFileError(p, f"reading {what} files needs the optional package {package}: "
+        raise LabFormatError(f"reading {what} files needs the optional package {package}: "
                                  f"pip install 'gpnarx[{EXTRA}]'") from None
-
-
-def _unit(label) -> tuple[str, str]:
-    """(normalised unit or "", raw label) of a lab file's unit label."""
-    from .record_formats import RecordFileError, normalize_unit
-
-    raw = str(label or "").strip()
-    try:
-        return normalize_unit(raw), raw
-    except RecordFileError:
-        return "", raw
 
 
 # ---------------------------------------------------------------------------------------- UFF-58
 def read_uff(p, fh) -> dict:
     """u, y, fs, units and meta of a UFF-58 file (see the module doc)."""
-    from .record_formats import RecordFileError
-
     pyuff = need(p, "pyuff", "pyuff", "UFF-58")
     # pyuff reads a named file: the contents go to a temporary one, removed at once
     fd, tmp = tempfile.mkstemp(suffix=".uff")
@@ -84,7 +77,7 @@ def read_uff(p, fh) -> dict:
     finally:
         os.unlink(tmp)
     if not sets:
-        raise RecordFileError(p, f"no UFF-58 (function) data set in the file (set types: "
+        raise LabFormatError(f"no UFF-58 (function) data set in the file (set types: "
                                  f"{', '.join(map(str, types)) or 'none'})")
     by_name = {str(s.get("id1", "")).strip().lower(): s for s in sets}
     if "u" in by_name:
@@ -93,36 +86,34 @@ def read_uff(p, fh) -> dict:
         su, sy = sets[0], (sets[1] if len(sets) == 2 else None)
     else:
         names = ", ".join(repr(str(s.get("id1", "")).strip()) for s in sets)
-        raise RecordFileError(p, f"{len(sets)} UFF-58 data sets and none named 'u' in its first ID line "
+        raise LabFormatError(f"{len(sets)} UFF-58 data sets and none named 'u' in its first ID line "
                                  f"(id1: {names}); name the input 'u' and the output 'y'")
     incs = []
     for label, s in (("u", su), ("y", sy)):
         if s is None:
             continue
         if int(s.get("abscissa_spacing", 1)) != 1:
-            raise RecordFileError(p, f"{label}: uneven abscissa (abscissa_spacing 0); a record needs even sampling")
+            raise LabFormatError(f"{label}: uneven abscissa (abscissa_spacing 0); a record needs even sampling")
         inc = float(s.get("abscissa_inc", 0.0))
         if not math.isfinite(inc) or inc <= 0:
-            raise RecordFileError(p, f"{label}: abscissa_inc must be a positive sample period in s, got {inc!r}")
+            raise LabFormatError(f"{label}: abscissa_inc must be a positive sample period in s, got {inc!r}")
         incs.append(inc)
         if np.iscomplexobj(s.get("data")):
-            raise RecordFileError(p, f"{label}: complex data (a spectrum or FRF?); a time record is required")
+            raise LabFormatError(f"{label}: complex data (a spectrum or FRF?); a time record is required")
     if len(incs) == 2 and abs(incs[0] - incs[1]) > 1e-5 * incs[0]:
-        raise RecordFileError(p, f"u and y have different sample periods ({incs[0]:g} s and {incs[1]:g} s)")
+        raise LabFormatError(f"u and y have different sample periods ({incs[0]:g} s and {incs[1]:g} s)")
     fs = float(f"{1.0 / incs[0]:.6g}")
-    uu, ru = _unit(su.get("ordinate_axis_units_lab"))
-    yu, ry = _unit(sy.get("ordinate_axis_units_lab")) if sy is not None else ("", "")
+    units = {"u": str(su.get("ordinate_axis_units_lab") or "").strip(),
+             "y": "" if sy is None else str(sy.get("ordinate_axis_units_lab") or "").strip()}
     meta = {"format": "uff-58", "u_id": str(su.get("id1", "")).strip(),
-            "y_id": "" if sy is None else str(sy.get("id1", "")).strip(), "u_unit_label": ru, "y_unit_label": ry}
+            "y_id": "" if sy is None else str(sy.get("id1", "")).strip()}
     return {"u": np.asarray(su["data"]), "y": None if sy is None else np.asarray(sy["data"]), "fs": fs,
-            "units": {"u": uu, "y": yu}, "meta": meta}
+            "units": units, "meta": meta}
 
 
 # ---------------------------------------------------------------------------------------- TDMS
 def read_tdms(p, fh) -> dict:
     """u, y, fs, units and meta of a TDMS file (see the module doc)."""
-    from .record_formats import RecordFileError
-
     nptdms = need(p, "nptdms", "npTDMS", "TDMS")
     fh.seek(0)
     tdms = nptdms.TdmsFile.read(fh)
@@ -134,7 +125,7 @@ def read_tdms(p, fh) -> dict:
             break
     if group is None:
         found = ", ".join(f"{g.name}/{c.name}" for g in tdms.groups() for c in g.channels()) or "none"
-        raise RecordFileError(p, f"no channel named 'u' in any group (channels: {found[:300]})")
+        raise LabFormatError(f"no channel named 'u' in any group (channels: {found[:300]})")
     cu, cy = chans["u"], chans.get("y")
     fs = None
     for source in (cu, group, tdms):
@@ -142,7 +133,7 @@ def read_tdms(p, fh) -> dict:
         if source is cu and props.get("wf_increment"):
             inc = float(props["wf_increment"])
             if not math.isfinite(inc) or inc <= 0:
-                raise RecordFileError(p, f"u: wf_increment must be a positive sample period in s, got {inc!r}")
+                raise LabFormatError(f"u: wf_increment must be a positive sample period in s, got {inc!r}")
             fs = float(f"{1.0 / inc:.12g}")
             break
         if "fs" in props:
@@ -151,11 +142,11 @@ def read_tdms(p, fh) -> dict:
     if cy is not None and cu.properties.get("wf_increment") and cy.properties.get("wf_increment"):
         a, b = float(cu.properties["wf_increment"]), float(cy.properties["wf_increment"])
         if abs(a - b) > 1e-9 * a:
-            raise RecordFileError(p, f"u and y have different wf_increment ({a:g} s and {b:g} s)")
-    uu, ru = _unit(cu.properties.get("unit_string"))
-    yu, ry = _unit(cy.properties.get("unit_string")) if cy is not None else ("", "")
-    meta = {"format": "tdms", "group": group.name, "u_unit_label": ru, "y_unit_label": ry}
-    return {"u": cu[:], "y": None if cy is None else cy[:], "fs": fs, "units": {"u": uu, "y": yu}, "meta": meta}
+            raise LabFormatError(f"u and y have different wf_increment ({a:g} s and {b:g} s)")
+    units = {"u": str(cu.properties.get("unit_string") or "").strip(),
+             "y": "" if cy is None else str(cy.properties.get("unit_string") or "").strip()}
+    return {"u": cu[:], "y": None if cy is None else cy[:], "fs": fs, "units": units,
+            "meta": {"format": "tdms", "group": group.name}}
 
 
 # ---------------------------------------------------------------------------------------- HDF5 / MAT v7.3
@@ -185,14 +176,12 @@ def _attr_str(v) -> str:
 
 def read_hdf5(p, fh) -> dict:
     """u, y, fs, units and meta of an HDF5 / MATLAB v7.3 file (see the module doc)."""
-    from .record_formats import RecordFileError
-
     h5py = need(p, "h5py", "h5py", "HDF5 / MATLAB v7.3")
     fh.seek(0)
     with h5py.File(fh, "r") as f:
         keys = sorted(f.keys())
         if "u" not in f or not isinstance(f["u"], h5py.Dataset):
-            raise RecordFileError(p, f"missing dataset 'u' at the root (datasets and groups: "
+            raise LabFormatError(f"missing dataset 'u' at the root (datasets and groups: "
                                      f"{', '.join(keys) or 'none'})")
         matlab = "MATLAB_class" in f["u"].attrs
         u = np.asarray(f["u"][()])
@@ -207,7 +196,7 @@ def read_hdf5(p, fh) -> dict:
         if fs is not None:
             a = np.asarray(fs)
             if a.size != 1 or a.dtype.kind not in "biuf":
-                raise RecordFileError(p, f"fs must be a numeric scalar, got shape {a.shape} dtype {a.dtype}")
+                raise LabFormatError(f"fs must be a numeric scalar, got shape {a.shape} dtype {a.dtype}")
             fs = float(a.reshape(()))
         units = {}
         for k in ("u", "y"):
