@@ -21,7 +21,7 @@ from urllib.parse import urlparse
 import httpx
 import numpy as np
 import pytest
-from test_service_support import FS, LiveServer, copy_registry, short_record
+from test_service_support import FS, LiveServer, built_registry, copy_registry, noisy, short_record, simulate
 from test_ui import make_reports
 
 from gpnarx.model.records import Record
@@ -173,24 +173,102 @@ def test_uploaded_record_plot_and_verdict_match_the_api(page, live, tmp_path, sh
 
 
 def test_a_longer_record_is_used_whole_and_a_narrowed_run_says_so(page, live, tmp_path):
-    """A 1500-sample record, then a 2500-sample one: the second is predicted whole (the samples field follows
-    the record, not the previous record's length); narrowed by the user, the page says how much it ran on."""
+    """A 1500-sample record, then a 4096-sample one: every sample of the second is predicted and scored (the
+    samples field follows the record, not the previous record's length: the requests the page sends to predict
+    and novelty carry the whole record, and the novelty answer equals the API's on the whole record); narrowed
+    by the user, the page says how much it ran on."""
+    sent = {}
+
+    def on_request(req):
+        for op in ("predict", "novelty", "loops"):
+            if req.method == "POST" and req.url.endswith(f"/{op}"):
+                sent[op] = len(req.post_data_json["u"])
+
+    page.on("request", on_request)
     page.goto(f"{live}/ui")
     page.wait_for_selector("#models tbody tr.selected[data-name='boucwen']")
-    for n in (1500, 2500):
+    for n in (1500, 4096):
         u, y = short_record(n, 23)
         path = write_record(tmp_path / f"r{n}.csv", Record(u, y, FS, {"u": "N", "y": "m"}, f"r{n}"))
         page.set_input_files("#file", str(path))
         page.wait_for_selector(f"#record-info[data-samples='{n}']")
         assert page.input_value("#count") == str(n)
+        sent.clear()
         shown = run_in_page(page)
+        assert sent == {"predict": n, "novelty": n, "loops": n}, sent  # every sample sent to every operation
         assert shown["plotted"] == shown["predicted"] == n
         assert page.get_attribute("#run-state", "data-narrowed") == "false"
         assert "the whole record" in page.inner_text("#run-state")
+        api = api_answers(live, [(path.name, path.read_bytes())], operations=("novelty",))
+        assert int(page.get_attribute("#verdict", "data-samples")) == api["novelty"]["n_samples"]
+        assert shown["score"] == pytest.approx(api["novelty"]["score"], rel=1e-12)
     page.fill("#count", "1000")
     shown = run_in_page(page)
     assert shown["plotted"] == 1000 and page.get_attribute("#run-state", "data-narrowed") == "true"
-    assert "1000 of the record's 2500 samples" in page.inner_text("#run-state")
+    assert sent["novelty"] == 1000
+    assert "1000 of the record's 4096 samples" in page.inner_text("#run-state")
+    assert page.watch.errors == []
+
+
+@pytest.fixture(scope="module")
+def live_monitor(tmp_path_factory):
+    """A monitor whose probe contract is a 30 Hz sine (the test model's calibration, with a probe added)."""
+    from gpnarx.model.bundle import save_bundle
+    from gpnarx.model.registry import Registry
+
+    root = copy_registry(tmp_path_factory.mktemp("uim") / "registry")
+    src = Registry(root).scan().get("boucwen", "2").manifest
+    probe = {"kind": "sine", "frequency": 30.0, "frequency_tolerance": 0.9, "amplitude": [9.0, 11.0],
+             "amplitude_kind": "peak", "amplitude_tolerance": 0.2, "start": "measured", "n_records": 3}
+    save_bundle(built_registry().model, root, "monitor", "1", fs=FS, units={"u": "N", "y": "m"},
+                physics=src["physics"], novelty={**src["novelty"], "probe": probe},
+                training={"records": {"sine-30Hz": {"role": "healthy", "fit": 91.5, "rmse": 2.1e-5,
+                                                    "coverage": 99.2, "n_samples": 1024, "drive_freq": 30.0}}})
+    with LiveServer(create_app(root, Settings(workers=2, queue_size=8))) as srv:
+        yield srv.url
+
+
+def test_novelty_card_explains_a_probe_mismatch(page, live_monitor, tmp_path, shots):
+    """A 45 Hz sine on a monitor calibrated with a 30 Hz probe: the verdict is 'unjudged' (not a red alarm, not
+    healthy), and the card says why: the probe mismatch with the API's reason, the drive found, the score
+    against the threshold (not compared). The training metrics show as a table by record with units."""
+    page.goto(f"{live_monitor}/ui")
+    page.wait_for_selector("#models tbody tr[data-name='monitor']")
+    page.click("#models tbody tr[data-name='monitor']")
+    page.wait_for_selector("#models tbody tr.selected[data-name='monitor']")
+    page.wait_for_selector("#training-records tr[data-record='sine-30Hz']")
+    heads = page.locator("#training-records thead th").all_inner_texts()
+    assert "fit [%]" in heads and "RMSE [m]" in heads and "drive [Hz]" in heads, heads
+    n = 1536
+    u = 10.0 * np.sin(2 * np.pi * 45.0 * np.arange(n) / FS)
+    path = write_record(tmp_path / "sine45.csv", Record(u, noisy(simulate(u), 7), FS, {"u": "N", "y": "m"}, "sine45"))
+    page.set_input_files("#file", str(path))
+    page.wait_for_selector(f"#record-info[data-samples='{n}']")
+    shown = run_in_page(page)
+    with httpx.Client(base_url=live_monitor, timeout=120) as c:
+        rec = c.post("/v1/records/parse", files=[("files", (path.name, path.read_bytes()))]).json()
+        body = {"u": rec["u"], "y": rec["y"], "fs": FS, "mc_paths": 64, "seed": 0, "confidence": 0.99, "method": "mc"}
+        api = c.post("/v1/models/monitor/versions/1/novelty", json=body).json()
+    assert api["verdict"] == "unjudged" and api["probe_match"] is False and "probe" in api["out_of_range"]
+    assert shown["verdict"] == shown["shown"] == "unjudged"
+    assert shown["score"] == pytest.approx(api["score"], rel=1e-12)
+    reasons = {li.get_attribute("data-reason"): li.inner_text()
+               for li in page.locator("#novelty-reasons li").all()}
+    assert "unjudged" in reasons and "not judged" in reasons["unjudged"].lower()
+    assert api["probe_reasons"][0] in reasons["probe-mismatch"]
+    assert "45" in reasons["drive"] and "sine" in reasons["drive"]
+    assert "not compared" in reasons["score"] and "threshold" in reasons["score"]
+    assert "30 Hz" in reasons["probe"]
+    assert page.locator("#verdict.unjudged").count() == 1 and page.locator("#verdict.novel").count() == 0
+    page.locator("#verdict-card").screenshot(path=str(shots / "ui-novelty-unjudged.png"))
+    # the loops view: units from the answer in the table's header, intervals ordered
+    heads = page.locator("#cycles th").all_inner_texts()
+    assert "energy [J]" in heads and "start [s]" in heads and any(h.startswith("stiffness [N/m") for h in heads)
+    note = page.inner_text("#loops-note")
+    assert "[J]" in note and "N m" not in note
+    lo, hi = (float(v) for v in note.split("band edges ")[1].split(",")[0].split(" to "))
+    assert lo <= hi
+    assert page.watch.blocked == [] and page.watch.errors == []
 
 
 def test_api_key_example_and_training_report(page, live_keyed, shots):

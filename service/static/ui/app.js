@@ -83,6 +83,9 @@ async function selectModel(name) {
 async function loadVersion() {
   closeReport();
   $("report-link").href = `${root}${versionBase()}/report`;
+  for (const id of ["meta", "training", "novelty-cal"]) {
+    $(id).replaceChildren(el("tr", {}, el("td", { className: "note", textContent: "loading..." })));
+  }
   try {
     const d = await getJSON(versionBase());
     state.detail = d;
@@ -91,7 +94,7 @@ async function loadVersion() {
     kvTable($("meta"), d, [["name", "name"], ["version", "version"], ["created", "created"], ["mode", "mode"],
       ["fs", "fs [Hz]"], ["units", "units"], ["lags", "lags"], ["n_train", "training points"], ["physics", "physics"],
       ["noise_calibration", "noise calibration"]]);
-    kvTable($("training"), d.training);
+    renderTraining(d);
     kvTable($("novelty-cal"), d.novelty ? { ...d.novelty, ...(d.probe ? { probe: d.probe } : {}) } : null);
     $("meta-more").textContent = JSON.stringify({ kernel: d.kernel, hyperparameters: d.hyperparameters,
                                                   package_versions: d.package_versions }, null, 1);
@@ -99,6 +102,43 @@ async function loadVersion() {
   } catch (err) {
     showError(err);
   }
+}
+
+// training metrics: labels and units of the scalars and of each record's metrics (training.pipeline)
+const TRAIN_SCALARS = { fit_seconds: ["fit time", "s"], n_train: ["training points", ""], n_rows: ["regressor rows", ""],
+                        nlml: ["NLML (ML-II objective)", ""], train_records: ["training records", ""] };
+
+function trainColumns(d) {
+  const yu = d.units?.y || "-", e = loopUnits(d.units, d.physics).energy;
+  return [["role", "role", ""], ["use", "use", ""], ["fit", "fit", "%"], ["fit_clean", "fit (noise-free)", "%"],
+    ["rmse", "RMSE", yu], ["nrmse", "NRMSE", "-"], ["coverage", "coverage", "%"], ["coverage_latent", "coverage (latent)", "%"],
+    ["band_width", "band width", yu], ["n_samples", "samples", ""], ["duration_s", "duration", "s"],
+    ["drive_freq", "drive", "Hz"], ["loop_area_predicted", "loop area predicted", e],
+    ["loop_area_measured", "loop area measured", e], ["novelty_score", "novelty score", "-"], ["verdict", "verdict", ""],
+    ["psd_peaks_measured", "PSD peaks measured", "Hz"], ["psd_peaks_predicted", "PSD peaks predicted", "Hz"]];
+}
+
+/** Training metrics: the run's scalars as label [unit] / value, and one row per record with units in the header. */
+function renderTraining(d) {
+  const t = d.training || {};
+  const scalars = Object.entries(t).filter(([k, v]) => k !== "records" && (typeof v !== "object" || Array.isArray(v)));
+  $("training").replaceChildren(...(scalars.length ? scalars.map(([k, v]) => {
+    const [label, unit] = TRAIN_SCALARS[k] || [k.replaceAll("_", " "), ""];
+    return el("tr", {}, el("th", { textContent: unit ? `${label} [${unit}]` : label }),
+      el("td", { textContent: Array.isArray(v) ? v.join(", ") : show(v), className: typeof v === "number" ? "num" : "" }));
+  }) : [el("tr", {}, el("td", { className: "note", textContent: "none" }))]));
+  const recs = t.records && typeof t.records === "object" ? Object.entries(t.records) : [];
+  const table = $("training-records");
+  $("training-records-box").hidden = !recs.length;
+  if (!recs.length) { table.replaceChildren(); return; }
+  const known = trainColumns(d);
+  const cols = known.filter(([k]) => recs.some(([, m]) => m && m[k] != null));
+  const cell = (v) => (Array.isArray(v) ? v.map(fmt).join(", ") : typeof v === "number" ? fmt(v) : String(v ?? "-"));
+  table.replaceChildren(
+    el("thead", {}, el("tr", {}, el("th", { textContent: "record" }),
+      ...cols.map(([, label, unit]) => el("th", { textContent: unit ? `${label} [${unit}]` : label })))),
+    el("tbody", {}, ...recs.map(([name, m]) => el("tr", { dataset: { record: name } }, el("th", { textContent: name }),
+      ...cols.map(([k]) => el("td", { className: typeof m[k] === "number" ? "num" : "", textContent: cell(m[k]) }))))));
 }
 
 function closeReport() {
@@ -118,13 +158,14 @@ async function showReport() {
     const html = await getText(`${versionBase()}/report`);
     state.reportUrl = URL.createObjectURL(new Blob([html], { type: "text/html" }));
     const frame = $("report-frame");
+    $("report-state").textContent = `drawing the report (${fmt(html.length / 1e6)} MB)...`;
+    frame.addEventListener("load", () => { $("report-state").textContent = ""; }, { once: true });
     frame.src = state.reportUrl;
     frame.hidden = false;
     const a = $("download-report");
     a.href = state.reportUrl;
     a.download = `${state.model}-${$("version").value}-report.html`;
     a.hidden = false;
-    $("report-state").textContent = "";
   } catch (err) {
     $("report-state").textContent = err instanceof ApiError && err.status === 404
       ? "this version has no training report" : String(err.message);
@@ -217,6 +258,17 @@ function requestBody() {
   return { body, i0, n };
 }
 
+/** A "running..." state on every result panel while the calls are out (they take seconds). */
+function loading(on) {
+  for (const id of ["verdict-card", "predict-card", "time-plot", "psd-plot", "loops-plot"]) $(id).classList.toggle("loading", on);
+  if (on) {
+    $("verdict").className = "verdict";
+    $("verdict").textContent = "running...";
+    $("novelty-reasons").replaceChildren();
+    $("gauge").hidden = true;
+  }
+}
+
 async function run() {
   showError(null);
   let req;
@@ -237,12 +289,14 @@ async function run() {
     + `narrowed by "from" and "samples")` : `the whole record, ${body.u.length} samples`;
   $("run-state").dataset.narrowed = String(narrowed);
   $("run-state").textContent = `running on ${span}...`;
+  loading(true);
   const t0 = performance.now();
   const [pred, loops, nov] = await Promise.allSettled([
     postJSON(`${base}/predict`, body),
     wantLoops ? postJSON(`${base}/loops`, body) : Promise.resolve(null),
     wantNovelty ? postJSON(`${base}/novelty`, body) : Promise.resolve(null),
   ]);
+  loading(false);
   $("run-state").textContent = `answered in ${fmt((performance.now() - t0) / 1000)} s, on ${span}`;
   $("run").disabled = false;
   const errors = [pred, loops, nov].filter((r) => r.status === "rejected").map((r) => r.reason.message);
@@ -269,10 +323,60 @@ function renderPrediction(p, body, i0) {
   psdPlot($("psd-plot"), { f: pm.f, predicted: pm.p, measured: body.y ? welch(body.y, fs).p : null, unit });
 }
 
+// what each out_of_range entry means (docs/api.md, "out_of_range")
+const OUT_OF_RANGE = {
+  u: "the input u left the range of the records the model was trained or calibrated on",
+  y: "the measured output y left the range of the calibration records (peak outside the healthy range, widened 2x)",
+  prediction: "the predicted mean left the training output envelope",
+  frequency: "more than 10 % of the drive's power lies outside the frequency band of the training records",
+  probe: "the drive is not the probe this monitor's threshold was calibrated for",
+};
+
+function driveText(dr, unit) {
+  if (!dr) return "-";
+  const amp = `${dr.amplitude_kind === "rms" ? "RMS" : "peak"} ${fmt(dr.amplitude)} ${unit || ""}`.trim();
+  return dr.kind === "sine" ? `sine at ${fmt(dr.frequency)} Hz, ${amp}`
+    : `broadband (dominant ${fmt(dr.frequency)} Hz), ${amp}`;
+}
+
+function probeText(pr, unit) {
+  if (!pr) return "this monitor states no probe contract";
+  const f = pr.kind === "sine" ? `sine at ${fmt(pr.frequency)} Hz (within ${fmt(pr.frequency_tolerance)} Hz)` : "broadband";
+  const [lo, hi] = pr.amplitude || [];
+  return `${f}, ${pr.amplitude_kind === "rms" ? "RMS" : "peak"} ${fmt(lo)} to ${fmt(hi)} ${unit || ""} `
+    + `(widened ${Math.round((pr.amplitude_tolerance || 0) * 100)} %), free run from ${pr.start}`;
+}
+
+/** Why the verdict is what it is: one list item per reason, each with data-reason for a reader (or a test). */
+function noveltyReasons(nv) {
+  const unit = state.detail?.units?.u || state.record?.units?.u;
+  const items = [];
+  const add = (reason, text) => items.push(el("li", { dataset: { reason }, textContent: text }));
+  const mismatch = nv.probe_match === false;
+  if (nv.verdict === "unjudged" || mismatch) {
+    add("unjudged", "Not judged: the record's drive does not match the probe the threshold was calibrated for, so the "
+      + "score measures the model's accuracy at another excitation, not a change of the structure.");
+  }
+  for (const r of nv.probe_reasons || []) add("probe-mismatch", `probe mismatch: ${r}`);
+  const ratio = nv.score / nv.threshold;
+  add("score", `score ${fmt(nv.score)} against threshold ${fmt(nv.threshold)} (${fmt(ratio)} x)`
+    + (mismatch ? ": not compared" : nv.score > nv.threshold ? ": above" : ": below"));
+  for (const k of nv.out_of_range || []) {
+    if (k !== "probe") add(`out-of-range-${k}`, `out of range '${k}': ${OUT_OF_RANGE[k] || "see docs/api.md"}`);
+  }
+  add("drive", `drive found: ${driveText(nv.drive, unit)}`);
+  if (nv.probe_match != null || state.detail?.probe) {
+    add("probe", `probe expected: ${probeText(state.detail?.probe, unit)}`
+      + (nv.probe_match === true ? " (matches)" : ""));
+  }
+  return items;
+}
+
 function renderNovelty(nv, wanted, body) {
   const v = $("verdict"), table = $("novelty");
   v.className = "verdict";
   $("gauge").hidden = true;
+  $("novelty-reasons").replaceChildren();
   delete v.dataset.verdict;
   if (!nv) {
     v.textContent = "-";
@@ -283,6 +387,7 @@ function renderNovelty(nv, wanted, body) {
   v.textContent = nv.verdict;
   v.dataset.verdict = nv.verdict;
   v.dataset.score = String(nv.score);
+  v.dataset.samples = String(nv.n_samples);
   v.classList.add(nv.verdict);
   const top = Math.max(nv.score, nv.threshold) * 1.25;
   $("gauge").hidden = false;
@@ -290,10 +395,54 @@ function renderNovelty(nv, wanted, body) {
   $("gauge-bar").className = nv.verdict;
   $("gauge-thr").style.left = `${(100 * nv.threshold) / top}%`;
   $("gauge").title = `score ${fmt(nv.score)} against threshold ${fmt(nv.threshold)}`;
+  $("novelty-reasons").replaceChildren(...noveltyReasons(nv));
   kvTable(table, { score: nv.score, threshold: nv.threshold, "score / threshold": nv.score / nv.threshold,
+    "probe match": nv.probe_match == null ? "no probe contract" : nv.probe_match ? "yes" : "no",
     "false-alarm rate": nv.false_alarm_rate, "score method": nv.score_method, "out of range": nv.out_of_range,
     "samples scored": nv.n_samples, NLPD: nv.nlpd, start: nv.start });
 }
+
+/** Units of a loop as the API states them (model.restoring.loop_units), from the bundle's units and physics. */
+function loopUnits(units, physics) {
+  const yu = String(units?.y || "m");
+  const x = (physics?.output || "displacement") === "displacement" ? yu : (yu.endsWith("/s") ? yu.slice(0, -2) : "m");
+  const xs = x || "m";
+  return { x: xs, force: "N", energy: xs === "m" ? "J" : `N ${xs}`, stiffness: `N/${xs}` };
+}
+
+/** Axis limits of a loop view that the start-up transient of a free run from rest does not stretch: the span of
+ * the steady cycles (the answer's `cycles`) when there are any, else the 0.5-99.5 % quantiles; widened 8 %. */
+function robustView(lp, fs) {
+  const loops = [lp.predicted, lp.measured, lp.lower, lp.upper].filter(Boolean);
+  const n = lp.predicted.x.length;
+  let i0 = 0, i1 = n;
+  const steady = Array.isArray(lp.cycles) && lp.cycles.length;
+  if (steady) {
+    i0 = Math.max(0, Math.floor(lp.cycles[0].start * fs));
+    i1 = Math.min(n, Math.ceil(lp.cycles[lp.cycles.length - 1].end * fs) + 1);
+  }
+  const span = (key) => {
+    const v = [];
+    for (const l of loops) for (let i = i0; i < i1; i++) if (Number.isFinite(l[key][i])) v.push(l[key][i]);
+    v.sort((a, b) => a - b);
+    if (!v.length) return null;
+    const q = (p) => v[Math.min(v.length - 1, Math.max(0, Math.round(p * (v.length - 1))))];
+    let [lo, hi] = steady ? [v[0], v[v.length - 1]] : [q(0.005), q(0.995)];
+    const pad = 0.08 * (hi - lo || Math.abs(hi) || 1);
+    return [lo - pad, hi + pad];
+  };
+  const x = span("x"), y = span("force");
+  if (!x || !y) return null;
+  // points of the whole record that the view leaves out (the start-up transient)
+  let outside = 0;
+  for (let i = 0; i < n; i++) {
+    const a = lp.predicted.x[i], b = lp.predicted.force[i];
+    if (a < x[0] || a > x[1] || b < y[0] || b > y[1]) outside++;
+  }
+  return { x, y, outside, basis: steady ? "the steady cycles" : "the 0.5-99.5 % quantiles" };
+}
+
+const ordered = (a, b) => (a != null && b != null && a > b ? [b, a] : [a, b]);
 
 function renderLoops(lp, wanted) {
   const note = $("loops-note");
@@ -304,15 +453,28 @@ function renderLoops(lp, wanted) {
     note.textContent = wanted ? "the loops call failed" : "this version has no physical constants (mass): no restoring force";
     return;
   }
-  loopsPlot($("loops-plot"), lp, lp.units);
+  const units = { ...loopUnits(state.detail?.units, state.detail?.physics), ...(lp.units || {}) };
+  const view = robustView(lp, state.record?.fs || state.detail?.fs || 1);
+  loopsPlot($("loops-plot"), lp, units, view);
   const area = (l) => (l ? fmt(l.area) : "-");
-  note.textContent = `loop area (whole record): predicted ${area(lp.predicted)}, band ${area(lp.lower)} .. ${area(lp.upper)}`
-    + (lp.measured ? `, measured ${area(lp.measured)}` : "") + ` [${lp.units?.force || "N"} ${lp.units?.x || "m"}]`;
+  const [lo, hi] = ordered(lp.lower?.area, lp.upper?.area);
+  note.textContent = `loop area (whole record) [${units.energy}]: predicted ${area(lp.predicted)}, band edges `
+    + `${fmt(lo)} to ${fmt(hi)}` + (lp.measured ? `, measured ${area(lp.measured)}` : "")
+    + (view && view.outside ? `. Axes fitted to ${view.basis}: ${view.outside} of ${lp.predicted.x.length} points `
+      + "(the start-up transient) lie outside; drag to zoom, double-click for the whole record." : "");
+  $("loops-plot").dataset.clipped = String(view ? view.outside : 0);
   if (Array.isArray(lp.cycles) && lp.cycles.length) {
-    const cols = ["start", "end", "energy", "energy_lower", "energy_upper", "stiffness", "measured_energy"]
-      .filter((k) => lp.cycles.some((c) => c[k] != null));
-    $("cycles").replaceChildren(el("tr", {}, ...cols.map((k) => el("th", { textContent: k.replace("_", " ") }))),
-      ...lp.cycles.map((c) => el("tr", {}, ...cols.map((k) => el("td", { className: "num", textContent: fmt(c[k]) })))));
+    const U = { start: "s", end: "s", energy: units.energy, energy_lower: units.energy, energy_upper: units.energy,
+                stiffness: units.stiffness, measured_energy: units.energy, measured_stiffness: units.stiffness };
+    const cols = ["start", "end", "energy", "energy_lower", "energy_upper", "stiffness", "measured_energy",
+                  "measured_stiffness"].filter((k) => lp.cycles.some((c) => c[k] != null));
+    const rows = lp.cycles.map((c) => {
+      const [a, b] = ordered(c.energy_lower, c.energy_upper);
+      return { ...c, energy_lower: a, energy_upper: b };
+    });
+    $("cycles").replaceChildren(
+      el("tr", {}, ...cols.map((k) => el("th", { textContent: `${k.replaceAll("_", " ")} [${U[k]}]` }))),
+      ...rows.map((c) => el("tr", {}, ...cols.map((k) => el("td", { className: "num", textContent: fmt(c[k]) })))));
     box.hidden = false;
   }
 }

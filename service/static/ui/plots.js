@@ -95,8 +95,9 @@ function xyPath(u, seriesIdx) {
   return { stroke, fill: null, clip: null, band: null, gaps: null, flags: 0 };
 }
 
-/** Restoring force against displacement: predicted mean, band edges and the measured loop. */
-export function loopsPlot(el, loops, units) {
+/** Restoring force against displacement: predicted mean, band edges and the measured loop. ``view``
+ * ({x: [lo, hi], y: [lo, hi]}) sets the axes (a double-click goes back to the whole record). */
+export function loopsPlot(el, loops, units, view) {
   const series = [{}];
   const data = [null];
   const add = (label, loop, stroke, width) => {
@@ -109,7 +110,7 @@ export function loopsPlot(el, loops, units) {
   add("band upper", loops.upper, C.edge, 0.6);
   add("measured", loops.measured, C.measLoop, 1);
   add("predicted mean", loops.predicted, C.pred, 1.4);
-  mount(el, {
+  const chart = mount(el, {
     mode: 2,
     height: 300,
     legend: { live: false },
@@ -119,6 +120,13 @@ export function loopsPlot(el, loops, units) {
     series,
     cursor: { drag: { x: true, y: true, uni: 40 }, points: { show: false } },
   }, data);
+  if (view) {
+    chart.batch(() => {
+      chart.setScale("x", { min: view.x[0], max: view.x[1] });
+      chart.setScale("y", { min: view.y[0], max: view.y[1] });
+    });
+    el.dataset.view = JSON.stringify(view);
+  }
   el.dataset.ready = "1";
 }
 
