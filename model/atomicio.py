@@ -2,7 +2,9 @@
 
 The data go to a temporary file in the destination's folder (same filesystem), are flushed and
 fsynced, and the file then replaces the destination with ``os.replace``: a reader sees the old
-file or the new one, never half of one, and a failed write leaves no temporary file behind.
+file or the new one, never half of one, and a failed write leaves no temporary file behind. The file
+gets the mode a plain ``open()`` would give it (0666 less the umask: 0644 under the usual 022), not
+the temporary file's private 0600.
 (Bundles are folders: ``model.bundle`` publishes them by renaming a temporary folder.)
 """
 from __future__ import annotations
@@ -15,6 +17,24 @@ from pathlib import Path
 from typing import IO
 
 
+def _umask() -> int:
+    """The process's umask, read without changing it where Linux says it (/proc), else by setting it back."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def file_mode() -> int:
+    """The mode ``open()`` gives a new file: 0666 less the umask."""
+    return 0o666 & ~_umask()
+
+
 @contextmanager
 def atomic_file(path, mode: str = "wb", *, encoding: str | None = None) -> Iterator[IO]:
     """Open a temporary file beside ``path`` for writing (``mode`` 'wb' or 'w'); when the block
@@ -25,6 +45,8 @@ def atomic_file(path, mode: str = "wb", *, encoding: str | None = None) -> Itera
     parent = path.parent if str(path.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=parent)
     try:
+        if hasattr(os, "fchmod"):
+            os.fchmod(fd, file_mode())  # mkstemp's 0600 would make a record or report private to its writer
         with os.fdopen(fd, mode, **({"encoding": encoding or "utf-8"} if mode == "w" else {})) as f:
             yield f
             f.flush()
@@ -44,4 +66,4 @@ def write_atomic(path, data: bytes | str) -> None:
         f.write(data)
 
 
-__all__ = ["atomic_file", "write_atomic"]
+__all__ = ["atomic_file", "file_mode", "write_atomic"]
