@@ -22,7 +22,8 @@ def _common(p):
     p.add_argument("--model", required=True, help="NAME, NAME:VERSION or NAME:ALIAS such as NAME:production (latest "
                                                   "version when omitted)")
     p.add_argument("record", help="record file (.npz, .npy, .csv, .mat) or LMS Test.Lab folder")
-    p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024)")
+    p.add_argument("--mc", type=int, default=None,
+                   help="Monte Carlo paths (default: the model's config [predict] mc_paths, else 1024)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
     p.add_argument("--method", choices=("mc", "linear"), default=None,
                    help="uncertainty propagation (default: the model's, see 'gpnarx models' / GET /v1/models/NAME "
@@ -89,13 +90,20 @@ def resolve_registry(registry):
 def load(args):
     from gpnarx.training.records import read_record
 
+    check_mc(args.mc, None)
+    if args.window:
+        parse_window(args.window)
+    if not (args.registry or os.environ.get("GPNARX_REGISTRY")):
+        # the default registry may have to be built first (minutes): a bad record fails now, not after
+        # the build (the model's fs is not known yet: a file without one is read at 1 Hz just to check it)
+        read_record(args.record, fs_default=1.0)
     bundle = load_model(args)
     rec = read_record(args.record, fs_default=bundle.fs)  # files without fs take the model's
     if args.window:
         t0, t1 = parse_window(args.window)
         rec = rec.window(t0, t1)  # a RecordError (ValueError) names the record's span
     check_fs(rec, bundle)
-    return bundle, rec, check_mc(args.mc)
+    return bundle, rec, check_mc(args.mc, bundle)
 
 
 def check_fs(rec, bundle) -> None:
@@ -103,8 +111,20 @@ def check_fs(rec, bundle) -> None:
         raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {bundle.fs} Hz")
 
 
-def check_mc(mc) -> int:
-    mc = mc if mc is not None else 1024
+DEFAULT_MC = 1024  # the config's [predict] mc_paths default (training.config_schema)
+
+
+def default_mc(bundle) -> int:
+    """Monte Carlo paths when --mc is not given: the bundle's config ``[predict] mc_paths`` (kept in the
+    manifest's ``predict``), else 1024."""
+    try:
+        return int((bundle.manifest.get("predict") or {}).get("mc_paths") or DEFAULT_MC)
+    except (AttributeError, TypeError, ValueError):
+        return DEFAULT_MC
+
+
+def check_mc(mc, bundle=None) -> int:
+    mc = mc if mc is not None else (default_mc(bundle) if bundle is not None else DEFAULT_MC)
     if not 1 <= mc <= 65536:
         raise UsageError(f"--mc must be between 1 and 65536, got {mc}")
     return mc
@@ -140,7 +160,31 @@ def open_model(root, name: str, version: str | None):
     try:
         return Registry(root, lazy=True).scan(only=name).get(name, version)
     except KeyError as exc:
-        raise CLIError(exc.args[0]) from None
+        msg = exc.args[0]
+        if f"model {name!r} not found" in msg:  # the scan saw only NAME: list the registry's models
+            names = model_names(root)
+            msg = (f"model {name!r} not found in registry {root}; available: {', '.join(names) or 'none'}"
+                   + ("" if names else " (is it still being built? see gpnarx build-defaults)"))
+        raise CLIError(msg) from None
+
+
+def model_names(root) -> list[str]:
+    """Names of the models in registry ``root``: folders holding a version with a manifest (a local
+    registry, without verifying anything), else a scan."""
+    from gpnarx.model.registry import Registry
+    from gpnarx.model.storage import as_local
+
+    local = as_local(root)
+    if local is not None:
+        try:
+            return sorted(d.name for d in local.iterdir() if d.is_dir() and not d.name.startswith(".")
+                          and any((v / "manifest.json").is_file() for v in d.iterdir() if v.is_dir()))
+        except OSError:
+            return []
+    try:
+        return Registry(root, lazy=True).scan().names()
+    except Exception:  # noqa: BLE001 - a listing for an error message: never hide the original error
+        return []
 
 
 def _progress(enabled, n):

@@ -289,7 +289,8 @@ def _train(config, registry, name, version, *, progress, mc_paths, ny, nu, repor
                            attach_dir=report_dir,
                            # the answers' default propagation (Bundle.default_method): the config's, not
                            # a lighter report's override
-                           extra={"predict": {"method": cfg.predict.get("method", "mc")}})
+                           extra={"predict": {"method": cfg.predict.get("method", "mc"),
+                                              "mc_paths": int(cfg.predict.get("mc_paths", 1024))}})
     log(f"bundle written to {path}")
     return {"name": name or cfg.name, "version": path.name, "path": str(path),
             "metrics": to_json_safe(training_metrics), "evals": evals, "model": model,

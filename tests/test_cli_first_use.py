@@ -1,0 +1,65 @@
+"""A new user's first CLI calls (issue: a new user's first hour): an unknown model's error lists the
+registry's models, a bad record fails before the default registry is built, and --mc defaults to the
+bundle's config."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_service_support import FS, built_registry, copy_registry
+
+from gpnarx.cli.main import main
+from gpnarx.model.bundle import save_bundle
+
+
+@pytest.fixture(scope="module")
+def registry(tmp_path_factory):
+    return copy_registry(tmp_path_factory.mktemp("cli-first") / "registry")
+
+
+@pytest.fixture
+def record(tmp_path):
+    b = built_registry()
+    path = tmp_path / "rec.npz"
+    np.savez(path, u=b.test_u[:300], y=b.test_y[:300], fs=FS)
+    return path
+
+
+def test_unknown_model_lists_the_registry_models(registry, record, capsys):
+    assert main(["predict", "--registry", str(registry), "--model", "nope", str(record)]) == 1
+    err = capsys.readouterr().err
+    assert "model 'nope' not found" in err and "available: boucwen, plain" in err, err
+
+
+def test_unknown_model_in_an_empty_registry_says_none_and_what_to_do(tmp_path, record, capsys):
+    (tmp_path / "empty").mkdir()
+    assert main(["predict", "--registry", str(tmp_path / "empty"), "--model", "bouc-wen", str(record)]) == 1
+    err = capsys.readouterr().err
+    assert "available: none" in err and "build-defaults" in err, err
+
+
+def test_a_bad_record_fails_before_the_default_registry_is_built(tmp_path, monkeypatch, capsys):
+    from gpnarx.training import defaults
+
+    monkeypatch.delenv("GPNARX_REGISTRY", raising=False)
+    built = []
+    monkeypatch.setattr(defaults, "ensure_default_registry", lambda *a, **k: built.append(1) or str(tmp_path))
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time,force\n0,1\n0.001,2\n0.002,3\n")
+    assert main(["predict", "--model", "bouc-wen", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert "bad.csv" in err and "'u'" in err, err
+    assert built == [], "the default registry was built before the record was checked"
+    assert main(["predict", "--model", "bouc-wen", "--mc", "0", str(bad)]) == 2  # options too
+    assert built == []
+
+
+def test_mc_defaults_to_the_bundle_config(registry, record, capsys):
+    b = built_registry()
+    save_bundle(b.model, registry, "light", "1", fs=FS, units={"u": "N", "y": "m"}, physics=None, novelty=None,
+                training={}, extra={"predict": {"method": "mc", "mc_paths": 16}})
+    assert main(["--json", "predict", "--registry", str(registry), "--model", "light", str(record)]) == 0
+    assert json.loads(capsys.readouterr().out)["mc_paths"] == 16
+    assert main(["--json", "predict", "--registry", str(registry), "--model", "light", "--mc", "8", str(record)]) == 0
+    assert json.loads(capsys.readouterr().out)["mc_paths"] == 8
