@@ -99,7 +99,72 @@ def run(args):
     if surface is not None:
         out["lags"] = {"ny": ny, "nu": nu, "fit": surface["chosen"]["fit"], "cells": len(surface["cells"]),
                        "cached_cells": surface["cached_cells"]}
+    if not args.json:  # a readable summary; --json gives the whole answer as one object
+        print(summary(out, _units(out["path"])))
+        return None
     return out
+
+
+def _units(path) -> dict:
+    """The written bundle's units (its manifest), {} when it cannot be read (a remote registry)."""
+    import json
+
+    try:
+        return json.loads((Path(path) / "manifest.json").read_text()).get("units") or {}
+    except (OSError, ValueError):
+        return {}
+
+
+def _num(v) -> str:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return "-" if v is None else str(v)
+    if isinstance(v, int):
+        return str(v)
+    a = abs(v)
+    return f"{v:.3e}" if a and (a < 1e-3 or a >= 1e5) else f"{v:.4g}"
+
+
+# the per-record columns of the summary: key, header, unit ("y": the output's unit)
+_COLUMNS = (("role", "role", ""), ("use", "use", ""), ("fit", "fit", "%"), ("rmse", "RMSE", "y"),
+            ("coverage", "coverage", "%"), ("band_width", "band width", "y"), ("n_samples", "samples", ""),
+            ("novelty_score", "novelty score", ""), ("verdict", "verdict", ""))
+
+
+def summary(out: dict, units: dict | None = None) -> str:
+    """``gpnarx train``'s answer as text: the bundle written, the run's figures with units, and a table
+    of the per-record metrics (fit, RMSE and band width in the output's unit, coverage)."""
+    m = out.get("metrics") or {}
+    yu = (units or {}).get("y") or "-"
+    lines = [f"bundle {out['name']} version {out['version']} written to {out['path']}"]
+    run = []
+    if m.get("fit_seconds") is not None:
+        run.append(f"fit {_num(m['fit_seconds'])} s")
+    if m.get("n_train") is not None:
+        run.append(f"{m['n_train']} training points" + (f" of {m['n_rows']} rows" if m.get("n_rows") else ""))
+    if m.get("nlml") is not None:
+        run.append(f"NLML {_num(m['nlml'])}")
+    if m.get("mc_paths") is not None:
+        run.append(f"{m['mc_paths']} Monte Carlo paths ({m.get('method', 'mc')})")
+    if run:
+        lines.append(", ".join(run))
+    if out.get("lags"):
+        lg = out["lags"]
+        lines.append(f"lags chosen: ny={lg['ny']} nu={lg['nu']} (fit {_num(lg['fit'])} %, {lg['cells']} cells)")
+    recs = m.get("records") or {}
+    if recs:
+        cols = [c for c in _COLUMNS if any(isinstance(r, dict) and r.get(c[0]) is not None for r in recs.values())]
+        head = ["record"] + [f"{h} [{yu if u == 'y' else u}]" if u else h for _, h, u in cols]
+        rows = [[name] + [_num(r.get(k)) if isinstance(r, dict) else "-" for k, _, _ in cols]
+                for name, r in recs.items()]
+        widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
+        lines.append("")
+        for row in [head, *rows]:
+            lines.append("  ".join(str(x).ljust(w) for x, w in zip(row, widths)).rstrip())
+    report = Path(str(out["path"])) / "report" / "report.html"
+    if report.is_file():
+        lines.append(f"report: {report}")
+    lines.append("(--json prints every metric as one JSON object)")
+    return "\n".join(lines)
 
 
 def _model_overrides(args) -> dict | None:

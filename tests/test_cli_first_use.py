@@ -63,3 +63,31 @@ def test_mc_defaults_to_the_bundle_config(registry, record, capsys):
     assert json.loads(capsys.readouterr().out)["mc_paths"] == 16
     assert main(["--json", "predict", "--registry", str(registry), "--model", "light", "--mc", "8", str(record)]) == 0
     assert json.loads(capsys.readouterr().out)["mc_paths"] == 8
+
+
+def test_train_without_json_prints_a_readable_summary(tmp_path, monkeypatch, capsys):
+    """`gpnarx train` without --json: the bundle, the run's figures with units and a table by record, not a
+    Python dict repr; with --json the answer is unchanged."""
+    import gpnarx.training.pipeline as pipeline
+
+    bundle = tmp_path / "reg" / "toy" / "1"
+    bundle.mkdir(parents=True)
+    (bundle / "manifest.json").write_text(json.dumps({"units": {"u": "N", "y": "m"}}))
+    metrics = {"fit_seconds": 8.27, "n_train": 1000, "n_rows": 4064, "nlml": -678.5, "mc_paths": 128,
+               "method": "mc", "train_records": ["sweep-10N"],
+               "records": {"sweep-50N": {"role": "verify", "use": "lag-selection", "fit": 89.536,
+                                         "rmse": 4.44e-05, "coverage": 99.9, "band_width": 2.98e-4,
+                                         "n_samples": 2052, "psd_peaks_measured": [41.0, 26.4]}}}
+    monkeypatch.setattr(pipeline, "train", lambda *a, **k: {"name": "toy", "version": "1", "path": str(bundle),
+                                                            "metrics": metrics})
+    assert main(["train", "bouc-wen", "--registry", str(tmp_path / "reg"), "--no-report"]) == 0
+    out = capsys.readouterr().out
+    assert "{" not in out and "'" not in out, out  # no dict repr
+    assert f"bundle toy version 1 written to {bundle}" in out
+    assert "fit 8.27 s" in out and "1000 training points of 4064 rows" in out
+    header = next(line for line in out.splitlines() if line.startswith("record"))
+    assert "fit [%]" in header and "RMSE [m]" in header and "coverage [%]" in header
+    row = next(line for line in out.splitlines() if line.startswith("sweep-50N"))
+    assert "89.54" in row and "4.440e-05" in row and "2052" in row
+    assert main(["--json", "train", "bouc-wen", "--registry", str(tmp_path / "reg"), "--no-report"]) == 0
+    assert json.loads(capsys.readouterr().out)["metrics"] == metrics
