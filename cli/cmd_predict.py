@@ -77,14 +77,27 @@ def add_parser(sub):
     lp.set_defaults(func=run_loops)
 
 
-def resolve_registry(registry):
+def resolve_registry(registry, name: str | None = None):
+    """The registry a command reads, with the meaning ``gpnarx serve`` gives it: ``--registry`` as given;
+    else an object-store ``$GPNARX_REGISTRY`` as given (nothing is built there); else the default
+    registry folder (``$GPNARX_REGISTRY`` or ~/.cache/gpnarx/registry), where a missing default bundle
+    is built first. With ``name`` (the model asked for) only that default (and the one it derives from)
+    is built, and none for another name; a build already running (a starting server) is waited for,
+    and the wait is said on stderr (``training.defaults.build_lock``)."""
     if registry:
         return registry
-    if os.environ.get("GPNARX_REGISTRY"):
-        return os.environ["GPNARX_REGISTRY"]
-    from gpnarx.training.defaults import ensure_default_registry
+    from gpnarx.model.storage import is_url
 
-    return ensure_default_registry(progress=True)
+    env = os.environ.get("GPNARX_REGISTRY", "")
+    if env and is_url(env):
+        return env
+    from gpnarx.training.defaults import DEFAULT_BUNDLES, DERIVED, default_registry_dir, ensure_default_registry
+
+    if name is None:
+        return ensure_default_registry(progress=True)
+    if name not in DEFAULT_BUNDLES:
+        return default_registry_dir()
+    return ensure_default_registry(progress=True, names=[n for n in (DERIVED.get(name), name) if n])
 
 
 def load(args):
@@ -93,7 +106,7 @@ def load(args):
     check_mc(args.mc, None)
     if args.window:
         parse_window(args.window)
-    if not (args.registry or os.environ.get("GPNARX_REGISTRY")):
+    if not args.registry:
         # the default registry may have to be built first (minutes): a bad record fails now, not after
         # the build (the model's fs is not known yet: a file without one is read at 1 Hz just to check it)
         read_record(args.record, fs_default=1.0)
@@ -144,7 +157,7 @@ def load_model(args):
         name, version = parse_model_ref(args.model)
     except BundleError as exc:
         raise UsageError(str(exc)) from None
-    return open_model(resolve_registry(args.registry), name, version)
+    return open_model(resolve_registry(args.registry, name), name, version)
 
 
 def open_model(root, name: str, version: str | None):

@@ -91,3 +91,29 @@ def test_train_without_json_prints_a_readable_summary(tmp_path, monkeypatch, cap
     assert "89.54" in row and "4.440e-05" in row and "2052" in row
     assert main(["--json", "train", "bouc-wen", "--registry", str(tmp_path / "reg"), "--no-report"]) == 0
     assert json.loads(capsys.readouterr().out)["metrics"] == metrics
+
+
+def test_default_registry_means_what_serve_means(tmp_path, monkeypatch, record, capsys):
+    """Without --registry the CLI uses the folder serve uses ($GPNARX_REGISTRY, even empty, else the cache)
+    and builds the default asked for there (only that one, and its source), none for another model."""
+    from gpnarx.training import defaults
+
+    reg = tmp_path / "empty-registry"
+    monkeypatch.setenv("GPNARX_REGISTRY", str(reg))
+    calls = []
+
+    def fake(path=None, progress=True, names=None, **kw):
+        calls.append(list(names) if names is not None else None)
+        root = defaults.default_registry_dir()
+        root.mkdir(parents=True, exist_ok=True)
+        return root
+
+    monkeypatch.setattr(defaults, "ensure_default_registry", fake)
+    assert main(["predict", "--model", "bouc-wen", str(record)]) == 1  # the fake built nothing
+    assert calls == [["bouc-wen"]] and reg.is_dir()
+    assert f"not found in registry {reg}" in capsys.readouterr().err
+    assert main(["novelty", "--model", "bert-real-monitor", str(record)]) == 1
+    assert calls[-1] == ["bert-real", "bert-real-monitor"]
+    calls.clear()
+    assert main(["predict", "--model", "my-structure", str(record)]) == 1
+    assert calls == [] and "available: none" in capsys.readouterr().err
