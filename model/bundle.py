@@ -8,9 +8,12 @@ read with ``allow_pickle=False`` and the kernel is rebuilt from a whitelist of t
 whose manifest or checksums do not verify is refused with a ``BundleError`` naming the file.
 Writes are atomic: a bundle is written into a hidden temporary folder and renamed into place, so a
 killed run leaves no partial version visible (``Registry.scan`` and ``next_version`` skip hidden
-folders). Such a leftover ``NAME/.tmp-VERSION-*`` folder is removed by the next ``save_bundle`` of
-the same model name once it is older than ``STALE_TMP_SECONDS`` (one hour, so a write in progress
-in another process is never touched), or at once with ``remove_stale_temps(registry, 0)``.
+folders). Each temporary folder's name carries its writer (``writer_tag``: a hash of the host name,
+the process id and the process's start time), so a leftover ``NAME/.tmp-VERSION-*`` folder whose
+writer process is gone from this host is removed at once by ``remove_stale_temps`` (which the
+next ``save_bundle`` of the model and every scan of a serving registry run); one of another host,
+or without a writer tag, once it is older than ``STALE_TMP_SECONDS`` (one hour, so a write in
+progress elsewhere is never touched), or at once with ``remove_stale_temps(registry, 0)``.
 Versions are positive integers, increasing; an existing version is never overwritten.
 
 A registry may also live on object storage behind an fsspec URL (``s3://bucket/prefix``,
@@ -54,6 +57,7 @@ VERSION_RE = re.compile(r"^[1-9][0-9]{0,8}$")
 MAX_MANIFEST_BYTES = 4 * 1024 * 1024
 TMP_PREFIX = ".tmp-"  # hidden temporary folder of a bundle being written: NAME/.tmp-VERSION-XXXX
 STALE_TMP_SECONDS = 3600.0  # a temporary folder untouched this long is a killed write's leftover
+_WRITER_RE = re.compile(r"-w([0-9a-f]{8})p(\d+)s(\d+)-")  # writer_tag() inside a temporary folder's name
 REQUIRED_KEYS = ("schema_version", "name", "version", "created", "lags", "kernel", "noise_var", "mode",
                  "fs", "units", "files", "estimator")
 
@@ -191,12 +195,42 @@ def remove_stale_temps(registry, older_than: float = STALE_TMP_SECONDS, name: st
         for t in d.iterdir():
             try:
                 if t.name.startswith(TMP_PREFIX) and t.is_dir() and not t.is_symlink() \
-                        and now - t.stat().st_mtime >= older_than:
+                        and (now - t.stat().st_mtime >= older_than or _writer_gone(t)):
                     shutil.rmtree(t)
                     removed.append(t)
             except OSError:  # vanished meanwhile or not ours to remove: leave it
                 continue
     return removed
+
+
+def _process_start(pid: int) -> str | None:
+    """The start time of process ``pid`` (clock ticks since boot, Linux ``/proc``), None if it is gone
+    or not knowable here."""
+    try:
+        with open(f"/proc/{int(pid)}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def _host_hash() -> str:
+    import socket
+
+    return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+
+
+def writer_tag() -> str:
+    """``w<host hash>p<pid>s<start>``: this process, as a temporary folder's name carries it."""
+    return f"w{_host_hash()}p{os.getpid()}s{_process_start(os.getpid()) or 0}"
+
+
+def _writer_gone(tmp: Path) -> bool:
+    """Whether the process that made temporary folder ``tmp`` is known to be gone: its name's writer
+    tag is of this host and no process has its id and start time (a folder without one is never judged)."""
+    m = _WRITER_RE.search(tmp.name)
+    if m is None or m.group(1) != _host_hash() or m.group(3) == "0":
+        return False
+    return _process_start(int(m.group(2))) != m.group(3)
 
 
 def _new_version_target(registry: Path, name: str, version) -> tuple[str, Path]:
@@ -228,7 +262,8 @@ def _write_new_version(registry, name: str, version, fill):
         store = registry if isinstance(registry, RemoteStore) else RemoteStore(str(registry))
         return _publish_remote(store, name, version, fill)
     version, target = _new_version_target(local, name, version)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-", dir=local / name))
+    # the name says who writes it, so a scan removes it at once if this process dies (remove_stale_temps)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-{writer_tag()}-", dir=local / name))
     try:
         fill(tmp, version)
         os.rename(tmp, target)  # atomic on one filesystem; fails if target appeared meanwhile

@@ -18,7 +18,8 @@
   ``changed``, ``unchanged``, ``held``: a scan that dropped too many versions was not served, ``error``: the store
   could not be read), ``gpnarx_registry_held`` (1 while such a scan is held back),
   ``gpnarx_registry_held_accepted_total`` (held listings served after confirmation or an admin action),
-  ``gpnarx_registry_versions_added_total`` / ``gpnarx_registry_versions_removed_total``.
+  ``gpnarx_registry_versions_added_total`` / ``gpnarx_registry_versions_removed_total``,
+  ``gpnarx_registry_leftovers_removed_total`` (temporary folders of killed writes removed).
 """
 from __future__ import annotations
 
@@ -73,6 +74,9 @@ class ServiceMetrics:
         self.scans_accepted = Counter("gpnarx_registry_held_accepted", "Held registry listings served after "
                                       "confirmation on consecutive scans or an admin reload with accept_removal",
                                       registry=r)
+        self.leftovers = Counter("gpnarx_registry_leftovers_removed", "Temporary folders of killed writes removed "
+                                 "from a local registry at start or by a scan", registry=r)
+        self.leftovers.inc(getattr(state, "leftovers_removed", 0))
         self.versions_added = Counter("gpnarx_registry_versions_added", "Versions a registry scan added",
                                       registry=r)
         self.versions_removed = Counter("gpnarx_registry_versions_removed", "Versions a registry scan removed",

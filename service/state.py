@@ -9,7 +9,7 @@ from pathlib import Path
 
 from fastapi import Request
 
-from gpnarx.model.bundle import BundleError, check_name
+from gpnarx.model.bundle import BundleError, check_name, remove_stale_temps
 from gpnarx.model.registry import Registry, check_version_ref
 from gpnarx.model.storage import StorageError
 
@@ -40,6 +40,7 @@ class ServiceState:
         self.registry = Registry(self.registry_dir or Path("/nonexistent-gpnarx-registry"), lazy=True,
                                  max_loaded=settings.max_loaded)
         self.registry_error: str | None = None
+        self.leftovers_removed = self._clean_leftovers()
         if self.registry_dir is not None:
             try:
                 self.registry.scan()
@@ -54,6 +55,20 @@ class ServiceState:
         self.held: dict | None = None  # a suspect scan held back (``_hold``); shown by /health/ready
         self._pending: tuple | None = None  # (listing, consecutive scans that showed it) of a held scan
         self._reported = self._listed(self.registry)  # what the last reload answered against
+
+    def _clean_leftovers(self) -> int:
+        """Remove the temporary folders of killed writes from a local registry (``remove_stale_temps``:
+        those whose writer process is gone from this host at once, others after an hour); logged."""
+        if self.registry_dir is None or self.registry.remote:
+            return 0
+        try:
+            removed = remove_stale_temps(self.registry.root)
+        except OSError as exc:  # a read-only registry: nothing of ours to clean
+            log.info("registry: temporary folders not checked (%s)", exc)
+            return 0
+        for path in removed:
+            log.warning("registry: removed %s, the temporary folder of a killed write", path)
+        return len(removed)
 
     def refused(self, registry: Registry | None = None) -> list[dict]:
         reg = registry or self.registry
@@ -90,6 +105,8 @@ class ServiceState:
         async with self.reload_lock:
             old = self.registry
             try:
+                removed = await asyncio.to_thread(self._clean_leftovers)
+                self.metrics.leftovers.inc(removed)
                 new = await asyncio.to_thread(old.rescan)
             except StorageError as exc:
                 self.registry_error = str(exc)

@@ -126,7 +126,12 @@ def test_killed_write_leaves_no_partial_version(tmp_path, stage):
     assert models == {"boucwen": ["1", "2"], "plain": ["1"]}
     assert ready["models"] == models and ready["refused"] == [] and ready["bundles"] == 3
     assert detail["version"] == "2" and detail["versions"] == ["1", "2"]
-    # a fresh leftover is not removed by the next write (it could be a write in progress) ...
+    # the service's start removed the leftover at once: its writer process is gone (bundle.writer_tag)
+    assert not tmp.exists()
+    # a fresh leftover of an unknown writer (another host, or an older package) is not removed by the next
+    # write (it could be a write in progress) ...
+    tmp = root / "boucwen" / ".tmp-3-unknown"
+    tmp.mkdir()
     save_bundle(built_registry().model, root, "boucwen", "3", fs=FS, units={"u": "N", "y": "m"}, training={})
     assert tmp.is_dir()
     assert _visible(root) == ({"boucwen": ["1", "2", "3"], "plain": ["1"]}, [])
@@ -147,7 +152,10 @@ def test_killed_first_write_of_a_new_model_is_invisible(tmp_path):
     c = TestClient(create_app(root, Settings(workers=1, queue_size=1)), raise_server_exceptions=False)
     r = c.get("/v1/models/newmodel")
     assert r.status_code == 404 and r.json()["field"] == "name"
-    # explicit clean-up: a fresh leftover survives a threshold, not a zero threshold
+    assert not tmp.exists()  # removed by the service's start: its writer process is gone
+    # explicit clean-up: a fresh leftover of an unknown writer survives a threshold, not a zero threshold
+    tmp = root / "newmodel" / ".tmp-1-unknown"
+    tmp.mkdir()
     assert remove_stale_temps(root) == [] and tmp.is_dir()
     assert remove_stale_temps(root, 0) == [tmp] and not tmp.exists()
     assert next_version(root, "newmodel") == "1"

@@ -573,3 +573,56 @@ def test_busy_answer_before_the_body_is_read_with_retry_after_from_the_queue():
         assert "gpnarx_requests_shed_total 2.0" in c.get("/metrics").text
         ex._pending, ex._pending_work = 0, 0.0
         assert c.post("/v1/models/boucwen/predict", json=_body()).status_code == 200
+
+
+# ------------------------------------------------------------------------------------------ leftovers
+_KILLED_WRITER = """
+import sys, time
+from pathlib import Path
+from gpnarx.model import bundle
+
+def fill(tmp, version):
+    (tmp / "theta.npy").write_bytes(b"partial")
+    print(tmp, flush=True)
+    time.sleep(120)
+
+bundle._write_new_version(Path(sys.argv[1]), "boucwen", None, fill)
+"""
+
+
+def test_killed_write_leftover_is_removed_at_start_and_by_a_scan(tmp_path, caplog):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from gpnarx.model.bundle import writer_tag
+
+    root = copy_registry(tmp_path / "reg")
+
+    def killed_write() -> Path:
+        p = subprocess.Popen([sys.executable, "-c", _KILLED_WRITER, str(root)], stdout=subprocess.PIPE, text=True)
+        tmp = Path(p.stdout.readline().strip())
+        assert tmp.is_dir() and tmp.name.startswith(".tmp-3-w")
+        os.kill(p.pid, signal.SIGKILL)  # a calibrate killed inside its publish
+        p.wait()
+        return tmp
+
+    first = killed_write()
+    alive = root / "boucwen" / f".tmp-9-{writer_tag()}-alive"  # a write in progress in this living process: kept
+    alive.mkdir()
+    unknown = root / "boucwen" / ".tmp-8-unknown"  # no writer file, fresh: kept for an hour
+    unknown.mkdir()
+    with caplog.at_level("WARNING", logger="gpnarx.service"):
+        app = create_app(root, _settings())
+    assert not first.exists() and alive.is_dir() and unknown.is_dir()
+    assert any("killed write" in r.getMessage() and first.name in r.getMessage() for r in caplog.records)
+    with TestClient(app, raise_server_exceptions=False) as c:
+        assert "gpnarx_registry_leftovers_removed_total 1.0" in c.get("/metrics").text
+        second = killed_write()
+        r = c.post("/v1/admin/reload")
+        assert r.status_code == 200 and not second.exists() and alive.is_dir()
+        text = c.get("/metrics").text
+        assert "gpnarx_registry_leftovers_removed_total 2.0" in text
+        assert 'gpnarx_registry_scans_total{outcome="unchanged",trigger="reload"} 1.0' in text
+        assert r.json()["models"] == {"boucwen": ["1", "2"], "plain": ["1"]}  # nothing half-written listed
