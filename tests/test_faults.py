@@ -626,3 +626,64 @@ def test_killed_write_leftover_is_removed_at_start_and_by_a_scan(tmp_path, caplo
         assert "gpnarx_registry_leftovers_removed_total 2.0" in text
         assert 'gpnarx_registry_scans_total{outcome="unchanged",trigger="reload"} 1.0' in text
         assert r.json()["models"] == {"boucwen": ["1", "2"], "plain": ["1"]}  # nothing half-written listed
+
+
+# ------------------------------------------------------------------------------------------ chaos on moto S3
+def test_chaos_two_replicas_on_moto_emptied_and_killed_store(tmp_path, monkeypatch):
+    """Two apps (replicas, each with its own cache) on one moto S3 registry: the bucket is emptied, then the
+    store is killed; neither replica answers a 5xx to a predict nor stops being ready."""
+    pytest.importorskip("s3fs")
+    server_mod = pytest.importorskip("moto.server")
+    import s3fs
+
+    from gpnarx.model.bundle import save_bundle
+
+    server = server_mod.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    for k, v in {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
+                 "AWS_DEFAULT_REGION": "us-east-1", "AWS_ENDPOINT_URL": f"http://{host}:{port}"}.items():
+        monkeypatch.setenv(k, v)
+    for k in ("AWS_PROFILE", "AWS_SESSION_TOKEN", "AWS_ENDPOINT_URL_S3", "GPNARX_STORAGE_OPTIONS"):
+        monkeypatch.delenv(k, raising=False)
+    s3fs.S3FileSystem.clear_instance_cache()
+    fs = s3fs.S3FileSystem()
+    url = "s3://faults/plant"
+    stopped = False
+    try:
+        fs.mkdir("faults")
+        for v in ("1", "2"):
+            save_bundle(built_registry().model, url, "bw", v, fs=FS, units={"u": "N", "y": "m"})
+        clients = []
+        for i in range(2):
+            monkeypatch.setenv("GPNARX_CACHE", str(tmp_path / f"cache-{i}"))
+            clients.append(TestClient(create_app(url, _settings(registry_confirm_scans=3)),
+                                      raise_server_exceptions=False))
+        statuses = []
+
+        def traffic():
+            for c in clients:
+                statuses.append(c.post("/v1/models/bw/predict", json=_body()).status_code)
+                statuses.append(c.get("/health/ready").status_code)
+
+        traffic()
+        fs.rm("faults/plant", recursive=True)  # the store comes back empty
+        s3fs.S3FileSystem.clear_instance_cache()
+        for _ in range(2):
+            for c in clients:
+                assert c.post("/v1/admin/reload").json()["held"]["listed"] == 0
+            traffic()
+        server.stop()  # the store is gone altogether
+        stopped = True
+        monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
+        for c in clients:
+            assert c.post("/v1/admin/reload").status_code == 503  # says so, and keeps serving
+        traffic()
+        assert statuses and all(s == 200 for s in statuses), statuses
+        for c in clients:
+            ready = c.get("/health/ready").json()
+            assert ready["bundles"] == 2 and ready["registry_held"]["scans"] == 2
+    finally:
+        if not stopped:
+            server.stop()
+        s3fs.S3FileSystem.clear_instance_cache()
