@@ -30,10 +30,22 @@ DEFAULT_WINDOW_SECONDS = 0.25
 SCALE_GRID = np.concatenate([[0.0], np.geomspace(1e-3, 1.0, 61)])
 
 
-def local_amplitude(mean: np.ndarray, window: int) -> np.ndarray:
-    """Moving RMS of ``mean`` over ``window`` samples centred on each sample [output units]."""
+def local_amplitude(mean: np.ndarray, window: int, open_end: bool = False) -> np.ndarray:
+    """Moving RMS of ``mean`` over ``window`` samples centred on each sample [output units].
+
+    Beyond the ends the first and last samples repeat. ``open_end``: the record goes on after its
+    last sample (a stream's chunk): a window that reaches past the end averages the samples it has
+    instead, the better guess of an amplitude that is still to come.
+    """
     m = np.asarray(mean, dtype=float)
     w = max(1, int(window))
+    if open_end and m.size:
+        left, right = w // 2, w - 1 - w // 2  # scipy's centring of an even window
+        sq = np.concatenate([np.full(left, m[0] * m[0]), m * m])  # the start repeats, as below
+        c = np.concatenate([[0.0], np.cumsum(sq)])
+        i = np.arange(m.size)
+        hi = np.minimum(i + right, m.size - 1) + left + 1  # exclusive end in sq
+        return np.sqrt(np.maximum((c[hi] - c[i]) / (hi - i), 0.0))
     from scipy.ndimage import uniform_filter1d  # here: scipy.ndimage costs 0.2 s of every CLI start
 
     return np.sqrt(np.maximum(uniform_filter1d(m * m, size=w, mode="nearest"), 0.0))
@@ -59,14 +71,19 @@ def _widen_pair(mean, lower, upper, extra):
     return lo, hi
 
 
-def widen(run, scale: float, window: int):
+def widen(run, scale: float, window: int, mean_before=None, open_end: bool = False):
     """A copy of the free run ``run`` (``freerun.FreeRun``) with the discrepancy term added.
 
     scale: fraction of the local amplitude (dimensionless); window: samples of the moving RMS.
+    mean_before: the mean outputs just before ``run`` (a stream's earlier chunks; output units): the
+    moving RMS of the run's first samples then sees them, as in the run of the whole record.
+    open_end: the record goes on after ``run`` (``local_amplitude``).
     """
     if scale <= 0.0:
         return run
-    extra_sd = float(scale) * local_amplitude(run.mean, window)
+    before = np.zeros(0) if mean_before is None else np.asarray(mean_before, dtype=float).ravel()
+    amp = local_amplitude(np.concatenate([before, run.mean]), window, open_end)[before.size:]
+    extra_sd = float(scale) * amp
     z = float(ndtri(0.5 + 0.5 * run.confidence))
     lo, hi = _widen_pair(run.mean, run.lower, run.upper, z * extra_sd)
     changes = {"std": np.sqrt(run.std**2 + extra_sd**2), "lower": lo, "upper": hi}

@@ -338,7 +338,7 @@ class GPNARX(BaseEstimator):
 
     def simulate(self, u, n_paths: int = 1024, seed: int | None = 0, y0=None, confidence: float = 0.99,
                  method: str = "mc", float32: bool = False, keep_paths: bool = False, progress=None,
-                 cov_window: int = 0, backend: str | None = None):
+                 cov_window: int = 0, backend: str | None = None, state=None, open_end: bool = False):
         """Free-run prediction for input u (input units) with uncertainty propagation.
 
         method: 'mc' (Monte Carlo over n_paths, seeded) or 'linear' (first-order propagation).
@@ -353,19 +353,39 @@ class GPNARX(BaseEstimator):
         backend: 'numpy' or 'jax' (``model.backend``; None: ``GPNARX_BACKEND``, else numpy). 'jax'
             runs the free run as one compiled program (``model.freerun_jax``): Monte Carlo with
             eq. 8-9 exact at every path, on a GPU when JAX has one.
+        state: the ``FreeRun.state`` of an earlier call, to continue that run with the next chunk of
+            the same record (a stream; numpy backend): the chunks together give the record's run
+            whole, the linearised one to round-off and Monte Carlo's identically at the same seed
+            (``seed`` is then unused: the state carries the generator).
+        open_end: more of the record follows this call (a stream's chunk). The band's discrepancy
+            term (``model.discrepancy``) averages the amplitude over a centred window; in the last
+            half-window of a chunk it averages what the chunk holds, so there the chunked band may
+            differ slightly from the whole record's (elsewhere it is the same).
         Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units); Monte Carlo runs
         count in ``diverged_paths`` the paths that left the training envelope (``model.envelope``).
         When the band was calibrated (``calibrate_band``), std and both bands include the
-        model-discrepancy term of ``model.discrepancy``.
+        model-discrepancy term of ``model.discrepancy``. ``FreeRun.state`` is where the run ended.
         """
         self._check_fitted()
+        backend = check_backend(backend)
+        if state is not None and backend != "numpy":
+            raise ValueError("state: continuing a stream runs on the numpy backend only, got backend "
+                             f"{backend!r}")
         run = self._simulate(u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,
-                             check_backend(backend))
+                             backend, state)
         disc = getattr(self, "band_discrepancy_", None)
-        return widen(run, float(disc["scale"]), int(disc["window"])) if disc else run
+        if not disc:
+            return run
+        window = int(disc["window"])
+        amp_tail = None if state is None else state.amp_tail
+        out = widen(run, float(disc["scale"]), window, amp_tail, open_end)
+        if out.state is not None:
+            prev = np.zeros(0) if amp_tail is None else np.asarray(amp_tail, dtype=float)
+            out.state.amp_tail = np.concatenate([prev, run.mean])[-window:].copy()
+        return out
 
     def _simulate(self, u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,
-                  backend="numpy"):
+                  backend="numpy", state=None):
         u = _as_input(u)
         limit = divergence_limit(check_envelope(getattr(self, "envelope_", None)))
         if method not in ("mc", "linear"):
@@ -388,11 +408,11 @@ class GPNARX(BaseEstimator):
             return freerun.simulate_mc(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                        n_paths=int(n_paths), seed=seed, y0=y0, confidence=confidence,
                                        include_noise=self.include_noise, float32=float32,
-                                       keep_paths=keep_paths, progress=progress, diverge_limit=limit)
+                                       keep_paths=keep_paths, progress=progress, diverge_limit=limit, state=state)
         if method == "linear":
             return freerun.simulate_linear(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                            y0=y0, confidence=confidence, include_noise=self.include_noise,
-                                           progress=progress, cov_window=cov_window)
+                                           progress=progress, cov_window=cov_window, state=state)
 
     def __repr__(self) -> str:
         return f"GPNARX(ny={self.ny}, nu={self.nu}, kernel={self.kernel!r}, mode={self.mode!r})"

@@ -30,7 +30,18 @@ import time
 import numpy as np
 from scipy.special import ndtri
 
-from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, McPaths, check_confidence, lagged_inputs, start_index
+from .freerun_core import (
+    LAG_CLIP,
+    VAR_CAP,
+    FreeRun,
+    FreeRunState,
+    McPaths,
+    check_confidence,
+    check_state,
+    inputs_with_tail,
+    next_u_tail,
+    start_index,
+)
 from .freerun_reference import simulate_linear_reference
 from .gp import local_model
 from .kernels import RBF, SQRT3, CubicPolynomial, Matern32, Sum, White
@@ -67,6 +78,7 @@ def simulate_mc(
     diverge_limit: float | None = None,
     latent: bool = True,
     local: bool | None = None,
+    state: FreeRunState | None = None,
 ) -> FreeRun:
     """Monte Carlo free-run over ``n_paths`` paths advanced together (see module docstring).
 
@@ -92,9 +104,13 @@ def simulate_mc(
     The random draws are the same as the exact evaluation's (same seed, same paths up to the model's
     error). ``local=False``: every step exact (``freerun_reference.simulate_mc_reference``'s arithmetic).
     ``latent``: also the latent band (``FreeRun.latent_lower``/``latent_upper``; see module docstring).
+    ``state``: a ``FreeRunState`` of an earlier run (its ``FreeRun.state``) to continue from, instead of
+    starting at rest or at ``y0``: the same paths, random generator and local-model schedule, so a
+    record run in chunks gives the numbers of the record run whole. ``FreeRun.state`` is where this
+    run ended.
     """
     st = McPaths(posterior, x_scaler, y_scaler, ny, nu, u, n_paths, seed, y0, confidence, include_noise,
-                 keep_paths, latent)
+                 keep_paths, latent, state)
     P, n, i0, y0v, noise = st.P, st.n, st.i0, st.y0v, st.noise
     xm, xs, Xs, Ulag, ylag_raw = st.xm, st.xs, st.Xs, st.Ulag, st.ylag_raw
     use_local = (bool(LOCAL_MODEL if local is None else local) and P >= LOCAL_MIN_PATHS
@@ -102,6 +118,9 @@ def simulate_mc(
     n_check = min(LOCAL_CHECKS, P)
     check_rng = np.random.default_rng(None if seed is None else [int(seed), 0x10CA1])
     floor, retry_at = 0, -1  # after a failed check, start at level ``floor`` until step retry_at
+    if state is not None:
+        check_rng.bit_generator.state = state.check_rng
+        floor, retry_at = int(state.floor), int(state.retry_in)
     local_steps = 0
     # a lag value inside (lo, hi) needs no clipping in any column; outside: clip the next ny steps
     lo = float(np.max(xm[:ny] - LAG_CLIP * xs[:ny]))
@@ -109,6 +128,11 @@ def simulate_mc(
     clip_until = -1
     if i0 and not (lo < float(y0v.min()) and float(y0v.max()) < hi):
         clip_until = i0 + ny
+    if state is not None:  # the steps a carried lag outside (lo, hi) still takes part in (as the whole run)
+        for k in range(ny):  # ylag_raw[:, k] is y_{-1-k}: a lag of the steps up to ny - 1 - k
+            col = ylag_raw[:, k]
+            if not (lo < float(col.min()) and float(col.max()) < hi):
+                clip_until = max(clip_until, ny - 1 - k)
     mu = np.empty(P)
     var = np.empty(P)
     tmp = np.empty((P, 2 * ny))
@@ -138,7 +162,8 @@ def simulate_mc(
             clip_until = i + ny  # some lag of the next ny steps may need clipping
         if progress is not None and (i % 256 == 0 or i == n - 1):
             progress(i + 1, n)
-    return st.result(diverge_limit, local_steps=local_steps)
+    end = st.end_state(u, state, check_rng, floor, max(retry_at - n, -1))
+    return st.result(diverge_limit, local_steps=local_steps, state=end)
 
 
 def _has_local_model(posterior, D: int, ny: int) -> bool:
@@ -204,6 +229,7 @@ def simulate_linear(
     include_noise: bool = True,
     progress=None,
     cov_window: int = 0,
+    state: FreeRunState | None = None,
 ) -> FreeRun:
     """First-order (linearised) propagation of mean and covariance through the lagged outputs.
 
@@ -223,8 +249,18 @@ def simulate_linear(
        posterior's ``mean_var_grad``);
     3. the covariance recursion (ny x ny per step).
     Posteriors without ``mean_var_grad`` take the reference loop.
+
+    state: a ``FreeRunState`` of an earlier run (its ``FreeRun.state``) to continue from instead of
+    starting at rest or at ``y0``: its last means, input lags and state covariance, so a record run in
+    chunks gives the numbers of the record run whole (to round-off). A state with a smaller covariance
+    window than ``cov_window`` is padded with zeros (the older covariances start unknown-as-zero); a
+    larger one is cut. ``FreeRun.state`` is where this run ended.
     """
     fast = _MeanRecursion.build(posterior, x_scaler, ny, nu)
+    if state is not None:
+        check_state(state, "linear", ny, nu, y0)
+        if fast is None or not hasattr(posterior, "mean_var_grad"):
+            raise ValueError("state: this posterior's linearised run cannot continue a stream")
     if fast is None or not hasattr(posterior, "mean_var_grad"):
         return simulate_linear_reference(posterior, x_scaler, y_scaler, ny, nu, u, y0=y0, confidence=confidence,
                                           include_noise=include_noise, progress=progress, cov_window=cov_window)
@@ -236,17 +272,20 @@ def simulate_linear(
     i0, y0v = start_index(n, ny, y0)
     xm, xs = x_scaler.mean_, x_scaler.scale_
     ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
-    # pass 1: hist[t + ny] = mean output at time t (output units); hist[:ny] = 0 (at rest)
+    Ulag = (inputs_with_tail(u, nu, state) - xm[ny:]) / xs[ny:]
+    # pass 1: hist[t + ny] = mean output at time t (output units); hist[:ny] = 0 (at rest) or the state's means
     hist = np.zeros(n + ny)
     if i0:
         hist[ny: 2 * ny] = y0v
+    elif state is not None:
+        hist[:ny] = state.mean_tail
     fast.run(hist, Ulag, i0, n, ym, ys, progress)
     mean = hist[ny:].copy()
     std = np.zeros(n)
     lstd = np.zeros(n)  # latent std: var(y_i) without the reporting step's sigma_y^2
     L = max(ny, int(cov_window or 0))
     band = np.zeros((n, L)) if L > ny else None
+    S_end = None if state is None else _resize(np.asarray(state.cov, dtype=float), L)
     if n > i0:
         # pass 2: the mean regressors of every step (standardised, clipped as in pass 1)
         win = np.lib.stride_tricks.sliding_window_view(hist, ny)[i0:n, ::-1]  # [y_{i-1}, ..., y_{i-ny}]
@@ -260,7 +299,7 @@ def simulate_linear(
         q = (var_f + noise) * (ys * ys)  # sigma_f^2 + sigma_y^2 in output units
         Jall = grad[:, :ny] * (ys / xs[:ny])  # d mu_out / d y_lag (output units)
         # pass 3: covariance recursion
-        var_y, prop = _covariance_recursion(q, Jall, L, ys, band, i0)
+        var_y, prop, S_end = _covariance_recursion(q, Jall, L, ys, band, i0, S_end)
         std[i0:] = np.sqrt(np.maximum(var_y, 0.0))
         # latent: var(y_i) without the reporting step's sigma_y^2 (as the reference loop)
         var_lat = var_f * (ys * ys) + prop
@@ -269,19 +308,33 @@ def simulate_linear(
                              std[i0:])
     if progress is not None:
         progress(n, n)
+    end = FreeRunState("linear", (0 if state is None else state.position) + n, next_u_tail(u, nu, state),
+                       mean_tail=hist[n: n + ny].copy(), cov=np.zeros((L, L)) if S_end is None else S_end)
     return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
                    time.perf_counter() - t_start, n - i0, cov_band=band,
-                   latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)
+                   latent_lower=mean - z * lstd, latent_upper=mean + z * lstd, state=end)
 
 
-def _covariance_recursion(q: np.ndarray, Jall: np.ndarray, L: int, ys: float, band, i0: int):
+def _resize(S: np.ndarray, L: int) -> np.ndarray:
+    """A state covariance as L x L: cut, or padded with zeros (square, symmetric input)."""
+    if S.ndim != 2 or S.shape[0] != S.shape[1] or not np.all(np.isfinite(S)):
+        raise ValueError("state: cov must be a finite square matrix")
+    out = np.zeros((L, L))
+    k = min(L, S.shape[0])
+    out[:k, :k] = S[:k, :k]
+    return out
+
+
+def _covariance_recursion(q: np.ndarray, Jall: np.ndarray, L: int, ys: float, band, i0: int,
+                          S0: np.ndarray | None = None):
     """var(y_i) for every step of the linearised propagation and its propagated part J S J^T (two
     arrays), and cov(y_i, y_{i-k}) into ``band``.
 
     S (L x L, output units) is the covariance of [y_{i-1}, ..., y_{i-L}]; one step is
     SJ = S[:, :ny] J, var_y = q_i + J . SJ[:ny], then S shifts down the diagonal with [var_y, SJ]
     as its new first row and column. The shift costs nothing: S is a moving diagonal window of a
-    larger buffer (rebased every ``block`` steps). Same caps as the reference loop.
+    larger buffer (rebased every ``block`` steps). Same caps as the reference loop. ``S0``: the
+    covariance to start from (zeros: at rest or at known outputs). Returns also S after the last step.
     """
     ny = Jall.shape[1]
     steps = q.size
@@ -291,6 +344,8 @@ def _covariance_recursion(q: np.ndarray, Jall: np.ndarray, L: int, ys: float, ba
     block = 512
     B = np.zeros((L + block, L + block))
     o = block  # S = B[o:o+L, o:o+L]
+    if S0 is not None:
+        B[o:o + L, o:o + L] = S0
     isfinite = math.isfinite
     dot = np.dot
     safe = 0.25 * cap
@@ -320,7 +375,7 @@ def _covariance_recursion(q: np.ndarray, Jall: np.ndarray, L: int, ys: float, ba
         if band is not None:
             band[i0 + k, 0] = v
             band[i0 + k, 1:] = SJ[:-1]
-    return out, prop
+    return out, prop, B[o: o + L, o: o + L].copy()
 
 
 class _MeanRecursion:

@@ -31,10 +31,76 @@ class FreeRun:
     latent_lower: np.ndarray | None = field(default=None, repr=False)
     latent_upper: np.ndarray | None = field(default=None, repr=False)
     backend: str = "numpy"  # the array backend that ran it (``model.backend``)
+    state: "FreeRunState | None" = field(default=None, repr=False)  # where the run ended, to continue it
+
 
     @property
     def band_width(self) -> np.ndarray:
         return self.upper - self.lower
+
+
+@dataclass
+class FreeRunState:
+    """Where a free run ended: what the next chunk of the same record needs to continue it exactly.
+
+    method: 'linear' or 'mc'. position: samples of the stream consumed so far. u_tail: the last
+    nu - 1 inputs (input units; zeros before the stream began). Linearised: ``mean_tail``, the last
+    ny mean outputs (output units, oldest first) and ``cov``, the covariance (output units squared)
+    of [y_{i-1}, ..., y_{i-L}]. Monte Carlo: ``paths``, every path's last ny outputs (P x ny, newest
+    first), ``path_peak`` (running peak |y| of each path), the random generator's state ``rng`` and
+    the local model's check generator ``check_rng``, ``floor`` and ``retry_in`` (steps until the
+    local model retries its cheapest level). ``amp_tail``: the last mean outputs the band's
+    discrepancy window needs on its left (``model.discrepancy``).
+    """
+
+    method: str
+    position: int
+    u_tail: np.ndarray
+    mean_tail: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    paths: np.ndarray | None = None
+    path_peak: np.ndarray | None = None
+    rng: dict | None = None
+    check_rng: dict | None = None
+    floor: int = 0
+    retry_in: int = 0
+    amp_tail: np.ndarray | None = None
+
+
+def inputs_with_tail(u: np.ndarray, nu: int, state: "FreeRunState | None") -> np.ndarray:
+    """(n, nu) lagged inputs of ``u``; the lags before its first sample come from ``state.u_tail``."""
+    if state is None:
+        return lagged_inputs(u, nu)
+    tail = np.asarray(state.u_tail, dtype=float)
+    if tail.shape != (nu - 1,):
+        raise ValueError(f"state: u_tail holds {tail.size} inputs, this model needs nu - 1 = {nu - 1}")
+    return lagged_inputs(np.concatenate([tail, u]), nu)[nu - 1:]
+
+
+def next_u_tail(u: np.ndarray, nu: int, state: "FreeRunState | None") -> np.ndarray:
+    """The last nu - 1 inputs after ``u`` (with the state's tail when ``u`` is shorter)."""
+    prev = np.zeros(nu - 1) if state is None else np.asarray(state.u_tail, dtype=float)
+    return np.concatenate([prev, np.asarray(u, dtype=float)])[len(u):] if nu > 1 else np.zeros(0)
+
+
+def check_state(state: FreeRunState, method: str, ny: int, nu: int, y0, n_paths: int = 0) -> None:
+    """Refuse a state that cannot continue this run (ValueError naming what differs)."""
+    if not isinstance(state, FreeRunState):
+        raise ValueError(f"state must be a FreeRunState, got {type(state).__name__}")
+    if state.method != method:
+        raise ValueError(f"state: it continues a '{state.method}' run, this run's method is '{method}'")
+    if y0 is not None and np.asarray(y0).size:
+        raise ValueError("state: give either y0 (a new start) or a state (a continuation), not both")
+    if method == "mc":
+        paths = np.asarray(state.paths)
+        if paths.shape != (n_paths, ny):
+            raise ValueError(f"state: it carries {paths.shape[0] if paths.ndim == 2 else 0} paths of "
+                             f"{paths.shape[-1] if paths.ndim == 2 else 0} lags; this run has n_paths={n_paths}, "
+                             f"ny={ny}")
+    elif np.asarray(state.mean_tail).shape != (ny,):
+        raise ValueError(f"state: mean_tail must hold ny={ny} outputs")
+    if np.asarray(state.u_tail).shape != (nu - 1,):
+        raise ValueError(f"state: u_tail must hold nu - 1 = {nu - 1} inputs")
 
 
 def check_confidence(confidence: float) -> float:
@@ -81,17 +147,22 @@ class McPaths:
     """
 
     def __init__(self, posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.ndarray, n_paths: int,
-                 seed, y0, confidence: float, include_noise: bool, keep_paths: bool, latent: bool):
+                 seed, y0, confidence: float, include_noise: bool, keep_paths: bool, latent: bool,
+                 state: FreeRunState | None = None):
         self.t_start = time.perf_counter()
         self.confidence = check_confidence(confidence)
         if int(n_paths) < 1:
             raise ValueError(f"n_paths must be at least 1, got {n_paths}")
         P = self.P = int(n_paths)
         n = self.n = u.size
-        self.ny = ny
+        self.ny, self.nu = ny, nu
+        if state is not None:
+            check_state(state, "mc", ny, nu, y0, P)
         self.i0, self.y0v = start_index(n, ny, y0)
         i0, y0v = self.i0, self.y0v
         self.rng = np.random.default_rng(seed)
+        if state is not None:
+            self.rng.bit_generator.state = state.rng
         self.q = ((1.0 - self.confidence) / 2.0, 1.0 - (1.0 - self.confidence) / 2.0)
         self.mean = np.zeros(n)
         self.std = np.zeros(n)
@@ -104,11 +175,13 @@ class McPaths:
             self.paths[:i0] = y0v[:, None]
         self.xm, self.xs = x_scaler.mean_, x_scaler.scale_
         self.ym, self.ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-        self.Ulag = (lagged_inputs(u, nu) - self.xm[ny:]) / self.xs[ny:]  # standardised input part, shared
+        self.Ulag = (inputs_with_tail(u, nu, state) - self.xm[ny:]) / self.xs[ny:]  # standardised, shared
         # lagged outputs of every path in output units; at rest = 0
         self.ylag_raw = np.zeros((P, ny))
         if i0:
             self.ylag_raw[:] = y0v[::-1][None, :]  # [y_{i0-1}, ..., y_{i0-ny}]
+        elif state is not None:
+            self.ylag_raw[:] = state.paths
         self.Xs = np.empty((P, ny + nu))
         self.noise = posterior.noise_var if include_noise else 0.0
         # samples of a block of steps; band statistics are computed per block (one vectorised
@@ -120,7 +193,7 @@ class McPaths:
         self.lbuf = np.empty((self.block, P)) if self.lat else None
         self.lat_lo = self.lower.copy() if self.lat else None
         self.lat_hi = self.upper.copy() if self.lat else None
-        self.path_peak = np.zeros(P)  # running peak |y| of each path (output units)
+        self.path_peak = np.zeros(P) if state is None else np.array(state.path_peak, dtype=float)  # output units
         self.b0 = i0
 
     def draw(self, i: int, mu: np.ndarray, var: np.ndarray) -> np.ndarray:
@@ -157,6 +230,14 @@ class McPaths:
             self.lat_hi[b0 : i + 1] *= ys
             self.lat_hi[b0 : i + 1] += ym
         self.b0 = i + 1
+
+    def end_state(self, u: np.ndarray, prev: FreeRunState | None, check_rng, floor: int,
+                  retry_in: int) -> FreeRunState:
+        """The state after this run's last step (``FreeRunState``), to continue the stream."""
+        return FreeRunState("mc", (0 if prev is None else prev.position) + self.n, next_u_tail(u, self.nu, prev),
+                            paths=self.ylag_raw.copy(), path_peak=self.path_peak.copy(),
+                            rng=self.rng.bit_generator.state, check_rng=check_rng.bit_generator.state,
+                            floor=int(floor), retry_in=int(retry_in))
 
     def result(self, diverge_limit: float | None, **extra) -> FreeRun:
         """The run as a ``FreeRun``; paths whose peak |y| passed ``diverge_limit`` are counted."""

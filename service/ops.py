@@ -17,9 +17,11 @@ from gpnarx.model.backend import jax_available
 from gpnarx.model.bundle import Bundle
 from gpnarx.model.cycles import cov_window_for, cycles
 from gpnarx.model.envelope import assess
+from gpnarx.model.freerun_core import FreeRunState
 from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import UnusableProbeContract, assess_novelty, novelty_start
 from gpnarx.model.restoring import loop_area, loop_units, restoring_force
+from gpnarx.model.stream_token import StateMismatch, StateTokenError, decode_state, encode_state
 
 from .problems import ProblemError
 from .settings import Settings
@@ -36,6 +38,8 @@ class Plan:
     mc_paths: int  # 0 for linear
     work: int  # Monte Carlo path-steps (samples for linear)
     backend: str = "numpy"  # array backend of the free run (model.backend)
+    state: FreeRunState | None = None  # the stream state the free run continues (request's `state`)
+    stream_key: str | None = None  # signs the answer's state token (settings.stream_key)
 
 
 def _fs_matches(a: float, b: float) -> bool:
@@ -90,11 +94,40 @@ def plan(operation: str, req, bundle: Bundle, settings: Settings, budget: int | 
     if backend == "jax" and not jax_available():
         raise ProblemError(422, "backend 'jax' is not installed on this server (pip install 'gpnarx[jax]'); "
                                 "use backend 'numpy'", "backend")
-    return Plan(operation, bundle, method, paths, work, backend)
+    state = _stream_state(req, bundle, settings, method, paths, backend)
+    return Plan(operation, bundle, method, paths, work, backend, state, settings.stream_key)
+
+
+def _stream_state(req, bundle: Bundle, settings: Settings, method: str, paths: int, backend: str):
+    """The request's stream state, decoded and checked against this call (None without one)."""
+    token = getattr(req, "state", None)
+    if token is None:
+        return None
+    try:
+        state = decode_state(token, bundle.name, bundle.version, settings.stream_key)
+    except StateMismatch as exc:
+        raise ProblemError(409, str(exc), "state") from None
+    except StateTokenError as exc:
+        raise ProblemError(422, str(exc), "state") from None
+    if state.method != method:
+        raise ProblemError(422, f"state continues a '{state.method}' free run; this call's method is '{method}' "
+                                f"(send method '{state.method}')", "state")
+    if method == "mc" and state.paths is not None and state.paths.shape[0] != paths:
+        raise ProblemError(422, f"state carries {state.paths.shape[0]} Monte Carlo paths; this call asks for "
+                                f"mc_paths={paths} (send mc_paths={state.paths.shape[0]})", "state")
+    if backend != "numpy":
+        raise ProblemError(422, "a stream (state) continues on the numpy backend only; send backend 'numpy'",
+                           "backend")
+    if (req.y0 is not None and len(req.y0) > 0) or getattr(req, "start", None) is not None:
+        raise ProblemError(422, "state continues a free run: y0 and start do not apply (leave them out)", "state")
+    return state
 
 
 def start_of(operation: str, req) -> str:
-    """The request's start rule: its ``start`` field, else 'measured' for novelty and 'rest' otherwise."""
+    """The request's start rule: 'state' when it continues a stream, its ``start`` field, else 'measured' for
+    novelty and 'rest' otherwise."""
+    if getattr(req, "state", None) is not None:
+        return "state"
     start = getattr(req, "start", None)
     return start if start is not None else ("measured" if operation == "novelty" else "rest")
 
@@ -147,15 +180,18 @@ def _simulate(plan: Plan, req, token: CancelToken | None = None):
         with np.errstate(all="ignore"):
             if start_of(plan.operation, req) == "measured":
                 y0 = novelty_start(req.y if req.y is not None else [], model.ny, req.y0)
+            elif plan.state is not None:
+                y0 = None
             else:
                 y0 = req.y0 or None
+            stream = {"state": plan.state, "open_end": bool(getattr(req, "return_state", False))}
             extra = {}
             if plan.operation == "loops":  # per-cycle energy intervals need every path / the covariance band
                 extra = ({"keep_paths": True} if plan.method == "mc"
                          else {"cov_window": cov_window_for(u, plan.bundle.fs, model.ny)})
             run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=y0,
                                  confidence=float(req.confidence), method=plan.method, backend=plan.backend,
-                                 progress=None if token is None else token.progress, **extra)
+                                 progress=None if token is None else token.progress, **extra, **stream)
     except ValueError as exc:
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
         raise ProblemError(422, msg, _field_from_message(msg)) from None
@@ -165,6 +201,20 @@ def _simulate(plan: Plan, req, token: CancelToken | None = None):
                                 f"this input (non-finite outputs): u is probably far outside the amplitude or "
                                 f"frequency range the model was trained on", "u")
     return u, run
+
+
+def _stream_fields(plan: Plan, req, run) -> dict:
+    """The answer's stream members: the end state's token when asked for, and the stream position."""
+    if plan.state is None and not getattr(req, "return_state", False):
+        return {}
+    out = {"stream_position": int(run.state.position) if run.state is not None
+           else (0 if plan.state is None else plan.state.position) + len(req.u)}
+    if getattr(req, "return_state", False):
+        if run.state is None:
+            raise ProblemError(422, f"backend '{run.backend}' cannot return a stream state; use backend 'numpy'",
+                               "return_state")
+        out["state"] = encode_state(run.state, plan.bundle.name, plan.bundle.version, plan.stream_key)
+    return out
 
 
 def _num(v) -> float | None:
@@ -184,7 +234,7 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
     flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
     common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
               "backend": run.backend,
-              "seed": int(req.seed), "start": start_of(plan.operation, req), **flags}
+              "seed": int(req.seed), "start": start_of(plan.operation, req), **flags, **_stream_fields(plan, req, run)}
     steps = int(run.path_steps) if run.method == "mc" else 0
     if plan.operation == "predict":
         out = {**head, "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std, **common,
@@ -219,7 +269,9 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> tuple[dict, in
     if plan.operation == "novelty":
         nov = novelty_of(b)
         try:
-            a = assess_novelty(nov, u, req.y, b.fs, run, start=start_of(plan.operation, req), flags=flags)
+            # a stream's later chunk continues a run begun by the probe's rule: no new start-up to judge
+            rule = "measured" if plan.state is not None else start_of(plan.operation, req)
+            a = assess_novelty(nov, u, req.y, b.fs, run, start=rule, flags=flags)
         except UnusableProbeContract as exc:  # a malformed contract in the manifest: say so rather than guess
             raise ProblemError(409, f"model {b.name}:{b.version} has an unusable probe contract: {exc}") from None
         except ValueError as exc:

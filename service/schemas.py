@@ -16,6 +16,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, Strict
 
+from gpnarx.model.stream_token import MAX_TOKEN_CHARS
+
 from .settings import DEFAULT_BOUNDS
 
 B = DEFAULT_BOUNDS
@@ -59,6 +61,15 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+_STATE_DESC = ("A stream's state: the `state` token of the previous chunk's answer (same model and version, "
+               "same `method`, and for Monte Carlo the same `mc_paths`). The free run continues from it instead "
+               "of starting at rest or at measured outputs, so a record sent in chunks gets the answers of the "
+               "record sent whole. `y0` and `start` do not apply. Damaged, truncated or forged tokens: 422, "
+               "field `state`; a token of another model version: 409.")
+_RETURN_STATE_DESC = ("Return the free run's end state as `state` in the answer, to continue the stream with the "
+                      "next chunk. The band's last half-window is then computed for a record that goes on.")
+
+
 class RecordRequest(_Strict):
     """A record to predict from (the body of predict and loops)."""
 
@@ -75,6 +86,8 @@ class RecordRequest(_Strict):
     method: Literal["mc", "linear"] | None = Field(None, description=_METHOD_DESC)
     backend: Literal["numpy", "jax"] | None = Field(None, description=_BACKEND_DESC)
     start: Literal["rest", "measured"] | None = Field(None, description=_START_DESC)
+    state: str | None = Field(None, min_length=1, max_length=MAX_TOKEN_CHARS, description=_STATE_DESC)
+    return_state: bool = Field(False, description=_RETURN_STATE_DESC)
 
 
 class NoveltyRequest(RecordRequest):
@@ -149,8 +162,13 @@ _OOR_DESC = ("What lies outside the model's knowledge: 'u' when the record's pea
 
 
 class _Knowledge(BaseModel):
-    start: Literal["rest", "measured"] = Field("rest", description="The start rule the free run used (see the "
-                                                "request's `start`).")
+    start: Literal["rest", "measured", "state"] = Field("rest", description="The start rule the free run used "
+                                                         "(see the request's `start`); 'state' when it continued "
+                                                         "a stream from the request's `state`.")
+    state: str | None = Field(None, description="With `return_state`: the token of where this free run ended. "
+                                                "Send it as the next chunk's `state` (docs/api.md, Streams).")
+    stream_position: int | None = Field(None, description="With `state` or `return_state`: samples of the "
+                                                          "stream consumed up to the end of this chunk.")
     diverged_paths: int = Field(0, description=_DIVERGED_DESC)
     out_of_range: list[Literal["u", "y", "prediction", "frequency", "probe"]] = Field(default_factory=list,
                                                                          description=_OOR_DESC)

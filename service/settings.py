@@ -191,6 +191,11 @@ class Settings(BaseSettings):
                                                 label="array backend of the free run when a body names none "
                                                       "('jax': docs/accelerator.md)",
                                                 exceeded="422 on a request if 'jax' is not installed")
+    stream_key: str | None = _setting(None, kind=None, shown="unset (checksum only)",
+                                      label="secret that signs stream state tokens (`state`, `return_state`); every "
+                                            "replica of a deployment needs the same one. Unset: tokens carry a "
+                                            "checksum, not a signature",
+                                      exceeded="422, field `state`, for a token signed with another key")
     log_format: Literal["text", "json"] = _setting("text", kind=None, shown="text",
                                                    label="log lines of `gpnarx serve`: `text`, or `json` (one object "
                                                          "per line: time, level, logger, message, request_id)")

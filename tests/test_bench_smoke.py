@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py",
            "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
            "bench_sparse_accuracy.py", "bench_sparse_variance.py", "bench_mc_speed.py", "bench_realtime.py",
-           "bench_gpu.py", "bench_wire.py"]
+           "bench_gpu.py", "bench_wire.py", "bench_stream.py"]
 # fields of some RESULT lines that must be finite positive numbers (besides ratio and baseline)
 FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_extrapolated", "user_ratio"),
           "bench_predict_e2e.py": ("wall_s", "baseline_wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s",
@@ -28,7 +28,8 @@ FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_e
           "bench_mc_speed.py": ("path_steps_per_s", "max_edge_diff_se"),
           "bench_realtime.py": ("rt_factor", "rt_factor_cpu", "wall_s", "cpu_s"),
           "bench_gpu.py": ("pss", "realtime", "pss_segment", "band_median_se", "numpy_seeds_band_median_se"),
-          "bench_wire.py": ("json_bytes", "gzip_bytes", "npz_bytes", "json_ms", "gzip_ms", "npz_ms")}
+          "bench_wire.py": ("json_bytes", "gzip_bytes", "npz_bytes", "json_ms", "gzip_ms", "npz_ms"),
+          "bench_stream.py": ("linear_token_bytes", "mc_token_bytes", "mc_token_ms", "ratio")}
 # the baselines' numerics agree with the product's (same model on both sides of ratio=)
 MATCH = {"bench_freerun.py": "max_mean_diff", "bench_modes.py": "max_mean_diff",
          "bench_bert_scale.py": "ref_max_mean_diff", "bench_predict_e2e.py": "ref_max_mean_diff"}
@@ -61,6 +62,9 @@ def test_bench_quick(script):
     if script == "bench_wire.py":  # the compact formats are smaller than JSON and answer the same numbers
         assert int(kv["gzip_bytes"]) < int(kv["json_bytes"]) and int(kv["npz_bytes"]) < int(kv["json_bytes"]), kv
         assert float(kv["max_mean_diff"]) == 0.0, kv
+    if script == "bench_stream.py":  # chunks give the whole record's mean and, off the chunks' ends, its band
+        assert float(kv["linear_max_mean_diff"]) == 0.0 and float(kv["mc_max_mean_diff"]) == 0.0, kv
+        assert float(kv["linear_max_band_diff_inner"]) < 1e-9 and float(kv["mc_max_band_diff_inner"]) < 1e-9, kv
     if script in MATCH:
         assert float(kv[MATCH[script]]) < 1e-8, kv
     if script == "bench_mc_speed.py":  # same draws: the bands agree far inside their Monte Carlo error
