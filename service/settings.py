@@ -47,6 +47,7 @@ server process predicted about 30 % slower than a process that had trained a mod
 """
 from __future__ import annotations
 
+import math
 import os
 from contextvars import ContextVar
 from typing import Any, Literal
@@ -58,6 +59,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from gpnarx.model.runtime import DEFAULT_BLAS_THREADS, DEFAULT_MMAP_THRESHOLD, env_int
 
 MiB = 1024 * 1024
+CONFIRM_WINDOW = 300.0  # [s] polls a held registry listing needs by default (registry_confirm_scans)
 DRAIN_MARGIN = 10.0  # [s] the default drain window's margin over GPNARX_REQUEST_TIMEOUT
 ENV_PREFIX = "GPNARX_"
 
@@ -181,10 +183,11 @@ class Settings(BaseSettings):
                                                 "dropping more (or every version) is held",
                                           exceeded="the last good registry keeps serving (`/health/ready` "
                                                    "`registry_held`)")
-    registry_confirm_scans: int = _setting(3, ge=1, kind=_POSITIVE,
-                                           label="consecutive scans that must show the same held listing before "
-                                                 "it is served (1 = at once; `POST /v1/admin/reload?accept_removal="
-                                                 "true` serves it now)")
+    registry_confirm_scans: int | None = _setting(None, ge=1, kind=_POSITIVE,
+                                                  shown="the polls of 5 min (at least 3)",
+                                                  label="consecutive scans that must show the same held listing "
+                                                        "before it is served (1 = at once; `POST /v1/admin/reload?"
+                                                        "accept_removal=true` serves it now)")
     max_loaded: int = _setting(8, ge=1, kind=_POSITIVE, label="built models kept in memory (least recently used "
                                                               "dropped first)")
     backend: Literal["numpy", "jax"] = _setting("numpy", kind=None, shown="numpy",
@@ -260,6 +263,15 @@ class Settings(BaseSettings):
     def with_(self, **changes) -> Settings:
         """A copy with ``changes`` (validated like the original)."""
         return type(self)(**{**self.model_dump(), **changes})
+
+    @property
+    def confirm_scans(self) -> int:
+        """Consecutive scans a held registry listing needs: ``registry_confirm_scans``, else the polls
+        of ``CONFIRM_WINDOW`` seconds (at least 3), so a store that is empty for a few minutes at
+        most, whatever the poll interval, never empties the server."""
+        if self.registry_confirm_scans is not None:
+            return int(self.registry_confirm_scans)
+        return max(3, math.ceil(CONFIRM_WINDOW / self.registry_poll)) if self.registry_poll > 0 else 3
 
     @property
     def drain_seconds(self) -> float:

@@ -98,7 +98,7 @@ class ServiceState:
 
         A scan that drops every listed version, or more than ``settings.registry_drop_share`` of
         them, is held (``_hold``): the last good registry keeps serving until the same listing is
-        seen on ``settings.registry_confirm_scans`` consecutive scans, or ``accept_removal``."""
+        seen on ``settings.confirm_scans`` consecutive scans, or ``accept_removal``."""
         if self.registry_dir is None:
             raise ProblemError(409, "no registry folder is configured; nothing to reload")
         trigger = "poll" if poll else "reload"
@@ -147,7 +147,7 @@ class ServiceState:
         A scan is suspect when it drops every version ``old`` listed, or more than
         ``registry_drop_share`` of them (an emptied or wiped store, a wrong bucket or prefix, a
         volume not mounted). A suspect listing is served once the same listing has been seen on
-        ``registry_confirm_scans`` consecutive scans, or at once with ``accept`` (the admin action).
+        ``settings.confirm_scans`` consecutive scans, or at once with ``accept`` (the admin action).
         """
         before, after = old.listed(), new.listed()
         dropped = before - after
@@ -158,7 +158,7 @@ class ServiceState:
             return None
         key = frozenset(after)
         seen = self._pending[1] + 1 if self._pending is not None and self._pending[0] == key else 1
-        needed = self.settings.registry_confirm_scans
+        needed = self.settings.confirm_scans
         if accept or seen >= needed:
             how = "by an admin reload with accept_removal" if accept else f"after {seen} consecutive scans"
             log.warning("registry: a listing without %d of %d versions (%s) is served now, %s", len(dropped),

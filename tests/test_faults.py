@@ -138,6 +138,12 @@ def test_registry_guard_settings_are_checked(kw, match):
         Settings(**kw)
 
 
+def test_confirmation_defaults_to_five_minutes_of_polls():
+    assert Settings().confirm_scans == 10 and Settings(registry_poll=1).confirm_scans == 300
+    assert Settings(registry_poll=600).confirm_scans == 3 and Settings(registry_poll=0).confirm_scans == 3
+    assert Settings(registry_poll=1, registry_confirm_scans=2).confirm_scans == 2
+
+
 def test_registry_guard_settings_from_env():
     s = Settings.from_env({"GPNARX_REGISTRY_DROP_SHARE": "0.25", "GPNARX_REGISTRY_CONFIRM_SCANS": "5"})
     assert s.registry_drop_share == 0.25 and s.registry_confirm_scans == 5
