@@ -5,8 +5,9 @@ subcommand and sets ``func`` to a callable ``run(args) -> dict | None``. A retur
 one JSON object on stdout when ``--json`` is given (else a short human summary); a command may set
 ``args.exit_code`` (``predict-many``: 1 when some record failed). Exit codes: 2 for a usage error
 (argparse, ``UsageError``: the command line itself is wrong), 1 for a runtime error (``CLIError``,
-``ValueError``, ``OSError``, ``KeyError``, ``LookupError`` raised by a command: unknown model,
-unreadable record, ...), each one line on stderr. ``gpnarx --version`` prints the package version.
+``ValueError``, ``OSError``, ``KeyError``, ``LookupError``, ``ImportError`` raised by a command: unknown
+model, unreadable record, an optional package of an extra not installed, ...), each one line on stderr.
+``gpnarx --version`` prints the package version.
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ COMMAND_MODULES = [
     "gpnarx.cli.cmd_train",
     "gpnarx.cli.cmd_predict",
     "gpnarx.cli.cmd_predict_many",
+    "gpnarx.cli.cmd_stream",
     "gpnarx.cli.cmd_calibrate",
     "gpnarx.cli.cmd_serve",
     "gpnarx.cli.cmd_alias",
@@ -85,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("gpnarx: interrupted", file=sys.stderr)
         return 130
-    except (CLIError, ValueError, OSError, KeyError, LookupError) as exc:
+    except (CLIError, ValueError, OSError, KeyError, LookupError, ImportError) as exc:
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         if isinstance(exc, KeyError):
             msg = f"missing key {exc}"

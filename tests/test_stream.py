@@ -121,3 +121,28 @@ def test_http_bad_tokens_are_problems_naming_state():
     assert r.status_code == 422 and "linear" in r.json()["detail"], r.text
     r = _app(registry, key="k2").post("/v1/models/boucwen/versions/1/predict", json={**body, "state": tok})
     assert r.status_code == 422 and "signature" in r.json()["detail"], r.text
+
+
+# ------------------------------------------------------------------------------------------------- CLI
+
+def test_gpnarx_stream_reads_stdin_csv_and_prints_a_line_per_chunk():
+    import json
+    import subprocess
+    import sys
+
+    registry = built_registry().root
+    u, y = short_record(700, 4)
+    csv = "u,y\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(u, y))
+    chunk_s = 200 / FS
+    cmd = [sys.executable, "-m", "gpnarx", "stream", "--registry", str(registry), "--model", "boucwen:2",
+           "--chunk", repr(chunk_s), "--method", "linear", "--window", "2", "-"]
+    proc = subprocess.run(cmd, input=csv, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    lines = [json.loads(x) for x in proc.stdout.splitlines()]
+    assert [x["chunk"] for x in lines] == [0, 1, 2, 3] and [x["n_samples"] for x in lines] == [200, 200, 200, 100]
+    assert lines[-1]["end_s"] == pytest.approx(700 / FS)
+    for x in lines:
+        assert x["novelty"]["verdict"] in ("healthy", "novel", "unjudged") and 0 <= x["coverage"] <= 100
+        assert x["novelty_window"]["chunks"] == min(x["chunk"] + 1, 2)
+    bad = subprocess.run(cmd, input="u,y\n1.0,2.0\n1.0,oops\n", capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 1 and "stdin line 3" in bad.stderr, bad.stderr

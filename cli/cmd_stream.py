@@ -1,0 +1,130 @@
+"""``gpnarx stream``: a record, or CSV lines ``u,y`` on stdin as they arrive, predicted chunk by chunk.
+
+Each chunk continues the previous chunk's free run (``FreeRun.state``, the state the HTTP API carries
+as a token), so the chunks together are the record predicted whole (docs/api.md, Streams). One JSON
+line per chunk on stdout: where it lies in the stream, the band summary, the out-of-range flags, and,
+when the chunk has measured outputs and the model a novelty calibration, the chunk's novelty verdict
+and the verdict over a rolling window of the last chunks. What a data-acquisition script pipes into.
+"""
+from __future__ import annotations
+
+import sys
+from collections import deque
+from types import SimpleNamespace
+
+import numpy as np
+
+from gpnarx.cli.errors import CLIError, UsageError
+from gpnarx.model.envelope import assess
+
+
+def add_parser(sub):
+    p = sub.add_parser("stream", help="predict a record or stdin CSV lines 'u,y' chunk by chunk (JSON lines)",
+                       description=__doc__)
+    p.add_argument("--registry", default=None, help="registry folder or fsspec URL (default: as 'gpnarx predict')")
+    p.add_argument("--model", required=True, help="NAME, NAME:VERSION or NAME:ALIAS (latest when omitted)")
+    p.add_argument("record", help="record file (.npz, .npy, .csv, .mat, LMS folder), or '-' for CSV lines 'u' or "
+                                  "'u,y' on stdin at the model's fs")
+    p.add_argument("--chunk", type=float, default=1.0, help="chunk length [s] (default 1)")
+    p.add_argument("--method", choices=("mc", "linear"), default=None,
+                   help="uncertainty propagation (default: the model's default for predict)")
+    p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: the model's config's)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
+    p.add_argument("--window", type=int, default=8,
+                   help="chunks in the rolling novelty window (default 8)")
+    p.add_argument("--blas-threads", type=int, default=None, help="BLAS threads (default as 'gpnarx predict')")
+    p.set_defaults(func=run_stream, backend=None)
+    return p
+
+
+def _stdin_chunks(n: int):
+    """Chunks of ``n`` samples (u, y or None) from CSV lines on stdin, each yielded as soon as it is full;
+    the last may be shorter. A header line (non-numeric) is skipped; a malformed line is an error naming it."""
+    us, ys, width = [], [], None
+    for k, line in enumerate(sys.stdin, 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = [p.strip() for p in line.split(",")]
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError:
+            if k == 1:
+                continue  # a header
+            raise CLIError(f"stdin line {k}: expected 'u' or 'u,y' numbers, got {line[:60]!r}") from None
+        if width is None:
+            width = len(vals)
+        if len(vals) != width or width not in (1, 2) or not all(np.isfinite(vals)):
+            raise CLIError(f"stdin line {k}: expected {width if width in (1, 2) else '1 or 2'} finite numbers "
+                           f"('u' or 'u,y'), got {line[:60]!r}")
+        us.append(vals[0])
+        if width == 2:
+            ys.append(vals[1])
+        if len(us) == n:
+            yield np.array(us), (np.array(ys) if ys else None), False
+            us, ys = [], []
+    if us:
+        yield np.array(us), (np.array(ys) if ys else None), True
+
+
+def _record_chunks(rec, n: int):
+    for c in range(0, rec.n, n):
+        yield rec.u[c:c + n], (None if rec.y is None else rec.y[c:c + n]), c + n >= rec.n
+
+
+def run_stream(args):
+    from gpnarx.cli.cmd_predict import check_mc, load_model
+    from gpnarx.model.jsonsafe import dumps_json
+    from gpnarx.model.metrics import summary
+    from gpnarx.model.novelty import assess_novelty, novelty_start
+
+    if not args.chunk > 0:
+        raise UsageError(f"--chunk must be a positive number of seconds, got {args.chunk}")
+    if args.window < 1:
+        raise UsageError(f"--window must be at least 1 chunk, got {args.window}")
+    check_mc(args.mc, None)
+    bundle = load_model(args)
+    model, fs = bundle.model, bundle.fs
+    method = args.method or bundle.default_method("predict")
+    mc = check_mc(args.mc, bundle)
+    n = max(int(round(args.chunk * fs)), model.ny + 1)
+    if args.record == "-":
+        chunks = _stdin_chunks(n)
+    else:
+        from gpnarx.training.records import read_record
+
+        rec = read_record(args.record, fs_default=fs)
+        if abs(rec.fs - fs) > 1e-9 * fs:
+            raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {fs} Hz")
+        chunks = _record_chunks(rec, n)
+    nov = bundle.manifest.get("novelty")
+    recent = deque(maxlen=int(args.window))  # (y, mean, std) of the last chunks, for the rolling score
+    state, t = None, 0
+    for k, (u, y, last) in enumerate(chunks):
+        y0 = None
+        if state is None and y is not None and nov and u.size > model.ny:
+            y0 = novelty_start(y, model.ny)  # a monitor's stream starts as its calibration did
+        run = model.simulate(u, n_paths=mc, seed=args.seed, method=method, y0=y0, state=state, open_end=not last)
+        state = run.state
+        flags = assess(getattr(model, "envelope_", None), run, u, y)
+        line = {"model": bundle.name, "version": bundle.version, "chunk": k, "start_s": t / fs,
+                "end_s": (t + u.size) / fs, "n_samples": int(u.size), "method": run.method,
+                "mean_rms": float(np.sqrt(np.mean(run.mean ** 2))),
+                "band_half_width_mean": float(np.mean(run.upper - run.lower) / 2.0), **flags}
+        if y is not None:
+            s = summary(y, run.mean, run.lower, run.upper)
+            line.update(fit=s["fit"], coverage=s["coverage"])
+            if nov:
+                a = assess_novelty(nov, u, y, fs, run, start="measured", flags=flags)
+                line["novelty"] = {key: a[key] for key in ("score", "threshold", "verdict")}
+                recent.append((u, y, run.mean, run.std, flags))
+                uw, yw, mw, sw = (np.concatenate([c[j] for c in recent]) for j in range(4))
+                wflags = {"diverged_paths": max(c[4]["diverged_paths"] for c in recent),  # each chunk's flags,
+                          "out_of_range": sorted({f for c in recent for f in c[4]["out_of_range"]})}  # together
+                w = assess_novelty(nov, uw, yw, fs, SimpleNamespace(mean=mw, std=sw), start="measured", flags=wflags)
+                line["novelty_window"] = {"chunks": len(recent), **{key: w[key] for key in
+                                                                      ("score", "threshold", "verdict")}}
+        sys.stdout.write(dumps_json(line).decode() + "\n")
+        sys.stdout.flush()
+        t += u.size
+    return None
