@@ -24,8 +24,9 @@ COPY model ./model
 COPY training ./training
 COPY service ./service
 COPY cli ./cli
+COPY client ./client
 COPY configs ./configs
-RUN pip wheel ".[s3,dask]" -w /wheels
+RUN pip wheel ".[s3,dask,train]" -w /wheels
 
 FROM python:3.11-slim
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -42,7 +43,7 @@ RUN groupadd --system --gid 10001 gpnarx \
     && chown -R gpnarx:gpnarx /var/lib/gpnarx
 
 COPY --from=build /wheels /tmp/wheels
-RUN pip install --no-index --find-links /tmp/wheels "gpnarx[s3,dask]" \
+RUN pip install --no-index --find-links /tmp/wheels "gpnarx[s3,dask,train]" \
     && rm -rf /tmp/wheels \
     && python -c "import gpnarx.service.app, gpnarx.model.bundle, gpnarx.cli.main"
 

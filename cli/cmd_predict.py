@@ -203,9 +203,11 @@ def model_names(root) -> list[str]:
 def _progress(enabled, n):
     if not enabled:
         return None, None
-    from tqdm import tqdm
+    from gpnarx._progress import progress_bar
 
-    bar = tqdm(total=n, desc="free-run", unit="step", leave=False, mininterval=0.5)
+    bar = progress_bar(total=n, desc="free-run", unit="step", leave=False, mininterval=0.5)
+    if bar is None:  # no tqdm (a core install): no bar
+        return None, None
 
     def cb(done, total):
         bar.n = done

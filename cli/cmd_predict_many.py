@@ -179,9 +179,9 @@ def _run(args, runner, mc: int) -> dict:
     entries = [{"record": str(p), "file": None, "status": "failed", "error": None} for p in args.records]
     bar = None
     if not args.json:
-        from tqdm import tqdm
+        from gpnarx._progress import progress_bar
 
-        bar = tqdm(total=len(args.records), desc="predict-many", unit="record")
+        bar = progress_bar(total=len(args.records), desc="predict-many", unit="record")
     t0 = time.perf_counter()
     shared = runner.share(ModelCopy(bundle.name, bundle.version, bundle.model, bundle.manifest))
 

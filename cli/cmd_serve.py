@@ -79,8 +79,9 @@ def _registry(arg) -> tuple[Path | str, dict | None]:
     # a build without it still serves a given registry and says so in one line otherwise
     try:
         from gpnarx.training.defaults import default_registry_dir, plan_defaults
-    except ImportError:
-        raise CLIError("no --registry given and the default registry builder is not available") from None
+    except ImportError as exc:
+        raise CLIError(f"no --registry given and the default registry builder is not available ({exc}); give "
+                       f"--registry, or install the extra train: pip install 'gpnarx[train]'") from None
     root = default_registry_dir()
     root.mkdir(parents=True, exist_ok=True)
     return root, plan_defaults(root)

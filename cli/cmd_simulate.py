@@ -181,10 +181,11 @@ class _Progress:
         self.bar = None
         if seconds > PROGRESS_ABOVE:
             try:
-                from tqdm import tqdm
+                from gpnarx._progress import progress_bar
 
-                self.bar = tqdm(total=total, desc=desc, unit="sample", file=sys.stderr, disable=None, leave=False)
-            except ImportError:  # pragma: no cover - tqdm is a declared dependency
+                self.bar = progress_bar(total=total, desc=desc, unit="sample", file=sys.stderr, disable=None,
+                                        leave=False)
+            except ImportError:  # pragma: no cover
                 self.bar = None
 
     def update(self, k: int) -> None:

@@ -76,6 +76,12 @@ def run(args):
     if args.scheduler and importlib.util.find_spec("distributed") is None:
         raise CLIError("--scheduler needs dask.distributed: pip install 'gpnarx[dask]'")
     config = resolve_config(args.config)
+    if not args.no_report:  # fail before the training, not after it
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            raise CLIError("the training report's figures need matplotlib: pip install 'gpnarx[train]' "
+                           "(or give --no-report)") from None
     quiet = args.json
     log = None if quiet else (lambda m: print(m, file=sys.stderr))
     with ExitStack() as stack:

@@ -19,6 +19,7 @@ runs because its novelty threshold is calibrated on them.
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -102,8 +103,12 @@ def build_default(name: str, root, progress: bool = False, log=None, mc_paths: i
         raise ValueError(f"{name!r} is not a default bundle; choose among {', '.join(DEFAULT_BUNDLES)}")
     if name in DERIVED:
         return build_real_monitor(Path(root), bert_data_dir(), mc_paths=mc_paths, log=log)
+    # the core install (no extra train) still builds and serves the defaults, without their training reports
+    report = importlib.util.find_spec("matplotlib") is not None
+    if not report and log:
+        log(f"{name}: matplotlib is not installed (extra train), so the bundle has no training report")
     return train(shipped_config(name), Path(root), progress=progress, mc_paths=mc_paths, log=log,
-                 method=LIGHT_METHOD.get(name))
+                 method=LIGHT_METHOD.get(name), report=report)
 
 
 def ensure_default_registry(path=None, progress: bool = True, names=None, mc_paths: int = DEFAULT_MC,

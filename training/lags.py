@@ -113,9 +113,9 @@ def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler=
         todo.append((ny, nu))
     bar = None
     if progress and todo:
-        from tqdm import tqdm
+        from gpnarx._progress import progress_bar
 
-        bar = tqdm(total=len(grid), initial=len(grid) - len(todo), desc="lag surface", unit="cell")
+        bar = progress_bar(total=len(grid), initial=len(grid) - len(todo), desc="lag surface", unit="cell")
 
     def store(res):
         write_atomic(cdir / f"ny{res['ny']}_nu{res['nu']}.json", json.dumps(res, allow_nan=True))

@@ -14,8 +14,7 @@ import time
 from contextlib import ExitStack
 from pathlib import Path
 
-from tqdm import tqdm
-
+from gpnarx._progress import progress_bar
 from gpnarx.model.bundle import save_bundle
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.jsonsafe import to_json_safe
@@ -110,7 +109,7 @@ class _Progress:
     def __init__(self, enabled: bool, total: int, desc: str):
         self.bar = None
         if enabled:
-            self.bar = tqdm(total=total, desc=desc, unit="step", leave=False, mininterval=0.5)
+            self.bar = progress_bar(total=total, desc=desc, unit="step", leave=False, mininterval=0.5)
         self.base = 0
 
     def callback(self, n_total: int):
@@ -161,7 +160,7 @@ def _evaluate_remote(runner: TaskRunner, model: GPNARX, todo: list, run_key, n_p
     for k, (role, rec) in enumerate(todo):
         firsts.setdefault(run_key(role, rec), (k, role, rec))
     shared = runner.share(model)
-    bar = tqdm(total=len(firsts), desc="free-run", unit="record", leave=False) if progress else None
+    bar = progress_bar(total=len(firsts), desc="free-run", unit="record", leave=False) if progress else None
     t0 = time.perf_counter()
     try:
         results = runner.run(evaluate_record, [(shared, runner.send(rec), role, n_paths, k, conf, method)

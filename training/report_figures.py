@@ -6,7 +6,10 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
-import matplotlib
+try:
+    import matplotlib
+except ImportError:  # the core install serves and predicts without it; training reports need it
+    raise ImportError("training reports and figures need matplotlib: pip install 'gpnarx[train]'") from None
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

@@ -1,0 +1,89 @@
+"""Install tiers: the core install serves and predicts without the extra train's matplotlib and tqdm.
+
+A subprocess hides both packages (``sys.modules[name] = None``: every import of them fails, as in a
+core install) and then builds a small model, serves it, predicts over HTTP and with the CLI; training
+with a report refuses at once with one line naming the extra.
+"""
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SCRIPT = textwrap.dedent('''
+    import io, json, sys, warnings
+    from contextlib import redirect_stderr
+    HIDE = ("matplotlib", "tqdm")
+    if sys.argv[2] == "hide":
+        for name in HIDE:
+            sys.modules[name] = None
+    import numpy as np
+    from fastapi.testclient import TestClient
+    from gpnarx.cli.main import main
+    from gpnarx.model.bundle import save_bundle
+    from gpnarx.model.estimator import GPNARX
+    from gpnarx.service.app import create_app
+    from gpnarx.service.settings import Settings
+
+    tmp = sys.argv[1]
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal(400)
+    y = np.convolve(u, [0.0, 0.5, 0.25, 0.1])[:400]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = GPNARX(ny=2, nu=2, max_train_points=150, n_restarts=0).fit([(u, y)])
+    save_bundle(model, tmp + "/reg", "m", fs=100.0, units={"u": "N", "y": "m"})
+    c = TestClient(create_app(tmp + "/reg", Settings(workers=1, queue_size=2)))
+    r = c.post("/v1/models/m/predict", json={"u": u[:200].tolist(), "fs": 100.0, "mc_paths": 8},
+               headers={"accept-encoding": "gzip"})
+    out = {"http": r.status_code, "n": len(r.json()["mean"]),
+           "imported": sorted(n for n in HIDE if sys.modules.get(n) is not None)}
+    np.savez(tmp + "/r.npz", u=u[:200], y=y[:200], fs=100.0)
+    err = io.StringIO()
+    with redirect_stderr(err):
+        out["cli_predict"] = main(["predict", "--registry", tmp + "/reg", "--model", "m", tmp + "/r.npz",
+                                   "--mc", "8"])
+        if sys.argv[2] == "hide":  # with matplotlib this would train for real: only the refusal is run
+            out["cli_train"] = main(["train", "bouc-wen", "--registry", tmp + "/reg2"])
+    out["stderr"] = err.getvalue()
+    print(json.dumps(out))
+''')
+
+
+def run(tmp_path, mode):
+    proc = subprocess.run([sys.executable, "-c", SCRIPT, str(tmp_path), mode], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_core_serves_and_predicts_without_matplotlib_and_tqdm(tmp_path):
+    out = run(tmp_path, "hide")
+    assert out["http"] == 200 and out["n"] == 200
+    assert out["cli_predict"] == 0
+    # training with a report refuses before any work, naming the extra
+    assert out["cli_train"] == 1
+    lines = [ln for ln in out["stderr"].splitlines() if "error" in ln]
+    assert len(lines) == 1 and "gpnarx[train]" in lines[0], out["stderr"]
+
+
+def test_serving_does_not_import_the_plotting_stack(tmp_path):
+    out = run(tmp_path, "show")
+    assert out["http"] == 200 and "matplotlib" not in out["imported"], out
+
+
+def test_pyproject_tiers():
+    import tomllib
+
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    core = " ".join(meta["dependencies"])
+    for name in ("matplotlib", "tqdm"):
+        assert name not in core
+    for name in ("scikit-learn", "joblib", "httpx"):
+        assert name in core
+    extras = meta["optional-dependencies"]
+    assert {"train", "client", "formats", "dask", "s3", "jax"} <= set(extras)
+    assert any("matplotlib" in d for d in extras["train"]) and any("tqdm" in d for d in extras["train"])
+    assert "gpnarx[train]" in extras["test"]  # `pip install -e '.[test]'` keeps everything the tests need
