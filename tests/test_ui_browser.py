@@ -13,6 +13,7 @@ Screenshots go to ``$GPNARX_UI_SCREENSHOTS`` when set (the ones in docs/img were
 """
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
@@ -268,6 +269,19 @@ def test_novelty_card_explains_a_probe_mismatch(page, live_monitor, tmp_path, sh
     assert "[J]" in note and "N m" not in note
     lo, hi = (float(v) for v in note.split("band edges ")[1].split(",")[0].split(" to "))
     assert lo <= hi
+    # the loop view: axes fitted to the steady cycles, so the free run's start-up from rest lies outside
+    view = json.loads(page.get_attribute("#loops-plot", "data-view"))
+    clipped = int(page.get_attribute("#loops-plot", "data-clipped"))
+    loops = httpx.post(f"{live_monitor}/v1/models/monitor/versions/1/loops", json=body, timeout=120).json()
+    force = np.asarray(loops["predicted"]["force"])
+    i0, i1 = int(loops["cycles"][0]["start"] * FS), int(loops["cycles"][-1]["end"] * FS)
+    steady = force[i0:i1]
+    assert view["y"][0] <= steady.min() and steady.max() <= view["y"][1]  # the predicted steady loop is inside
+    shown = np.concatenate([np.asarray(loops[k]["force"])[i0:i1] for k in ("predicted", "measured", "lower", "upper")])
+    assert view["y"][1] - view["y"][0] <= 1.2 * (shown.max() - shown.min())  # the steady loops fill the view
+    assert force.min() < view["y"][0] or force.max() > view["y"][1]  # the whole record's extremes are clipped
+    outside = int(np.sum((force < view["y"][0]) | (force > view["y"][1])))
+    assert outside <= clipped and (clipped == 0 or "start-up transient" in note)
     assert page.watch.blocked == [] and page.watch.errors == []
 
 

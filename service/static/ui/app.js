@@ -410,8 +410,9 @@ function loopUnits(units, physics) {
   return { x: xs, force: "N", energy: xs === "m" ? "J" : `N ${xs}`, stiffness: `N/${xs}` };
 }
 
-/** Axis limits of a loop view that the start-up transient of a free run from rest does not stretch: the span of
- * the steady cycles (the answer's `cycles`) when there are any, else the 0.5-99.5 % quantiles; widened 8 %. */
+/** Axis limits of a loop view that the start-up transient of a free run from rest does not stretch: the
+ * 0.5-99.5 % quantiles of the loops (predicted, measured, band edges) over the steady cycles (the answer's
+ * `cycles`) when there are any, else over the whole record; widened 8 %. */
 function robustView(lp, fs) {
   const loops = [lp.predicted, lp.measured, lp.lower, lp.upper].filter(Boolean);
   const n = lp.predicted.x.length;
@@ -427,7 +428,7 @@ function robustView(lp, fs) {
     v.sort((a, b) => a - b);
     if (!v.length) return null;
     const q = (p) => v[Math.min(v.length - 1, Math.max(0, Math.round(p * (v.length - 1))))];
-    let [lo, hi] = steady ? [v[0], v[v.length - 1]] : [q(0.005), q(0.995)];
+    let [lo, hi] = [q(0.005), q(0.995)];
     const pad = 0.08 * (hi - lo || Math.abs(hi) || 1);
     return [lo - pad, hi + pad];
   };
@@ -439,7 +440,7 @@ function robustView(lp, fs) {
     const a = lp.predicted.x[i], b = lp.predicted.force[i];
     if (a < x[0] || a > x[1] || b < y[0] || b > y[1]) outside++;
   }
-  return { x, y, outside, basis: steady ? "the steady cycles" : "the 0.5-99.5 % quantiles" };
+  return { x, y, outside, basis: steady ? "the steady cycles" : "the bulk of the record" };
 }
 
 const ordered = (a, b) => (a != null && b != null && a > b ? [b, a] : [a, b]);
