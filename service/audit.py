@@ -71,6 +71,13 @@ def _number(v):
     return v if np.isfinite(v) else None
 
 
+def _request_id_of(line: str) -> str | None:
+    try:
+        return json.loads(line).get("request_id")
+    except (ValueError, AttributeError):
+        return None
+
+
 def shown_target(target: str | None) -> str:
     """The target as /health/ready shows it: no user or password of a URL."""
     if not target or target == STDOUT:
@@ -182,9 +189,9 @@ class AuditTrail:
                 self.last_error = f"{type(exc).__name__}: {exc}"[:500]
                 self.last_error_time = _now()
                 self._last_ok = False
-            if self.failures == 1 or self.failures % 100 == 0:
+            if self.failures == 1 or self.failures % 100 == 0:  # named by the first lost line's request id
                 log.error("audit trail %s: write failed (%d line(s) lost so far): %s", shown_target(self.target),
-                          self.failed, self.last_error)
+                          self.failed, self.last_error, extra={"request_id": _request_id_of(lines[0])})
             return
         with self._lock:
             self.written += len(lines)

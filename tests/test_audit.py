@@ -98,7 +98,7 @@ def test_predicts_are_audited_when_configured(registry, tmp_path):
     assert line["score"] is None and line["verdict"] is None
 
 
-def test_an_unwritable_target_loses_no_answer_and_shows_on_metrics_and_ready(registry, tmp_path):
+def test_an_unwritable_target_loses_no_answer_and_shows_on_metrics_and_ready(registry, tmp_path, caplog):
     blocked = tmp_path / "ro"
     blocked.mkdir()
     target = blocked / "trail.jsonl"
@@ -126,6 +126,8 @@ def test_an_unwritable_target_loses_no_answer_and_shows_on_metrics_and_ready(reg
             assert 'gpnarx_audit_lines_total{outcome="failed"} 6.0' in metrics
             assert 'gpnarx_audit_lines_total{outcome="written"} 0.0' in metrics
             assert "gpnarx_audit_write_failures_total " in metrics
+            failed = [r for r in caplog.records if r.name == "gpnarx.service.audit" and r.levelname == "ERROR"]
+            assert failed and failed[0].request_id == "n-0"  # the log line names the first lost line's request
     finally:
         os.chmod(blocked, 0o700)
 
