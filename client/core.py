@@ -44,7 +44,7 @@ from gpnarx.service.schemas import LoopsResponse, NoveltyResponse, PredictRespon
 from gpnarx.service.wire import NPZ_MEDIA_TYPE, json_loads_npz_meta
 
 _RESPONSES = {"predict": PredictResponse, "loops": LoopsResponse, "novelty": NoveltyResponse}
-_OPTIONS = ("mc_paths", "seed", "confidence", "method", "backend", "start")
+_OPTIONS = ("mc_paths", "seed", "confidence", "method", "backend", "start", "state", "return_state")
 
 
 # ---------------------------------------------------------------------------------------- errors
@@ -226,9 +226,9 @@ def _answer(r: httpx.Response, operation: str) -> Answer:
 def _record_request(operation: str, name: str, version: str | None, u, fs, y, y0, options: dict, wire: str) -> dict:
     """httpx request arguments of a predict / loops / novelty call."""
     path = f"/v1/models/{name}/{operation}" if version is None else f"/v1/models/{name}/versions/{version}/{operation}"
-    opts = {k: v for k, v in options.items() if v is not None}
+    opts = {k: v for k, v in options.items() if v is not None and v is not False}
     arrays = {"u": u, "y": y, "y0": y0}
-    if wire == "npz":
+    if wire == "npz" and "state" not in opts:  # a stream's state token can be long: it goes in a JSON body
         buf = io.BytesIO()
         np.savez(buf, fs=np.float64(fs), **{k: np.asarray(v, dtype=np.float64) for k, v in arrays.items()
                                             if v is not None})
@@ -237,8 +237,9 @@ def _record_request(operation: str, name: str, version: str | None, u, fs, y, y0
                 "headers": {"content-type": NPZ_MEDIA_TYPE, "accept": NPZ_MEDIA_TYPE}}
     body = {"fs": float(fs), **{k: np.asarray(v, dtype=np.float64) for k, v in arrays.items() if v is not None},
             **opts}
+    accept = NPZ_MEDIA_TYPE if wire == "npz" else "application/json"
     return {"method": "POST", "url": path, "content": dumps_json(body),
-            "headers": {"content-type": "application/json", "accept": "application/json"}}
+            "headers": {"content-type": "application/json", "accept": accept}}
 
 
 def _batch_item(item: dict) -> dict:
@@ -340,26 +341,33 @@ class Client(_Base):
 
     def predict(self, name: str, u, fs: float, y=None, *, version: str | None = None, y0=None,
                 mc_paths: int | None = None, seed: int | None = None, confidence: float | None = None,
-                method: str | None = None, backend: str | None = None, start: str | None = None) -> Answer:
+                method: str | None = None, backend: str | None = None, start: str | None = None,
+                state: str | None = None, return_state: bool = False) -> Answer:
         """Free-run prediction of ``u`` (input units, sampled at ``fs`` [Hz]): ``mean``, ``lower``, ``upper``,
-        ``std`` (output units, np.ndarray) and, with the measured ``y``, ``fit`` [%], ``rmse``, ``coverage`` [%]."""
+        ``std`` (output units, np.ndarray) and, with the measured ``y``, ``fit`` [%], ``rmse``, ``coverage`` [%].
+        A stream: ``return_state=True`` returns ``state``; pass it as ``state`` with the next chunk."""
         return self._record("predict", name, u, fs, y, version, y0, mc_paths=mc_paths, seed=seed,
-                            confidence=confidence, method=method, backend=backend, start=start)
+                            confidence=confidence, method=method, backend=backend, start=start, state=state,
+                            return_state=return_state)
 
     def loops(self, name: str, u, fs: float, y=None, *, version: str | None = None, y0=None,
               mc_paths: int | None = None, seed: int | None = None, confidence: float | None = None,
-              method: str | None = None, backend: str | None = None, start: str | None = None) -> Answer:
+              method: str | None = None, backend: str | None = None, start: str | None = None,
+              state: str | None = None, return_state: bool = False) -> Answer:
         """Restoring-force loops (``predicted``/``lower``/``upper``/``measured``: ``x``, ``force`` as np.ndarray)
         and per-cycle energies."""
         return self._record("loops", name, u, fs, y, version, y0, mc_paths=mc_paths, seed=seed,
-                            confidence=confidence, method=method, backend=backend, start=start)
+                            confidence=confidence, method=method, backend=backend, start=start, state=state,
+                            return_state=return_state)
 
     def novelty(self, name: str, u, fs: float, y, *, version: str | None = None, y0=None,
                 mc_paths: int | None = None, seed: int | None = None, confidence: float | None = None,
-                method: str | None = None, backend: str | None = None, start: str | None = None) -> Answer:
+                method: str | None = None, backend: str | None = None, start: str | None = None,
+                state: str | None = None, return_state: bool = False) -> Answer:
         """Novelty ``score``, ``threshold`` and ``verdict`` of the measured record (``u``, ``y``)."""
         return self._record("novelty", name, u, fs, y, version, y0, mc_paths=mc_paths, seed=seed,
-                            confidence=confidence, method=method, backend=backend, start=start)
+                            confidence=confidence, method=method, backend=backend, start=start, state=state,
+                            return_state=return_state)
 
     def batch(self, requests: list[dict]) -> list:
         """Many records (each a dict: ``model``, ``operation``, ``u``, ``fs``, ...; arrays allowed): one

@@ -187,3 +187,12 @@ def test_503_is_retried_after_retry_after():
 def test_error_for_unknown_problem_types():
     assert type(error_for({"type": "about:blank", "status": 418, "detail": "x"})) is GpnarxError
     assert type(error_for({"type": "about:blank", "status": 404, "detail": "x"})) is NotFound
+
+
+def test_stream_state_through_the_client(client):
+    u, _ = record(400, 8)
+    whole = client.predict("boucwen", u=u, fs=FS, method="linear")
+    first = client.predict("boucwen", u=u[:200], fs=FS, method="linear", return_state=True)
+    assert isinstance(first.state, str) and first.state
+    second = client.predict("boucwen", u=u[200:], fs=FS, method="linear", state=first.state)
+    np.testing.assert_allclose(np.concatenate([first.mean, second.mean]), whole.mean, rtol=1e-9, atol=1e-12)

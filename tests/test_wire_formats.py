@@ -240,3 +240,15 @@ def test_openapi_documents_the_wire_formats(client):
     for path in ("/v1/models/{name}/versions/{version}", "/v1/models/{name}/versions/{version}/report"):
         get = doc["paths"][path]["get"]
         assert "304" in get["responses"] and "ETag" in get["responses"]["200"]["headers"]
+
+
+def test_npz_body_with_stream_query_fields(client):
+    u = multisine(300, 9)
+    r = post_npz(client, npz(u=u, fs=FS), "?method=linear&return_state=true", accept=NPZ_MEDIA_TYPE)
+    assert r.status_code == 200, r.text
+    with np.load(io.BytesIO(r.content), allow_pickle=False) as z:
+        token = str(z["state"].item())
+    assert token
+    r2 = post_npz(client, npz(u=u, fs=FS), f"?method=linear&state={token}")
+    assert r2.status_code == 200, r2.text
+    assert r2.json()["start"] == "state"

@@ -58,7 +58,8 @@ NPZ_OPENAPI = {
         for n, sch in (("fs", {"type": "number"}), ("mc_paths", {"type": "integer"}), ("seed", {"type": "integer"}),
                        ("confidence", {"type": "number"}), ("method", {"type": "string", "enum": ["mc", "linear"]}),
                        ("backend", {"type": "string", "enum": ["numpy", "jax"]}),
-                       ("start", {"type": "string", "enum": ["rest", "measured"]}))],
+                       ("start", {"type": "string", "enum": ["rest", "measured"]}),
+                       ("return_state", {"type": "boolean"}), ("state", {"type": "string"}))],
 }
 NPZ_ANSWER = {NPZ_MEDIA_TYPE: {"schema": {"type": "string", "format": "binary", "description": (
     "With `Accept: application/x-npz`: each list of numbers of the JSON answer as a float64 array (`mean`, "
