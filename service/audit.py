@@ -158,8 +158,6 @@ class AuditTrail:
 
     # ------------------------------------------------------------------ the writer thread
     def _open(self):
-        if self.target == STDOUT:
-            return sys.stdout
         if "://" in self.target and not self.target.startswith("file://"):
             import fsspec
 
@@ -177,10 +175,14 @@ class AuditTrail:
 
     def _write(self, lines: list[str]) -> None:
         try:
-            if self._fh is None:
-                self._fh = self._open()
-            self._fh.write("".join(line + "\n" for line in lines))
-            self._fh.flush()
+            if self.target == STDOUT:  # looked up on each write: sys.stdout may be replaced (capture, redirect)
+                fh = sys.stdout
+            else:
+                if self._fh is None:
+                    self._fh = self._open()
+                fh = self._fh
+            fh.write("".join(line + "\n" for line in lines))
+            fh.flush()
         except Exception as exc:
             self._close_fh()  # reopened on the next line
             with self._lock:

@@ -194,3 +194,18 @@ def test_off_writes_nothing_and_fsspec_urls_are_targets(tmp_path):
     with fsspec.open("memory://audit/t.jsonl", "r") as fh:
         assert json.loads(fh.read().splitlines()[0])["request_id"] == "m-1"
     assert AuditTrail("s3://user:pw@bucket/a.jsonl").status()["target"] == "s3://bucket/a.jsonl"
+
+
+def test_stdout_is_the_default_target_and_read_at_each_write(capsys):
+    trail = AuditTrail(None)
+
+    class Req:
+        u, y = [1.0], [2.0]
+
+    assert trail.status()["target"] == "stdout"
+    trail.record("novelty", {"model": "m", "verdict": "healthy"}, Req, "s-1", "anonymous")
+    assert trail.flush()
+    assert json.loads(capsys.readouterr().out)["request_id"] == "s-1"
+    trail.record("novelty", {"model": "m", "verdict": "healthy"}, Req, "s-2", "anonymous")  # a new capture
+    trail.close()
+    assert json.loads(capsys.readouterr().out)["request_id"] == "s-2" and trail.status()["failed"] == 0
