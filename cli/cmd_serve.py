@@ -126,12 +126,14 @@ def run_serve(args):
                                      sighup_reload=True)
     except (TypeError, ValueError) as exc:
         raise CLIError(str(exc)) from None
-    configure_logging(settings.log_format, args.log_level)  # GPNARX_LOG_FORMAT: text or json lines on stderr
     builder = _builder(root, plan) if plan is not None else None
     try:
         app = create_app(root, settings, startup_status=builder.status if builder is not None else None)
     except OSError as exc:  # e.g. an object-store URL whose package is not installed
         raise CLIError(str(exc)) from None
+    # GPNARX_LOG_FORMAT: text or json lines on stderr; set once the app exists (a failed start stays one
+    # plain error line and leaves the caller's logging as it was)
+    configure_logging(settings.log_format, args.log_level)
     state = app.state.service
     if state.registry_error:
         log.error("the registry could not be read (retried every poll): %s", state.registry_error)
