@@ -18,7 +18,8 @@ mode through fsspec; a store that cannot append counts failed writes), ``-`` or 
 
 Writing never blocks or fails an answer: ``record`` only puts the line on a bounded queue
 (``GPNARX_AUDIT_QUEUE``; a full queue drops the line and counts it) and one background thread
-writes. A write that fails (unwritable path, full disk, unreachable store) counts its lines as
+writes. A call on the event loop also leaves the record's hash to a thread of the trail (at most
+``MAX_HASHING`` records waiting). A write that fails (unwritable path, full disk, unreachable store) counts its lines as
 failed, keeps the error for ``/health/ready`` (``audit``; readiness is not failed) and reopens the
 target on the next line. ``/metrics``: ``gpnarx_audit_lines_total{outcome}`` (written, failed,
 dropped) and ``gpnarx_audit_write_failures_total``.
@@ -32,6 +33,7 @@ import queue
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 
 import numpy as np
@@ -42,6 +44,8 @@ OFF = "off"
 STDOUT = "-"
 #: lines written per batch of the writer thread (then flushed)
 _CHUNK = 256
+#: records at most waiting to be hashed off the event loop (``AuditTrail.record(offload=True)``)
+MAX_HASHING = 64
 
 
 def client_id(api_key: str | None) -> str:
@@ -106,6 +110,8 @@ class AuditTrail:
         self.last_error_time: str | None = None
         self._last_ok = True  # whether the last write attempt succeeded
         self._lock = threading.Lock()
+        self._hashing = 0  # records waiting for or being hashed on the hash thread (record(offload=True))
+        self._hash_pool: ThreadPoolExecutor | None = None
         self._thread: threading.Thread | None = None
         self._fh = None
         self._closed = False
@@ -119,13 +125,51 @@ class AuditTrail:
         return self.enabled and (operation == "novelty" or (operation == "predict" and self.predicts))
 
     def record(self, operation: str, out: dict, req, request_id: str | None, client: str,
-               slot: int | None = None) -> None:
-        """Queue the audit line of one answer (never raises; a full queue drops the line and counts it)."""
+               slot: int | None = None, offload: bool = False) -> None:
+        """Queue the audit line of one answer (never raises; a full queue drops the line and counts it).
+
+        ``offload``: hash the record on the trail's own thread rather than the caller's (the event loop
+        calls with it: hashing a 65536-sample record's lists takes milliseconds); at most
+        ``MAX_HASHING`` records wait for it, a further one is dropped and counted."""
         if not self.wants(operation):
             return
+        if offload:
+            with self._lock:
+                busy = self._hashing >= MAX_HASHING or self._closed
+                if not busy:
+                    self._hashing += 1
+                else:
+                    self.dropped += 1
+            if busy:
+                return
+            try:
+                self._hasher().submit(self._record_offloaded, _now(), operation, out, req, request_id, client, slot)
+            except Exception:  # pragma: no cover - interpreter shutdown
+                with self._lock:
+                    self._hashing -= 1
+                    self.dropped += 1
+            return
+        self._record(_now(), operation, out, req, request_id, client, slot)
+
+    def _hasher(self) -> ThreadPoolExecutor:
+        if self._hash_pool is None:
+            with self._lock:
+                if self._hash_pool is None:
+                    self._hash_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gpnarx-audit-hash")
+        return self._hash_pool
+
+    def _record_offloaded(self, *args) -> None:
+        try:
+            self._record(*args)
+        finally:
+            with self._lock:
+                self._hashing -= 1
+
+    def _record(self, now: str, operation: str, out: dict, req, request_id: str | None, client: str,
+                slot: int | None) -> None:
         try:
             y = getattr(req, "y", None)
-            line = {"time": _now(), "request_id": request_id, "client": client, "operation": operation,
+            line = {"time": now, "request_id": request_id, "client": client, "operation": operation,
                     "slot": slot, "model": out.get("model"), "version": out.get("version"),
                     "record_sha256": record_sha256(req.u, y), "n_samples": len(req.u),
                     "score": _number(out.get("score")), "threshold": _number(out.get("threshold")),
@@ -224,17 +268,18 @@ class AuditTrail:
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until the queued lines are written or failed (tests, shutdown); False on timeout."""
         deadline = time.monotonic() + timeout
-        while self.queue.unfinished_tasks and time.monotonic() < deadline:
+        while (self._hashing or self.queue.unfinished_tasks) and time.monotonic() < deadline:
             time.sleep(0.005)
-        return not self.queue.unfinished_tasks
+        return not (self._hashing or self.queue.unfinished_tasks)
 
     def close(self, timeout: float = 5.0) -> None:
-        """Write what is queued (up to ``timeout`` s) and stop the thread."""
-        if self._thread is None:
-            self._closed = True
-            return
+        """Write what is queued (up to ``timeout`` s) and stop the threads."""
         self.flush(timeout)
         self._closed = True
+        if self._hash_pool is not None:
+            self._hash_pool.shutdown(wait=False)
+        if self._thread is None:
+            return
         try:
             self.queue.put(None, timeout=max(0.1, timeout))
         except queue.Full:  # pragma: no cover - the writer is stuck

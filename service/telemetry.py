@@ -26,6 +26,7 @@ Nothing here may lose an answer: ``answered`` catches and logs its own failures.
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import platform
@@ -54,6 +55,15 @@ def _version() -> str:
         return version("gpnarx")
     except Exception:  # pragma: no cover - not installed as a distribution
         return "unknown"
+
+
+def _on_event_loop() -> bool:
+    """Whether this thread runs an event loop (then the record is hashed on the audit trail's thread)."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return False
+    return True
 
 
 class Drift:
@@ -168,7 +178,7 @@ class Telemetry:
                 rid = REQUEST_ID.get()
                 if rid is None and request is not None:
                     rid = request.scope.get("state", {}).get("request_id")
-                self.audit.record(operation, out, req, rid, client_id(key), slot=slot)
+                self.audit.record(operation, out, req, rid, client_id(key), slot=slot, offload=_on_event_loop())
         except Exception:  # telemetry never loses an answer
             log.exception("telemetry of a %s answer failed", operation)
 

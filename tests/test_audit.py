@@ -209,3 +209,37 @@ def test_stdout_is_the_default_target_and_read_at_each_write(capsys):
     trail.record("novelty", {"model": "m", "verdict": "healthy"}, Req, "s-2", "anonymous")  # a new capture
     trail.close()
     assert json.loads(capsys.readouterr().out)["request_id"] == "s-2" and trail.status()["failed"] == 0
+
+
+def test_offloaded_hashing_writes_the_same_line_and_is_bounded(tmp_path, monkeypatch):
+    import gpnarx.service.audit as audit_mod
+
+    target = tmp_path / "t.jsonl"
+    trail = AuditTrail(str(target))
+
+    class Req:
+        u, y = list(np.arange(1000.0)), list(np.ones(1000))
+
+    out = {"model": "m", "version": "1", "score": 0.5, "threshold": 1.0, "verdict": "healthy"}
+    trail.record("novelty", out, Req, "off-1", "anonymous", offload=True)
+    trail.record("novelty", out, Req, "in-1", "anonymous")
+    assert trail.flush()
+    lines = {x["request_id"]: x for x in _lines(target)}
+    assert lines["off-1"]["record_sha256"] == lines["in-1"]["record_sha256"] == record_sha256(Req.u, Req.y)
+    gate = []
+    monkeypatch.setattr(audit_mod, "MAX_HASHING", 2)
+    real = trail._record
+
+    def slow(*a):  # the hash thread is stuck: at most MAX_HASHING records wait, the rest are dropped
+        while not gate:
+            time.sleep(0.01)
+        real(*a)
+
+    monkeypatch.setattr(trail, "_record", slow)
+    t0 = time.perf_counter()
+    for i in range(10):
+        trail.record("novelty", out, Req, f"b-{i}", "anonymous", offload=True)
+    assert time.perf_counter() - t0 < 1.0 and trail.status()["dropped"] == 8
+    gate.append(1)
+    trail.close()
+    assert sorted(x["request_id"] for x in _lines(target) if x["request_id"].startswith("b-")) == ["b-0", "b-1"]
