@@ -174,7 +174,7 @@ def open_model(root, name: str, version: str | None):
         return Registry(root, lazy=True).scan(only=name).get(name, version)
     except KeyError as exc:
         msg = exc.args[0]
-        if f"model {name!r} not found" in msg:  # the scan saw only NAME: list the registry's models
+        if msg.startswith(f"model {name!r} not found"):  # the scan saw only NAME: list the registry's models
             names = model_names(root)
             msg = (f"model {name!r} not found in registry {root}; available: {', '.join(names) or 'none'}"
                    + ("" if names else " (is it still being built? see gpnarx build-defaults)"))
