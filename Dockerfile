@@ -7,8 +7,8 @@
 #   docker run -p 8000:8000 -e GPNARX_REGISTRY=s3://bucket/models -e AWS_ACCESS_KEY_ID=... \
 #       -e AWS_SECRET_ACCESS_KEY=... gpnarx               # a registry on object storage
 #
-# Two stages: the first builds the gpnarx wheel and the wheels of everything it needs (with the s3
-# and dask extras), the second installs them from that folder alone, so the image holds an installed
+# Two stages: the first builds the gpnarx wheel and the wheels of everything it needs (with the s3,
+# dask and train extras; pinned with hashes by requirements.lock), the second installs them from that folder alone, so the image holds an installed
 # package (shipped configs as package data), not a checkout. The same image runs `gpnarx serve`,
 # the offline commands (`gpnarx train ... --scheduler`) and Dask workers (`dask worker ADDRESS`).
 # The default registry (Bouc-Wen and BERT stand-in bundles) is built at image build time by
@@ -26,7 +26,10 @@ COPY service ./service
 COPY cli ./cli
 COPY client ./client
 COPY configs ./configs
-RUN pip wheel ".[s3,dask,train]" -w /wheels
+# the dependencies from the lock file with hashes (pip-compile --generate-hashes, see docs/deploy.md), then gpnarx
+COPY requirements.lock ./
+RUN pip wheel --require-hashes --no-deps -r requirements.lock -w /wheels \
+    && pip wheel --no-deps . -w /wheels
 
 FROM python:3.11-slim
 ENV PYTHONDONTWRITEBYTECODE=1 \

@@ -23,7 +23,8 @@ is an RFC 9457 problem detail (``service.problems``).
 
 Layout: ``service.routers`` (one router per group), ``service.deps`` (``Depends`` for the state and
 the API key), ``service.state`` (``ServiceState``), ``service.middleware`` (body cap, metrics, last-
-resort 500), ``service.responses`` (JSON), ``service.openapi`` (the document), ``service.settings``.
+resort 500), ``service.responses`` (JSON), ``service.openapi`` (the document), ``service.settings``,
+``service.tracing`` (optional OpenTelemetry spans, ``GPNARX_OTEL``).
 """
 from __future__ import annotations
 
@@ -50,6 +51,7 @@ from .routers import ROUTERS
 from .settings import Settings
 from .state import ServiceState
 from .telemetry import Telemetry
+from .tracing import instrument as instrument_tracing
 from .ui import STATIC_DIR
 
 log = logging.getLogger("gpnarx.service")
@@ -112,6 +114,9 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
             state.loop = None
             state.executor.shutdown()
             state.telemetry.close()  # writes the queued audit lines
+            provider = getattr(app.state, "tracer_provider", None)
+            if provider is not None:  # GPNARX_OTEL: sends the spans still queued
+                provider.shutdown()
 
     async def _poll(every: float):
         """Rescan the registry every ``every`` seconds (new versions, aliases, changed or removed objects)."""
@@ -169,6 +174,8 @@ def create_app(registry_dir=None, settings: Settings | None = None, startup_stat
     # (bench/bench_wire.py); answers under GZIP_MIN_BYTES go as they are
     app.add_middleware(GZipMiddleware, minimum_size=GZIP_MIN_BYTES, compresslevel=GZIP_LEVEL)
     app.add_middleware(GuardMiddleware, state=state, fastapi_app=app)
+    if settings.otel != "off":  # OpenTelemetry spans (service.tracing); off: nothing of it is imported
+        instrument_tracing(app, settings.otel)
     state.metrics.update_bundles()
 
     def custom_openapi():

@@ -6,6 +6,7 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
 from .deps import RECORD_PROBLEMS
+from .observability import REQUEST_ID_HEADER, REQUEST_ID_MAX
 from .problems import PROBLEM_MEDIA_TYPE
 from .schemas import BatchRequest, Problem
 from .settings import DEFAULT_BOUNDS, Settings
@@ -62,11 +63,18 @@ def build_openapi(app: FastAPI) -> dict:
     for k in ("HTTPValidationError", "ValidationError"):
         comps.pop(k, None)
     problem_ref = {"schema": {"$ref": "#/components/schemas/Problem"}}
+    # every answer echoes the request id (service.observability); one header object, referenced by each response
+    doc["components"].setdefault("headers", {})["RequestId"] = {
+        "description": f"the request's own `{REQUEST_ID_HEADER}` (1 to {REQUEST_ID_MAX} visible ASCII characters), "
+                       "else a generated id (32 hex digits); also in the logs, problem details and audit trail",
+        "schema": {"type": "string", "minLength": 1, "maxLength": REQUEST_ID_MAX}}
+    request_id_ref = {"$ref": "#/components/headers/RequestId"}
     for item in doc.get("paths", {}).values():
         for op in item.values():
             responses = op.setdefault("responses", {})
             responses.setdefault("500", {"description": "Internal error (a problem detail, never a stack trace)"})
             for code, resp in responses.items():
+                resp.setdefault("headers", {})[REQUEST_ID_HEADER] = request_id_ref
                 if code.isdigit() and int(code) >= 400:
                     resp["content"] = {PROBLEM_MEDIA_TYPE: problem_ref}
                     if code == "422":

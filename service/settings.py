@@ -38,6 +38,8 @@ each request only oversubscribes the cores (measured on a loaded 2-core machine:
 128-path prediction took 3.8 s with OpenBLAS threads vs 0.33 s with one). The app therefore
 limits BLAS to ``blas_threads`` threads per process (threadpoolctl) unless it is 0.
 
+``otel``: OpenTelemetry spans of the requests (``service.tracing``; extra ``otel``, off by default).
+
 ``mmap_threshold``: a free-run step allocates temporaries of paths x training points doubles
 (256 x 600 x 8 B = 1.2 MB). glibc serves blocks above its mmap threshold (128 KiB until the
 process has freed a large block) with a fresh mmap, so every step paid page faults: a fresh
@@ -212,6 +214,12 @@ class Settings(BaseSettings):
                                 exceeded="the line is dropped and counted; the answer is sent")
     drift_window: int = _setting(200, ge=1, kind=_POSITIVE,
                                  label="answers per model in the rolling window of the drift gauges on `/metrics`")
+    otel: Literal["off", "console", "otlp"] = _setting("off", kind=None, shown="off",
+                                                       label="OpenTelemetry tracing (extra `otel`): `off`, "
+                                                             "`console` (one JSON line per span on stderr) or "
+                                                             "`otlp` (OTLP/HTTP to `OTEL_EXPORTER_OTLP_ENDPOINT`)",
+                                                       exceeded="the server does not start without the extra "
+                                                                "(`pip install 'gpnarx[otel]'`)")
     #: reload the registry on SIGHUP (only where the event loop runs in the main thread); not an env setting
     sighup_reload: bool = False
 
