@@ -80,7 +80,7 @@ def main() -> None:
         from gpnarx.training.records import read_record
 
         reg, _ = R.bert_registry(args.registry)
-        model = Registry(reg).get("bert-real").model
+        model = Registry(reg, lazy=True).scan(only="bert-real").get("bert-real").model
         rec = read_record(args.record or R.bert_data() / "Sine" / "Sine_20Hz")
         u, y, fs = rec.u, rec.y, rec.fs
         chunk, paths, mc_n = int(round(fs)), 1024, int(round(args.mc_seconds * fs))
