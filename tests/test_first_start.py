@@ -8,6 +8,7 @@ minutes on 2 cores: only its start is checked here, the whole first start is mar
 """
 from __future__ import annotations
 
+import importlib.util
 import os
 import socket
 import subprocess
@@ -82,8 +83,9 @@ def test_light_build_keeps_the_model_and_lightens_only_the_report(monkeypatch, t
     assert got["bouc-wen"]["method"] == "linear" and got["bert-standin"]["method"] == "linear"
     assert got["bert-standin-monitor"]["method"] is None  # its novelty threshold is calibrated on MC runs
     assert got["bert-real"]["method"] is None  # the config's own ([predict] method = "linear")
-    assert all(kw["mc_paths"] == defaults.DEFAULT_MC and set(kw) == {"progress", "mc_paths", "log", "method"}
+    assert all(kw["mc_paths"] == defaults.DEFAULT_MC and set(kw) == {"progress", "mc_paths", "log", "method", "report"}
                for kw in got.values())  # nothing that changes the model (lags, overrides, records)
+    assert all(kw["report"] is (importlib.util.find_spec("matplotlib") is not None) for kw in got.values())
     with pytest.raises(ValueError, match="not a default bundle"):
         defaults.build_default("nope", tmp_path)
 
