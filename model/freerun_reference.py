@@ -26,10 +26,12 @@ def simulate_linear_reference(
     include_noise: bool = True,
     progress=None,
     cov_window: int = 0,
+    state=None,
 ) -> FreeRun:
     """Reference implementation of ``simulate_linear`` (one ``posterior.mean_grad`` call per step),
     kept for posteriors without ``mean_var_grad``, for the equivalence tests and for
-    bench/bench_realtime.py. Same arguments and result.
+    bench/bench_realtime.py. Same arguments and result, except that it starts every run anew: a
+    ``state`` (a stream's continuation) is refused.
 
     First-order (linearised) propagation of mean and covariance through the lagged outputs.
 
@@ -42,6 +44,8 @@ def simulate_linear_reference(
     cov(y_i, y_{i-k}) for k < L, shape (n, L): what a linear functional of a window of outputs
     (e.g. a cycle's energy, ``model.cycles``) needs for its variance.
     """
+    if state is not None:
+        raise ValueError("state: the reference linearised run starts anew; continue streams with simulate_linear")
     t_start = time.perf_counter()
     confidence = check_confidence(confidence)
     z = float(ndtri(1.0 - (1.0 - confidence) / 2.0))
@@ -116,13 +120,15 @@ def simulate_mc_reference(
     progress=None,
     diverge_limit: float | None = None,
     latent: bool = True,
+    state=None,
 ) -> FreeRun:
     """Reference implementation of ``freerun.simulate_mc`` (same arguments but ``local``, same result):
     every step evaluates eq. 8 and eq. 9 at every path (``posterior.predict``). Kept for the equivalence
-    tests and bench/bench_mc_speed.py.
+    tests and bench/bench_mc_speed.py. A ``state`` continues its paths and generator; the result carries
+    no end state.
     """
     st = McPaths(posterior, x_scaler, y_scaler, ny, nu, u, n_paths, seed, y0, confidence, include_noise,
-                 keep_paths, latent)
+                 keep_paths, latent, state)
     xm, xs, Xs, n = st.xm, st.xs, st.Xs, st.n
     for i in range(st.i0, n):
         np.subtract(st.ylag_raw, xm[:ny], out=Xs[:, :ny])

@@ -199,8 +199,9 @@ def test_drive_estimate_and_probe_matching():
 def test_verdict_with_probe_mismatch_is_not_from_the_score():
     assert verdict(10.0, 1.0) == "novel"
     assert verdict(10.0, 1.0, (), True) == "novel"
-    assert verdict(10.0, 1.0, (), False) == "healthy"  # the score is not judged
-    assert verdict(0.5, 1.0, ["u"], False) == "novel"  # the calibration envelope still rules
+    assert verdict(10.0, 1.0, (), False) == "unjudged"  # the score is not judged: neither healthy nor an alarm
+    assert verdict(0.5, 1.0, ["u"], False) == "unjudged"  # nor the envelope, which a wrong drive also leaves
+    assert verdict(0.5, 1.0, ["u"], True) == "novel"  # on the probe, the calibration envelope still rules
 
 
 # ------------------------------------------------------------------------------------------ derive / calibrate

@@ -196,14 +196,15 @@ def test_predict_and_novelty_cli_json(trained, small_config, tmp_path, capsys):
     assert nov["verdict"] in ("healthy", "novel") and nov["false_alarm_rate"] == 0.05 and nov["score"] > 0
     assert isinstance(nov["out_of_range"], list)
     assert nov["verdict"] == ("novel" if nov["score"] > nov["threshold"] or nov["out_of_range"] else "healthy")
-    # a record 1000x larger than every healthy calibration record leaves the envelope: novel
+    # a record 1000x larger than every healthy calibration record leaves the envelope; its drive is then
+    # not the probe either, so it is unjudged (model.novelty.verdict: the probe comes first)
     big = tmp_path / "big.npz"
     with np.load(rec) as d:
         np.savez(big, u=d["u"] * 1000, y=d["y"] * 1000, fs=d["fs"])
     assert main(["novelty", "--registry", str(trained), "--model", "bw-small:1", str(big), "--mc", "16", "--json"]) == 0
     far = json.loads(capsys.readouterr().out)
     # ... and its drive (1000x the healthy amplitude) is not the probe the threshold holds for
-    assert far["out_of_range"] == ["u", "y", "prediction", "frequency", "probe"] and far["verdict"] == "novel", far
+    assert far["out_of_range"] == ["u", "y", "prediction", "frequency", "probe"] and far["verdict"] == "unjudged", far
     assert far["diverged_paths"] == 16 and far["start"] == "measured", far  # 1000x the training peak: every path
 
 
@@ -228,7 +229,8 @@ def test_predict_and_novelty_cli_window_and_measured_start(trained, tmp_path, ca
     assert "novelty_score" not in rest  # a run from rest is not scored by the novelty rule
     assert main(["novelty", *base, "--window", "0.4:0.8"]) == 0
     nov = json.loads(capsys.readouterr().out)
-    assert nov["score"] > 0 and nov["verdict"] in ("healthy", "novel")
+    assert nov["score"] > 0 and nov["verdict"] in ("healthy", "novel", "unjudged")
+    assert (nov["verdict"] == "unjudged") == (nov["probe_match"] is False)  # a drive off the probe is not judged
     assert meas["novelty_score"] == pytest.approx(nov["score"], rel=1e-12)  # same start rule, same paths
 
 
