@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from test_service_support import FS, built_registry, copy_registry, short_record
+from test_service_support import FS, LiveServer, built_registry, copy_registry, short_record
 
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
@@ -204,7 +204,6 @@ def test_missing_key_is_refused_before_the_body_is_read():
     import time
 
     import httpx
-    from test_service_support import LiveServer
 
     app = create_app(built_registry().root, _settings(api_key="s3cret"))
     junk = b"[" * (30 * 1024 * 1024)  # 30 MiB of invalid JSON, one object shared by every client
@@ -344,39 +343,12 @@ def test_request_cut_at_shutdown_is_a_503_problem_with_retry_after(monkeypatch):
 
 
 # ------------------------------------------------------------------------------------------ slow clients
-class _Server:
+def _live_server(settings: Settings, **overrides) -> LiveServer:
     """uvicorn with ``gpnarx serve``'s options (``service.server.uvicorn_options``) on a free port."""
+    from gpnarx.service.server import uvicorn_options
 
-    def __init__(self, settings: Settings, **overrides):
-        import socket
-        import threading
-
-        import uvicorn
-
-        from gpnarx.service.server import uvicorn_options
-
-        self.sock = socket.socket()
-        self.sock.bind(("127.0.0.1", 0))
-        self.port = self.sock.getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        app = create_app(built_registry().root, settings)
-        self.server = uvicorn.Server(uvicorn.Config(app, log_level="critical",
-                                                    **{**uvicorn_options(settings), **overrides}))
-        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
-
-    def __enter__(self):
-        import time
-
-        self.thread.start()
-        t0 = time.monotonic()
-        while not self.server.started and time.monotonic() - t0 < 20:
-            time.sleep(0.02)
-        return self
-
-    def __exit__(self, *exc):
-        self.server.should_exit = True
-        self.thread.join(timeout=20)
-        self.sock.close()
+    app = create_app(built_registry().root, settings)
+    return LiveServer(app, log_level="critical", **{**uvicorn_options(settings), **overrides})
 
 
 def _read_all(s, timeout: float) -> tuple[bytes, float]:
@@ -403,7 +375,7 @@ def test_slow_request_heads_are_answered_408_and_closed():
     import threading
     import time
 
-    with _Server(_settings(header_timeout=1.0)) as srv:
+    with _live_server(_settings(header_timeout=1.0)) as srv:
         results = []
 
         def slow_client():
@@ -448,7 +420,7 @@ def test_slow_request_heads_are_answered_408_and_closed():
 def test_slow_body_is_answered_408_and_closed():
     import socket
 
-    with _Server(_settings(body_timeout=1.0, header_timeout=5.0)) as srv:
+    with _live_server(_settings(body_timeout=1.0, header_timeout=5.0)) as srv:
         with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as s:
             s.sendall(b"POST /v1/models/boucwen/predict HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
                       b"Content-Length: 100000\r\n\r\n{\"u\": [1.0, ")
@@ -463,7 +435,7 @@ def test_connection_limit_and_head_size():
 
     import httpx
 
-    with _Server(_settings(max_connections=3, header_timeout=30.0, retry_after=3)) as srv:
+    with _live_server(_settings(max_connections=3, header_timeout=30.0, retry_after=3)) as srv:
         held = [socket.create_connection(("127.0.0.1", srv.port), timeout=10) for _ in range(3)]
         try:
             import time

@@ -104,9 +104,11 @@ def short_record(n=96, seed=5, rms=10.0):
 
 
 class LiveServer:
-    """A real uvicorn server on 127.0.0.1 (free port) running ``app`` in a background thread."""
+    """A real uvicorn server on 127.0.0.1 (free port) running ``app`` in a background thread.
 
-    def __init__(self, app):
+    ``config``: ``uvicorn.Config`` keywords over the defaults (e.g. ``gpnarx serve``'s options)."""
+
+    def __init__(self, app, **config):
         import uvicorn
 
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -114,7 +116,7 @@ class LiveServer:
         self.sock.bind(("127.0.0.1", 0))
         self.port = self.sock.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}"
-        config = uvicorn.Config(app, log_level="warning", lifespan="on", timeout_keep_alive=30)
+        config = uvicorn.Config(app, **{"log_level": "warning", "lifespan": "on", "timeout_keep_alive": 30, **config})
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
 
