@@ -68,13 +68,11 @@ class FreeRunState:
 
 
 def inputs_with_tail(u: np.ndarray, nu: int, state: "FreeRunState | None") -> np.ndarray:
-    """(n, nu) lagged inputs of ``u``; the lags before its first sample come from ``state.u_tail``."""
+    """(n, nu) lagged inputs of ``u``; the lags before its first sample come from ``state.u_tail`` (its
+    length is checked by ``check_state``)."""
     if state is None:
         return lagged_inputs(u, nu)
-    tail = np.asarray(state.u_tail, dtype=float)
-    if tail.shape != (nu - 1,):
-        raise ValueError(f"state: u_tail holds {tail.size} inputs, this model needs nu - 1 = {nu - 1}")
-    return lagged_inputs(np.concatenate([tail, u]), nu)[nu - 1:]
+    return lagged_inputs(np.concatenate([np.asarray(state.u_tail, dtype=float), u]), nu)[nu - 1:]
 
 
 def next_u_tail(u: np.ndarray, nu: int, state: "FreeRunState | None") -> np.ndarray:
@@ -88,15 +86,16 @@ def check_state(state: FreeRunState, method: str, ny: int, nu: int, y0, n_paths:
     if not isinstance(state, FreeRunState):
         raise ValueError(f"state must be a FreeRunState, got {type(state).__name__}")
     if state.method != method:
-        raise ValueError(f"state: it continues a '{state.method}' run, this run's method is '{method}'")
+        raise ValueError(f"state continues a '{state.method}' free run; this call's method is '{method}' "
+                         f"(send method '{state.method}')")
     if y0 is not None and np.asarray(y0).size:
         raise ValueError("state: give either y0 (a new start) or a state (a continuation), not both")
     if method == "mc":
         paths = np.asarray(state.paths)
         if paths.shape != (n_paths, ny):
-            raise ValueError(f"state: it carries {paths.shape[0] if paths.ndim == 2 else 0} paths of "
-                             f"{paths.shape[-1] if paths.ndim == 2 else 0} lags; this run has n_paths={n_paths}, "
-                             f"ny={ny}")
+            n_state, n_lags = paths.shape if paths.ndim == 2 else (0, 0)
+            raise ValueError(f"state carries {n_state} Monte Carlo paths of {n_lags} lags; this call asks for "
+                             f"mc_paths={n_paths} with ny={ny} (send mc_paths={n_state})")
     elif np.asarray(state.mean_tail).shape != (ny,):
         raise ValueError(f"state: mean_tail must hold ny={ny} outputs")
     if np.asarray(state.u_tail).shape != (nu - 1,):

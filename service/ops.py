@@ -17,7 +17,7 @@ from gpnarx.model.backend import jax_available
 from gpnarx.model.bundle import Bundle
 from gpnarx.model.cycles import cov_window_for, cycles
 from gpnarx.model.envelope import assess
-from gpnarx.model.freerun_core import FreeRunState
+from gpnarx.model.freerun_core import FreeRunState, check_state
 from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import UnusableProbeContract, assess_novelty, novelty_start
 from gpnarx.model.restoring import loop_area, loop_units, restoring_force
@@ -101,6 +101,9 @@ def plan(operation: str, req, bundle: Bundle, settings: Settings, budget: int | 
 def _stream_state(req, bundle: Bundle, settings: Settings, method: str, paths: int, backend: str):
     """The request's stream state, decoded and checked against this call (None without one)."""
     token = getattr(req, "state", None)
+    if getattr(req, "return_state", False) and backend != "numpy":
+        raise ProblemError(422, f"backend '{backend}' cannot return a stream state; send backend 'numpy'",
+                           "return_state")
     if token is None:
         return None
     try:
@@ -109,12 +112,10 @@ def _stream_state(req, bundle: Bundle, settings: Settings, method: str, paths: i
         raise ProblemError(409, str(exc), "state") from None
     except StateTokenError as exc:
         raise ProblemError(422, str(exc), "state") from None
-    if state.method != method:
-        raise ProblemError(422, f"state continues a '{state.method}' free run; this call's method is '{method}' "
-                                f"(send method '{state.method}')", "state")
-    if method == "mc" and state.paths is not None and state.paths.shape[0] != paths:
-        raise ProblemError(422, f"state carries {state.paths.shape[0]} Monte Carlo paths; this call asks for "
-                                f"mc_paths={paths} (send mc_paths={state.paths.shape[0]})", "state")
+    try:  # the model's own rule (method, paths, lags), checked here before the call queues
+        check_state(state, method, bundle.model.ny, bundle.model.nu, None, paths)
+    except ValueError as exc:
+        raise ProblemError(422, str(exc), "state") from None
     if backend != "numpy":
         raise ProblemError(422, "a stream (state) continues on the numpy backend only; send backend 'numpy'",
                            "backend")
@@ -207,12 +208,8 @@ def _stream_fields(plan: Plan, req, run) -> dict:
     """The answer's stream members: the end state's token when asked for, and the stream position."""
     if plan.state is None and not getattr(req, "return_state", False):
         return {}
-    out = {"stream_position": int(run.state.position) if run.state is not None
-           else (0 if plan.state is None else plan.state.position) + len(req.u)}
+    out = {"stream_position": int(run.state.position)}  # plan: streams run on numpy, which returns a state
     if getattr(req, "return_state", False):
-        if run.state is None:
-            raise ProblemError(422, f"backend '{run.backend}' cannot return a stream state; use backend 'numpy'",
-                               "return_state")
         out["state"] = encode_state(run.state, plan.bundle.name, plan.bundle.version, plan.stream_key)
     return out
 
