@@ -22,19 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.metrics import fit_percent
 from .config import load_config
 from .prepare import model_from_config
-
-
-def _score(model, rec, backend: str) -> dict:
-    run = model._simulate(rec.u, 0, 0, None, 0.99, "linear", False, False, None, 0, backend)  # eq. 8-9's band
-    with np.errstate(all="ignore"):
-        f = fit_percent(rec.y, run.mean)
-    inside = (rec.y >= run.lower) & (rec.y <= run.upper)
-    return {"fit": float(f) if np.isfinite(f) else None, "coverage": float(100.0 * np.mean(inside)),
-            "half_width_over_std": float(np.mean(run.upper - run.lower) / 2.0 / max(float(np.std(rec.y)), 1e-300)),
-            "seconds": float(run.seconds)}
+from .split_study import score  # a record's linearised run: fit, coverage, sharpness
 
 
 def run_rows_study(config, sizes, out: Path, reference=None, fit_backend: str = "jax",
@@ -54,7 +44,7 @@ def run_rows_study(config, sizes, out: Path, reference=None, fit_backend: str = 
         ref = load_bundle(reference).model
         result["reference"] = {"what": f"{cfg.name} bundle ({ref.posterior_.kind}, {ref.posterior_.n_points} points, "
                                        f"ML-II on {ref.n_train_} rows)",
-                               "records": {r.name: _score(ref, r, sim_backend) for r in validate}}
+                               "records": {r.name: score(ref, r, sim_backend) for r in validate}}
         log(f"reference {result['reference']['what']}: "
             + " ".join(f"{k} {v['fit']:.1f}" for k, v in result["reference"]["records"].items()))
         save()
@@ -65,7 +55,7 @@ def run_rows_study(config, sizes, out: Path, reference=None, fit_backend: str = 
         m.fit(train, heldout=lags if noise_cal else None)
         fit_s = time.perf_counter() - t0
         row = {"n_train": int(m.n_train_), "n_rows": int(m.n_rows_), "fit_seconds": fit_s, "nlml": float(m.nlml_),
-               "noise_var": float(m.noise_var_), "records": {r.name: _score(m, r, sim_backend) for r in validate}}
+               "noise_var": float(m.noise_var_), "records": {r.name: score(m, r, sim_backend) for r in validate}}
         fits = [v["fit"] for v in row["records"].values() if v["fit"] is not None]
         row["worst_fit"] = min(fits) if fits else None
         row["mean_fit"] = float(np.mean(fits)) if fits else None
