@@ -35,13 +35,11 @@ import warnings
 import numpy as np
 
 import _common as C
-from gpnarx.model import freerun
 from gpnarx.model.metrics import coverage, fit_percent
 from gpnarx.model.records import Record
 
-# equal work with the exact baselines: the product's Monte Carlo evaluates eq. 8-9 at every path
-# (its default checked local model is compared like for like in bench_mc_speed.py)
-freerun.LOCAL_MODEL = False
+# equal work with the exact baselines: every Monte Carlo run here passes local=False, so the product evaluates
+# eq. 8-9 at every path (its default checked local model is compared like for like in bench_mc_speed.py)
 
 CONFIG = C.ROOT / "configs" / "bert-standin.toml"
 
@@ -118,9 +116,9 @@ def main():
         warnings.simplefilter("ignore")
         sklearn_steps(gpr, noise, model, u, P, 1)  # warm-up
         b1 = sklearn_steps(gpr, noise, model, u, P, base_steps // 2, seed=1)
-    model.simulate(u[:8], n_paths=P, seed=0)  # warm-up
+    model.simulate(u[:8], n_paths=P, seed=0, local=False)  # warm-up
     t0 = time.perf_counter()
-    run = model.simulate(u, n_paths=P, seed=0)
+    run = model.simulate(u, n_paths=P, seed=0, local=False)
     wall = time.perf_counter() - t0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -132,13 +130,13 @@ def main():
 
     # equal work: the same posterior evaluated by plain numpy, same steps, interleaved
     ref = C.NumpySparse(model.posterior_)
-    Zp = model.posterior_.X
+    Zp = model.posterior_.points
     Xchk = Zp + 0.05 * np.random.default_rng(0).standard_normal(Zp.shape)
     ref_mean_diff = float(np.max(np.abs(model.posterior_.predict(Xchk)[0] - ref.predict(Xchk)[0])))
     uu = np.concatenate([np.zeros(model.ny), u[:seg]])
 
     def product():
-        fr = model.simulate(u[:seg], n_paths=P, seed=0)
+        fr = model.simulate(u[:seg], n_paths=P, seed=0, local=False)
         return fr.path_steps / fr.seconds
 
     def baseline():

@@ -24,12 +24,10 @@ import numpy as np
 from scipy import linalg
 
 import _common as C
-from gpnarx.model import freerun
 from gpnarx.model.freerun import simulate_mc
 
-# equal work with the exact baselines: the product's Monte Carlo evaluates eq. 8-9 at every path
-# (its default checked local model is compared like for like in bench_mc_speed.py)
-freerun.LOCAL_MODEL = False
+# equal work with the exact baselines: every Monte Carlo run here passes local=False, so the product evaluates
+# eq. 8-9 at every path (its default checked local model is compared like for like in bench_mc_speed.py)
 
 
 class GemmPosterior:
@@ -57,12 +55,13 @@ class GemmPosterior:
 def step_profile(post, gpr, Xb, repeat=3):
     """Seconds of each part of one step for a (P, D) block: ours, sklearn's, and alternatives."""
     out = {}
-    X = post.X
+    X = post.points
     k = post.kernel
     t, G = C.best(lambda: Xb @ X.T, repeat)
     out["ours: Gram Xs @ X.T (dgemm P x D x N)"] = t
     sq1 = np.einsum("ij,ij->i", Xb, Xb)
-    t, Ks = C.best(lambda: k.from_gram(G, sq1, post._sqX), repeat)
+    sqX = np.einsum("ij,ij->i", X, X)  # the posterior keeps these; computed once here, outside the timing
+    t, Ks = C.best(lambda: k.from_gram(G, sq1, sqX), repeat)
     out["ours: kernel elementwise (Matern sqrt/exp + cubic)"] = t
     out["ours: mean Ks @ alpha (gemv)"] = C.best(lambda: Ks @ post.alpha, repeat)[0]
     LT = np.ascontiguousarray(post.Linv.T)
@@ -112,23 +111,23 @@ def main():
     setup_s = time.perf_counter() - t0
 
     # warm-up (BLAS threads, caches, first-call imports)
-    simulate_mc(post, xsc, ysc, C.NY, C.NU, u[: C.NY + 2], n_paths=P, seed=0, y0=y0)
-    simulate_mc(post, xsc, ysc, C.NY, C.NU, u[: C.NY + 2], n_paths=P, seed=0, y0=y0, float32=True)
+    simulate_mc(post, xsc, ysc, C.NY, C.NU, u[: C.NY + 2], n_paths=P, seed=0, y0=y0, local=False)
+    simulate_mc(post, xsc, ysc, C.NY, C.NU, u[: C.NY + 2], n_paths=P, seed=0, y0=y0, float32=True, local=False)
     C.sklearn_freerun(gpr, noise, xsc, ysc, u[: C.NY + 2], y0, P, seed=0)
 
     alt = GemmPosterior(post)
-    simulate_mc(alt, xsc, ysc, C.NY, C.NU, u[: C.NY + 2], n_paths=P, seed=0, y0=y0)
+    simulate_mc(alt, xsc, ysc, C.NY, C.NU, u[: C.NY + 2], n_paths=P, seed=0, y0=y0, local=False)
     ours_t, base_t, f32_t, gemm_t, dg = [], [], [], [], []
     keep = (C.NY, C.NY + steps // 2, C.NY + steps - 1)
     for r in range(reps):
         dg.append(C.dgemm_gflops(N, P, repeat=2))
-        fr = simulate_mc(post, xsc, ysc, C.NY, C.NU, u, n_paths=P, seed=r, y0=y0)
+        fr = simulate_mc(post, xsc, ysc, C.NY, C.NU, u, n_paths=P, seed=r, y0=y0, local=False)
         ours_t.append(fr.seconds)
         bm, blo, bhi, bs, bsteps, kept = C.sklearn_freerun(gpr, noise, xsc, ysc, u, y0, P, seed=r, keep_X=keep)
         base_t.append(bs)
-        fr32 = simulate_mc(post, xsc, ysc, C.NY, C.NU, u, n_paths=P, seed=r, y0=y0, float32=True)
+        fr32 = simulate_mc(post, xsc, ysc, C.NY, C.NU, u, n_paths=P, seed=r, y0=y0, float32=True, local=False)
         f32_t.append(fr32.seconds)
-        frg = simulate_mc(alt, xsc, ysc, C.NY, C.NU, u, n_paths=P, seed=r, y0=y0)
+        frg = simulate_mc(alt, xsc, ysc, C.NY, C.NU, u, n_paths=P, seed=r, y0=y0, local=False)
         gemm_t.append(frg.seconds)
     path_steps = fr.path_steps
     assert path_steps == bsteps == steps * P

@@ -39,10 +39,7 @@ def child(case: str, n: int, m: int, paths: int, steps: int) -> dict:
     import numpy as np
     from sklearn.gaussian_process import GaussianProcessRegressor  # noqa: F401  (import before tracing)
 
-    from gpnarx.model import freerun
     from gpnarx.model.freerun import simulate_mc
-
-    freerun.LOCAL_MODEL = False  # equal work with the scikit-learn loop: eq. 8-9 at every path
     from gpnarx.model.gp import SparsePosterior, choose_inducing
 
     theta = C.THETA_REF
@@ -69,7 +66,8 @@ def child(case: str, n: int, m: int, paths: int, steps: int) -> dict:
     tracemalloc.reset_peak()
     t0 = time.perf_counter()
     if case in ("exact", "sparse"):
-        simulate_mc(post, xsc, ysc, C.NY, C.NU, u, n_paths=paths, seed=0, y0=y0)
+        simulate_mc(post, xsc, ysc, C.NY, C.NU, u, n_paths=paths, seed=0, y0=y0,
+                    local=False)  # equal work with the scikit-learn loop: eq. 8-9 at every path
     else:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

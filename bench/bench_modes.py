@@ -33,13 +33,11 @@ import warnings
 import numpy as np
 
 import _common as C
-from gpnarx.model import freerun
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.metrics import coverage, fit_percent
 
-# equal work with the exact baselines: the product's Monte Carlo evaluates eq. 8-9 at every path
-# (its default checked local model is compared like for like in bench_mc_speed.py)
-freerun.LOCAL_MODEL = False
+# equal work with the exact baselines: every Monte Carlo run here passes local=False, so the product evaluates
+# eq. 8-9 at every path (its default checked local model is compared like for like in bench_mc_speed.py)
 
 
 def main():
@@ -87,15 +85,15 @@ def main():
     # equal-work baseline of the exact mode: sklearn at the same N on the same rows
     exact, build_exact = model("exact")
     Xe, ye, _, _ = C.training_set(N_exact)
-    same_rows = bool(np.allclose(Xe, exact.posterior_.X))
+    same_rows = bool(np.allclose(Xe, exact.posterior_.points))
     gpr = C.sk_gpr(theta, Xe, ye)
-    Xb = exact.posterior_.X[:P] + 0.05 * np.random.default_rng(0).standard_normal((min(P, N_exact), C.D))
+    Xb = exact.posterior_.points[:P] + 0.05 * np.random.default_rng(0).standard_normal((min(P, N_exact), C.D))
     mean_diff_exact = float(np.max(np.abs(exact.posterior_.predict(Xb)[0] - gpr.predict(Xb))))
     u_seg = u50[:seg]
 
     def prod(m):
         def run():
-            fr = m.simulate(u_seg, n_paths=P, seed=0)
+            fr = m.simulate(u_seg, n_paths=P, seed=0, local=False)
             return fr.path_steps / fr.seconds
         return run
 
@@ -105,7 +103,7 @@ def main():
             *_, s, ps, _ = C.sklearn_freerun(gpr, noise, xsc, ysc, uu[: C.NY + seg], y0, P)
         return ps / s
 
-    exact.simulate(u50[:2], n_paths=P, seed=0)  # warm-up
+    exact.simulate(u50[:2], n_paths=P, seed=0, local=False)  # warm-up
     sk_exact()
     ex = C.interleave({"product": prod(exact), "baseline": sk_exact}, reps)
     rows = {"exact": dict(N=N_exact, ps=C.median(ex["product"]), seg_ps=C.median(ex["product"]), build=build_exact,
@@ -118,7 +116,7 @@ def main():
         m, build = model("sparse", n_inducing=M)
         sparse[M] = m
         ref = C.NumpySparse(m.posterior_)
-        Xs_ = m.posterior_.X + 0.05 * np.random.default_rng(1).standard_normal(m.posterior_.X.shape)
+        Xs_ = m.posterior_.points + 0.05 * np.random.default_rng(1).standard_normal(m.posterior_.points.shape)
         mean_diff_sparse = max(mean_diff_sparse, float(np.max(np.abs(m.posterior_.predict(Xs_)[0]
                                                                        - ref.predict(Xs_)[0]))))
 
@@ -126,10 +124,10 @@ def main():
             *_, s, ps, _ = C.mc_freerun(ref.predict, noise, m.x_scaler_, m.y_scaler_, uu[: C.NY + seg], y0, P)
             return ps / s
 
-        m.simulate(u50[:2], n_paths=P, seed=0)  # warm-up
+        m.simulate(u50[:2], n_paths=P, seed=0, local=False)  # warm-up
         np_sparse()
         sp = C.interleave({"product": prod(m), "baseline": np_sparse}, reps)
-        fr = m.simulate(u50, n_paths=P, seed=0)  # the whole record: fit, coverage, path-steps/s
+        fr = m.simulate(u50, n_paths=P, seed=0, local=False)  # the whole record: fit, coverage, path-steps/s
         rows[f"sparse{M}"] = dict(N=M, ps=fr.path_steps / fr.seconds, seg_ps=C.median(sp["product"]), build=build,
                                   run=fr, base_ps=C.median(sp["baseline"]),
                                   ratio=C.median_ratio(sp["product"], sp["baseline"]))

@@ -18,14 +18,12 @@ from __future__ import annotations
 import numpy as np
 
 import _common as C
-from gpnarx.model import freerun
 from gpnarx.model.freerun import simulate_mc
 from gpnarx.model.kernels import make_kernel
 from gpnarx.model.ml2 import nlml_and_grad
 
-# equal work with the exact baselines: the product's Monte Carlo evaluates eq. 8-9 at every path
-# (its default checked local model is compared like for like in bench_mc_speed.py)
-freerun.LOCAL_MODEL = False
+# equal work with the exact baselines: every Monte Carlo run here passes local=False, so the product evaluates
+# eq. 8-9 at every path (its default checked local model is compared like for like in bench_mc_speed.py)
 
 
 def main():
@@ -77,12 +75,12 @@ def main():
     X, y, xsc, ysc = C.training_set(N_len)
     post = C.exact_posterior(theta, X, y)
     r50 = C.protocol()[2]
-    simulate_mc(post, xsc, ysc, C.NY, C.NU, r50.u[500:502], n_paths=P_len, seed=0)
+    simulate_mc(post, xsc, ysc, C.NY, C.NU, r50.u[500:502], n_paths=P_len, seed=0, local=False)
     len_all = {L: [] for L in lengths}
     for _ in range(rep):  # round-robin
         for L in lengths:
             u = r50.u[500: 500 + L]
-            len_all[L].append(simulate_mc(post, xsc, ysc, C.NY, C.NU, u, n_paths=P_len, seed=0).seconds)
+            len_all[L].append(simulate_mc(post, xsc, ysc, C.NY, C.NU, u, n_paths=P_len, seed=0, local=False).seconds)
     len_t = [min(len_all[L]) for L in lengths]
 
     s_fit = C.loglog_slope(Ns, fit_t)

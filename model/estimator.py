@@ -338,7 +338,8 @@ class GPNARX(BaseEstimator):
 
     def simulate(self, u, n_paths: int = 1024, seed: int | None = 0, y0=None, confidence: float = 0.99,
                  method: str = "mc", float32: bool = False, keep_paths: bool = False, progress=None,
-                 cov_window: int = 0, backend: str | None = None, state=None, open_end: bool = False):
+                 cov_window: int = 0, backend: str | None = None, state=None, open_end: bool = False,
+                 local: bool = True):
         """Free-run prediction for input u (input units) with uncertainty propagation.
 
         method: 'mc' (Monte Carlo over n_paths, seeded) or 'linear' (first-order propagation).
@@ -361,6 +362,8 @@ class GPNARX(BaseEstimator):
             term (``model.discrepancy``) averages the amplitude over a centred window; in the last
             half-window of a chunk it averages what the chunk holds, so there the chunked band may
             differ slightly from the whole record's (elsewhere it is the same).
+        local: Monte Carlo on the numpy backend, serve steps from the checked local model of eq. 8-9
+            (``freerun.simulate_mc``'s ``local``); False evaluates eq. 8-9 exactly at every path.
         Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units); Monte Carlo runs
         count in ``diverged_paths`` the paths that left the training envelope (``model.envelope``).
         When the band was calibrated (``calibrate_band``), std and both bands include the
@@ -372,7 +375,7 @@ class GPNARX(BaseEstimator):
             raise ValueError("state: continuing a stream runs on the numpy backend only, got backend "
                              f"{backend!r}")
         run = self._simulate(u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,
-                             backend, state)
+                             backend, state, local)
         disc = getattr(self, "band_discrepancy_", None)
         if not disc:
             return run
@@ -385,7 +388,7 @@ class GPNARX(BaseEstimator):
         return out
 
     def _simulate(self, u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,
-                  backend="numpy", state=None):
+                  backend="numpy", state=None, local=True):
         u = _as_input(u)
         limit = divergence_limit(check_envelope(getattr(self, "envelope_", None)))
         if method not in ("mc", "linear"):
@@ -408,7 +411,8 @@ class GPNARX(BaseEstimator):
             return freerun.simulate_mc(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                        n_paths=int(n_paths), seed=seed, y0=y0, confidence=confidence,
                                        include_noise=self.include_noise, float32=float32,
-                                       keep_paths=keep_paths, progress=progress, diverge_limit=limit, state=state)
+                                       keep_paths=keep_paths, progress=progress, diverge_limit=limit, state=state,
+                                       local=local)
         if method == "linear":
             return freerun.simulate_linear(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                            y0=y0, confidence=confidence, include_noise=self.include_noise,

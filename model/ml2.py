@@ -15,7 +15,7 @@ import numpy as np
 from scipy import linalg
 
 from .backend import BACKENDS
-from .kernels import Kernel, Sum
+from .kernels import GradientKernel, Kernel, WorkspaceKernel, require
 from .linalg import JITTERS, LOG_2PI, NotPositiveDefiniteError, _potrf_inplace, chol_inverse, cholesky_jitter
 
 NOISE_LOG_BOUNDS = (np.log(1e-8), np.log(10.0))
@@ -38,8 +38,8 @@ class NLMLWorkspace:
         self.X = X
         n = X.shape[0]
         self.n = n
-        self.parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
-        self.fused = all(p.workspace_ready for p in self.parts)
+        self.parts = kernel.parts
+        self.fused = kernel.supports(WorkspaceKernel)
         if not self.fused:
             return
         self.KL = np.empty((n, n))
@@ -286,21 +286,18 @@ def multistart_lbfgsb(fun, args: tuple, starts: list, bounds: list, n_restarts: 
     return best, history, n_evals
 
 
-def _nlml_ws(theta, kernel, X, y, ws):
-    """Objective for L-BFGS-B; looks ``nlml_and_grad`` up at call time (benchmarks may wrap it)."""
-    return nlml_and_grad(theta, kernel, X, y, ws)
-
-
 def _nlml_jax(theta, kernel, X, y, ws):
     from .ml2_jax import nlml_and_grad_jax  # here: the optional backend stays out of a numpy process
 
     return nlml_and_grad_jax(theta, kernel, X, y)
 
 
-def _objective(backend: str):
+def nlml_objective(backend: str = "numpy"):
+    """The ML-II objective ``f(theta, kernel, X, y, workspace) -> (nlml, gradient)`` of a backend: numpy's
+    ``nlml_and_grad`` (with its reusable ``NLMLWorkspace``) or JAX's (which takes no workspace)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be 'numpy' or 'jax', got {backend!r}")
-    return _nlml_jax if backend == "jax" else _nlml_ws
+    return _nlml_jax if backend == "jax" else nlml_and_grad
 
 
 def _workspace(backend: str, kernel: Kernel, X: np.ndarray):
@@ -353,6 +350,7 @@ def fit_ml2(
     The kernel is left at the best hyperparameters; returns the best theta (kernel
     log-parameters then log sigma_y^2), its NLML and evaluation counts.
     """
+    require(kernel, GradientKernel, "ML-II (ml2.fit_ml2)")
     t0 = time.perf_counter()
     base = initial_theta(kernel, X, y) if theta0 is None else np.asarray(theta0, float)
     bounds = kernel.log_bounds() + [NOISE_LOG_BOUNDS]
@@ -366,14 +364,14 @@ def fit_ml2(
         rows = np.unique(np.linspace(0, n - 1, int(warm_start_subset)).astype(int))
         Xs_, ys_ = np.ascontiguousarray(X[rows]), y[rows]
         ws_sub = _workspace(backend, kernel, Xs_)
-        res_sub, _, sub_evals = multistart_lbfgsb(_objective(backend), (kernel, Xs_, ys_, ws_sub), [base], bounds,
+        res_sub, _, sub_evals = multistart_lbfgsb(nlml_objective(backend), (kernel, Xs_, ys_, ws_sub), [base], bounds,
                                                   max_iter=max_iter, stall_evals=stall_evals)
         del ws_sub
         sub_rows = rows.size
         if res_sub is not None:
             base = res_sub.x
     ws = _workspace(backend, kernel, X)
-    best, history, n_evals = multistart_lbfgsb(_objective(backend), (kernel, X, y, ws), [base], bounds,
+    best, history, n_evals = multistart_lbfgsb(nlml_objective(backend), (kernel, X, y, ws), [base], bounds,
                                                n_restarts=n_restarts, seed=seed, max_iter=max_iter,
                                                agree_tol=agree_tol, stall_evals=stall_evals)
     del ws

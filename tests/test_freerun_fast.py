@@ -83,6 +83,8 @@ def test_mc_exact_paths_equal_reference(sparse_model, sdof_data, monkeypatch):
     assert off.local_steps == 0
     assert np.array_equal(off.mean, ref.mean) and np.array_equal(off.upper, ref.upper)
     assert np.array_equal(off.latent_lower, ref.latent_lower)
+    est = m.simulate(u, n_paths=128, seed=1, local=False)  # GPNARX.simulate passes local= through
+    assert est.local_steps == 0 and np.array_equal(est.mean, ref.mean) and np.array_equal(est.upper, ref.upper)
     monkeypatch.setattr(freerun, "LOCAL_TOL_MEAN", -1.0)  # every check fails: every step exact
     failed = freerun.simulate_mc(*_args(m, u), n_paths=128, seed=1)
     assert failed.local_steps == 0
@@ -144,8 +146,8 @@ def test_local_model_matches_posterior_at_its_centre(sparse_model, exact_model):
 
     for m in (sparse_model, exact_model):
         post = m.posterior_
-        x = post.X[3] + 0.01
-        Xc = post.X[:4] + 0.02
+        x = post.points[3] + 0.01
+        Xc = post.points[:4] + 0.02
         m0, gm, Hm, v0, gv, Hv, mc, vc = local_model(post, x, m.ny, Xc)
         mu, var = post.predict(np.vstack([x, Xc]))
         assert m0 == pytest.approx(mu[0], rel=1e-9, abs=1e-12)

@@ -73,6 +73,15 @@ def test_nlml_gradient_matches_finite_differences():
     assert rel < 1e-5, rel
 
 
+def test_nlml_objective_is_public_per_backend():
+    """fit_ml2's objective of the numpy backend is nlml_and_grad itself (benchmarks time that, no wrapper)."""
+    from gpnarx.model.ml2 import nlml_objective
+
+    assert nlml_objective() is nlml_and_grad and nlml_objective("numpy") is nlml_and_grad
+    with pytest.raises(ValueError, match="backend"):
+        nlml_objective("torch")
+
+
 @pytest.mark.parametrize("spec", ["matern32+cubic", "rbf+cubic+white", "matern32"])
 def test_workspace_nlml_equals_materialised_gradients(spec):
     """The fused lower-triangle workspace path equals the textbook one (every dK materialised)."""
