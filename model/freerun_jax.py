@@ -7,7 +7,9 @@ jaxlib, else the CPU (so CI tests this code path).
 
 Monte Carlo: every step evaluates eq. 8 (mean) and eq. 9 (latent variance) exactly at every path, no
 local model: one kernel block K(x_paths, Z) (P x M), its product with the mean weights and one
-(P x M) x (M x M) product with the posterior's variance factor. All paths share the input lags, so the
+(P x M) x (M x M) product with the posterior's variance factor (apart: one joint (P x M) x (M x (M + 1))
+product with the mean weights as an extra column ran a quarter slower on a GPU, its last column of tiles
+almost empty). All paths share the input lags, so the
 input part of the Gram matrix is one (steps x nu) x (nu x M) product per block of steps, and each step
 multiplies only the ny output lags. The steps of a block run in one ``jax.lax.scan``; the block's
 samples stay on the device, where their mean, std and band quantiles are computed; only those
@@ -59,7 +61,7 @@ _CACHE: dict = {}  # compiled programs, by kernel structure and options (theta i
 def _build_mc(jax, jnp, hi, jk, ny, lat, keep, dt, unroll):
     tiny = float(np.finfo(dt).tiny)
 
-    def program(ystd, peak, Ub, eps, theta, Zy, Zu, sqZ, FTw, a, c, shift, noise, ym, ysc, qs, n_valid):
+    def program(ystd, peak, Ub, eps, theta, Zy, Zu, sqZ, FT, w, a, c, shift, noise, ym, ysc, qs, n_valid):
         # input part of the Gram matrix and of |x|^2 for every step of the block at once
         Gu = jnp.matmul(Ub.astype(dt), Zu.T, precision=hi)  # (C, M)
         su = jnp.sum(Ub * Ub, axis=1)  # (C,)
@@ -71,9 +73,8 @@ def _build_mc(jax, jnp, hi, jk, ny, lat, keep, dt, unroll):
             sq = jnp.sum(Y * Y, axis=1) + s_u
             G = jnp.matmul(Y.astype(dt), Zy.T, precision=hi) + gu[None, :]
             K = jk.cross(theta.astype(dt), G, sq.astype(dt), sqZ)
-            KF = jnp.matmul(K, FTw, precision=hi)  # [F k | k.w] of every path: one product
-            V = KF[:, :-1]
-            mu = KF[:, -1].astype(jnp.float64) + shift
+            V = jnp.matmul(K, FT, precision=hi)  # F k of every path (eq. 9)
+            mu = jnp.matmul(K, w, precision=hi).astype(jnp.float64) + shift  # k.w (eq. 8)
             var = jk.diag(theta, sq) - jnp.sum(V * V, axis=1).astype(jnp.float64)
             var = jnp.maximum(var, tiny)
             ysamp = mu + jnp.sqrt(var + noise) * e  # standardised output of every path
@@ -132,7 +133,7 @@ def simulate_mc_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.ndarr
     prog = _build_cached(jax, jnp, posterior.kernel, ny, lat, keep_paths, dt)
     d = lambda x, t=jnp.float64: jnp.asarray(x, dtype=t)  # noqa: E731
     args = dict(theta=d(theta), Zy=d(Z[:, :ny], dt), Zu=d(Z[:, ny:], dt), sqZ=d(np.einsum("ij,ij->i", Z, Z), dt),
-                FTw=d(np.column_stack([F.T, w]), dt), a=d(ysc / xs[:ny]), c=d((ym - xm[:ny]) / xs[:ny]),
+                FT=d(np.ascontiguousarray(F.T), dt), w=d(w, dt), a=d(ysc / xs[:ny]), c=d((ym - xm[:ny]) / xs[:ny]),
                 shift=d(shift), noise=d(noise), ym=d(ym), ysc=d(ysc), qs=d(q))
     ystd = jnp.broadcast_to(d((ylag_raw - ym) / ysc), (P, ny))
     peak = jnp.zeros(P, dtype=jnp.float64)
