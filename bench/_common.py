@@ -256,7 +256,7 @@ class NumpySparse:
         cap = cub[0].constant_cap
         self.const_var = const if cap is None else min(const, float(cap))  # the variance's kernel
         self.const_mean = const  # the mean's kernel (eq. 8) is uncapped
-        self.Z = np.asarray(post.X, float)
+        self.Z = np.asarray(post.points, float)
         self.w = np.asarray(post.w, float)
         self.GT = np.asarray(post.G, float).T
 

@@ -130,7 +130,7 @@ def main():
 
     # equal work: the same posterior evaluated by plain numpy, same steps, interleaved
     ref = C.NumpySparse(model.posterior_)
-    Zp = model.posterior_.X
+    Zp = model.posterior_.points
     Xchk = Zp + 0.05 * np.random.default_rng(0).standard_normal(Zp.shape)
     ref_mean_diff = float(np.max(np.abs(model.posterior_.predict(Xchk)[0] - ref.predict(Xchk)[0])))
     uu = np.concatenate([np.zeros(model.ny), u[:seg]])

@@ -85,9 +85,9 @@ def main():
     # equal-work baseline of the exact mode: sklearn at the same N on the same rows
     exact, build_exact = model("exact")
     Xe, ye, _, _ = C.training_set(N_exact)
-    same_rows = bool(np.allclose(Xe, exact.posterior_.X))
+    same_rows = bool(np.allclose(Xe, exact.posterior_.points))
     gpr = C.sk_gpr(theta, Xe, ye)
-    Xb = exact.posterior_.X[:P] + 0.05 * np.random.default_rng(0).standard_normal((min(P, N_exact), C.D))
+    Xb = exact.posterior_.points[:P] + 0.05 * np.random.default_rng(0).standard_normal((min(P, N_exact), C.D))
     mean_diff_exact = float(np.max(np.abs(exact.posterior_.predict(Xb)[0] - gpr.predict(Xb))))
     u_seg = u50[:seg]
 
@@ -116,7 +116,7 @@ def main():
         m, build = model("sparse", n_inducing=M)
         sparse[M] = m
         ref = C.NumpySparse(m.posterior_)
-        Xs_ = m.posterior_.X + 0.05 * np.random.default_rng(1).standard_normal(m.posterior_.X.shape)
+        Xs_ = m.posterior_.points + 0.05 * np.random.default_rng(1).standard_normal(m.posterior_.points.shape)
         mean_diff_sparse = max(mean_diff_sparse, float(np.max(np.abs(m.posterior_.predict(Xs_)[0]
                                                                        - ref.predict(Xs_)[0]))))
 

@@ -202,7 +202,7 @@ def run(args, tmp: Path):
     from gpnarx.model.registry import Registry
 
     model = Registry(reg).scan().get("bouc-wen").model
-    Zp = model.posterior_.X
+    Zp = model.posterior_.points
     Xchk = Zp + 0.05 * np.random.default_rng(0).standard_normal(Zp.shape)
     ref_mean_diff = float(np.max(np.abs(model.posterior_.predict(Xchk)[0] - C.NumpySparse(model.posterior_)
                                         .predict(Xchk)[0])))

@@ -185,7 +185,7 @@ def main(argv=None):
     http50, http95 = pct(http, 50) * 1e3, pct(http, 95) * 1e3
     ratio = C.median_ratio(http, inproc)
     overhead = (http50 - in_ms) / in_ms * 100.0
-    n_train = bundle.model.posterior_.X.shape[0]
+    n_train = bundle.model.posterior_.points.shape[0]
     print(f"RESULT http_p50_ms={http50:.1f} http_p95_ms={http95:.1f} inproc_ms={in_ms:.1f} baseline={in_ms:.1f} "
           f"baseline_what=inprocess-simulate-same-model-same-tuning ratio={ratio:.3f} overhead_pct={overhead:.1f} "
           f"rps={rps:.2f} clients={args.clients} "

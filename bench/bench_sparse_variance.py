@@ -60,7 +60,7 @@ def main() -> None:
             t0 = time.perf_counter()
             post = SparsePosterior.fit(kernel, noise_var, X, y, Z, var_kernel=var_kernel)
             build_s = time.perf_counter() - t0
-            old = SparsePosterior(post.kernel, noise_var, post.X, post.w, legacy_A=post.A)
+            old = SparsePosterior(post.kernel, noise_var, post.points, post.w, legacy_A=post.A)
             forms[n] = {"factored": (post, post.predict(Xq)[1]), "single": (old, old.predict(Xq)[1])}
     ref = sparse_variance_reference(post.kernel, Z, X, Xq, noise_var)
     err, thread_diff = {}, {}

@@ -588,7 +588,7 @@ def load_bundle(path) -> Bundle:
         else:
             raise BundleError(f"mode {manifest['mode']!r} unknown")
         D = ny + nu
-        if model.x_scaler_.mean_.shape != (D,) or model.posterior_.X.shape[1] != D:
+        if model.x_scaler_.mean_.shape != (D,) or model.posterior_.points.shape[1] != D:
             raise BundleError(f"array shapes do not match lags ny={ny}, nu={nu}")
         if manifest["mode"] == "sparse" and "posterior_A" in arrays:  # unfactored A (docs/numerics.md, safeguard 2)
             warnings.warn(f"{path}: stores the sparse predictive variance as one matrix A = Kmm^-1 - Sigma^-1, "

@@ -43,8 +43,9 @@ from .freerun_core import (
     start_index,
 )
 from .freerun_reference import simulate_linear_reference
-from .gp import local_model
-from .kernels import RBF, SQRT3, CubicPolynomial, Matern32, Sum, White
+from .gp import has_local_model, local_model
+from .kernels import LinearisableKernel, require
+from .posterior import Posterior
 
 # Tolerances of the local model's check (``simulate_mc``), at the checked paths (the farthest from the
 # mean regressor: the model's error grows as |d|^3, so these bound it for all paths). The 0.5 % and
@@ -98,7 +99,7 @@ def simulate_mc(
     quarter, is evaluated exactly and the model, checked again on the others, serves the rest;
     failing that, the step is exact at every path (``LOCAL_EXACT_SHARE``). A failed level is skipped
     for the next ``LOCAL_BACKOFF`` steps. Steps with a
-    clipped lag, runs with fewer than ``LOCAL_MIN_PATHS`` paths and kernels without ``local_terms``
+    clipped lag, runs with fewer than ``LOCAL_MIN_PATHS`` paths and posteriors ``gp.has_local_model`` refuses
     are exact. ``FreeRun.local_steps`` counts the steps served (wholly or partly) by the local model.
     The random draws are the same as the exact evaluation's (same seed, same paths up to the model's
     error). ``local=False``: every step exact (``freerun_reference.simulate_mc_reference``'s arithmetic).
@@ -113,7 +114,7 @@ def simulate_mc(
     P, n, i0, y0v, noise = st.P, st.n, st.i0, st.y0v, st.noise
     xm, xs, Xs, Ulag, ylag_raw = st.xm, st.xs, st.Xs, st.Ulag, st.ylag_raw
     use_local = (bool(local) and P >= LOCAL_MIN_PATHS
-                 and _has_local_model(posterior, ny + nu, ny))
+                 and has_local_model(posterior))
     n_check = min(LOCAL_CHECKS, P)
     check_rng = np.random.default_rng(None if seed is None else [int(seed), 0x10CA1])
     floor, retry_at = 0, -1  # after a failed check, start at level ``floor`` until step retry_at
@@ -163,17 +164,6 @@ def simulate_mc(
             progress(i + 1, n)
     end = st.end_state(u, state, check_rng, floor, max(retry_at - n, -1))
     return st.result(diverge_limit, local_steps=local_steps, state=end)
-
-
-def _has_local_model(posterior, D: int, ny: int) -> bool:
-    """Whether ``gp.local_model`` covers this posterior (its kernel has ``local_terms``)."""
-    if getattr(posterior, "kind", None) not in ("sparse", "exact") or not hasattr(posterior, "mean_weights"):
-        return False
-    try:
-        local_model(posterior, np.zeros(D), ny)
-    except NotImplementedError:
-        return False
-    return True
 
 
 def _local_step(posterior, Xs, ny, noise, n_check, rng, mu, var, tmp, n_exact: int = 0) -> bool:
@@ -247,7 +237,8 @@ def simulate_linear(
     2. sigma_f^2 (eq. 9) and J at every mean regressor of the record in row blocks (BLAS-3, the
        posterior's ``mean_var_grad``);
     3. the covariance recursion (ny x ny per step).
-    Posteriors without ``mean_var_grad`` take the reference loop.
+    Anything else than a ``posterior.Posterior`` whose kernel gives ``MeanTerms`` (e.g. an object with
+    only ``mean_grad`` and ``noise_var``) takes the reference loop.
 
     state: a ``FreeRunState`` of an earlier run (its ``FreeRun.state``) to continue from instead of
     starting at rest or at ``y0``: its last means, input lags and state covariance, so a record run in
@@ -258,9 +249,9 @@ def simulate_linear(
     fast = _MeanRecursion.build(posterior, x_scaler, ny, nu)
     if state is not None:
         check_state(state, "linear", ny, nu, y0)
-        if fast is None or not hasattr(posterior, "mean_var_grad"):
+        if fast is None:
             raise ValueError("state: this posterior's linearised run cannot continue a stream")
-    if fast is None or not hasattr(posterior, "mean_var_grad"):
+    if fast is None:
         return simulate_linear_reference(posterior, x_scaler, y_scaler, ny, nu, u, y0=y0, confidence=confidence,
                                           include_noise=include_noise, progress=progress, cov_window=cov_window)
     t_start = time.perf_counter()
@@ -380,16 +371,16 @@ def _covariance_recursion(q: np.ndarray, Jall: np.ndarray, L: int, ys: float, ba
 class _MeanRecursion:
     """Pass 1 of ``simulate_linear``: the free-run mean y_i = mu(x_i) (eq. 8) fed back as a lag.
 
-    For posteriors whose kernel is a sum of Matern32, RBF, CubicPolynomial and White parts, one step
-    is about twenty numpy calls on (M,) vectors instead of a general kernel evaluation:
-    g = Z x (the input part Z_u x_u of every step of a block is one BLAS-3 product before the block),
-    r^2 = |x|^2 + |z|^2 - 2 g, then every part's row from g or r^2 into one (rows x M) buffer F, and
-    one product F w. A cubic part (eq. 11) enters through the moments sum_m w_m g_m^p, p = 1..3:
-    sum_m w_m sigma_p^2 (s g_m + b)^3 = sigma_p^2 (b^3 sum w + 3 b^2 s S1 + 3 b s^2 S2 + s^3 S3),
-    which is the capped kernel's K w plus the posterior's ``mean_shift`` (kernels.CubicPolynomial).
+    For a posterior whose kernel gives its share of the mean as ``MeanTerms`` (``LinearisableKernel.
+    mean_terms``: Matern32, RBF, CubicPolynomial, White and sums of them), one step is about twenty
+    numpy calls on (M,) vectors instead of a general kernel evaluation: g = Z x (the input part Z_u x_u
+    of every step of a block is one BLAS-3 product before the block), r^2 = |x|^2 + |z|^2 - 2 g, then
+    every profile's row f(r^2) into one (rows x M) buffer F next to g, g^2, g^3, and one product F w;
+    the kernel's moments, profile scales and constant turn F w into the mean.
     """
-    def __init__(self, Z, parts, ny, nu, xm, xs):
+    def __init__(self, Z, terms, w, ny, nu, xm, xs):
         self.Z = Z
+        self.w = w
         self.ny, self.nu = ny, nu
         self.xm, self.xs = xm, xs
         self.Zy_rev = np.ascontiguousarray(Z[:, :ny][:, ::-1])  # columns in time order y_{i-ny}..y_{i-1}
@@ -397,58 +388,26 @@ class _MeanRecursion:
         self.sqZ = np.einsum("ij,ij->i", Z, Z)
         self.xm_rev = np.ascontiguousarray(xm[:ny][::-1])
         self.inv_rev = np.ascontiguousarray(1.0 / xs[:ny][::-1])
-        self.parts = parts  # list of (kind, row index in F or None, coefficients)
-        self.n_rows = 1 + max([r for _, r, _ in parts if r is not None] + [0])
-        self.const = 0.0
-        self.cubic = [0.0, 0.0, 0.0]  # coefficients of S1, S2, S3
-        self.stationary = []  # (kind, F row, scale)
-        for kind, row, c in parts:
-            if kind == "cubic":
-                for j in range(3):
-                    self.cubic[j] += c[j]
-                self.const += c[3]
-            elif kind in ("matern", "rbf"):
-                self.stationary.append((kind, row, c))
-        # F rows: 0 = g, 1 = g^2, 2 = g^3 (when a cubic part is present), then one row per stationary part
-        self.wF = None
+        self.const = terms.const
+        self.has_moments = terms.moments is not None
+        self.moments = terms.moments if self.has_moments else (0.0, 0.0, 0.0)  # coefficients of S1, S2, S3
+        self.profiles = terms.profiles  # (scale, fill) per row 3, 4, ... of F
+        # F rows: 0 = g, 1 = g^2, 2 = g^3 (filled when the kernel has moments), then one row per profile
+        self.n_rows = 3 + len(self.profiles)
 
     @classmethod
     def build(cls, posterior, x_scaler, ny, nu):
-        """A recursion for ``posterior``, or None when its kernel or type is not covered."""
-        kernel = getattr(posterior, "kernel", None)
-        Z = getattr(posterior, "X", None)
-        try:
-            w = posterior.mean_weights
-        except AttributeError:
+        """A recursion for ``posterior``, or None when it is not a ``posterior.Posterior`` or its kernel
+        has no ``MeanTerms``."""
+        if not isinstance(posterior, Posterior) or getattr(x_scaler, "mean_", None) is None:
             return None
-        if kernel is None or Z is None or getattr(x_scaler, "mean_", None) is None:
+        require(posterior.kernel, LinearisableKernel, "the linearised free run (freerun.simulate_linear)")
+        w = np.asarray(posterior.mean_weights, dtype=float)
+        terms = posterior.kernel.mean_terms(w)
+        if terms is None:
             return None
-        plist = kernel.parts if isinstance(kernel, Sum) else [kernel]
-        parts = []
-        row = 3
-        sw = float(np.sum(w))
-        for p in plist:
-            if isinstance(p, Matern32):
-                var, ls = np.exp(p.theta)
-                parts.append(("matern", row, (float(var), float(SQRT3 / ls))))
-                row += 1
-            elif isinstance(p, RBF):
-                var, ls = np.exp(p.theta)
-                parts.append(("rbf", row, (float(var), float(-0.5 / ls**2))))
-                row += 1
-            elif isinstance(p, CubicPolynomial):
-                var, s_, b = (float(v) for v in np.exp(p.theta))
-                parts.append(("cubic", None, (3.0 * var * b * b * s_, 3.0 * var * b * s_ * s_, var * s_**3,
-                                              var * b**3 * sw)))
-            elif isinstance(p, White):
-                continue  # zero between distinct sets: no mean contribution
-            else:
-                return None
-        obj = cls(np.ascontiguousarray(Z, dtype=float), parts, ny, nu, np.asarray(x_scaler.mean_, float),
-                  np.asarray(x_scaler.scale_, float))
-        obj.n_rows = row
-        obj.w = np.asarray(w, dtype=float)
-        return obj
+        return cls(np.ascontiguousarray(posterior.points, dtype=float), terms, w, ny, nu,
+                   np.asarray(x_scaler.mean_, float), np.asarray(x_scaler.scale_, float))
 
     def run(self, hist, Ulag, i0, n, ym, ys, progress=None, chunk=1024):
         """Fill hist[ny + i] with the mean output of every step i0 <= i < n (output units)."""
@@ -462,11 +421,11 @@ class _MeanRecursion:
         r = np.empty(M)
         xy = np.empty(ny)
         wv = self.w
-        c1, c2, c3 = self.cubic
+        c1, c2, c3 = self.moments
         const = self.const
-        has_cubic = any(k == "cubic" for k, _, _ in self.parts)
-        stationary = self.stationary
-        single = len(stationary) == 1
+        has_moments = self.has_moments
+        profiles = list(enumerate(self.profiles, start=3))  # (F row, (scale, fill))
+        single = len(profiles) == 1
         xm_r, inv_r = self.xm_rev, self.inv_rev
         # conservative range of a lag value whose standardised value needs no clipping (any column)
         lo = float(np.max(self.xm[:ny] - LAG_CLIP * self.xs[:ny]))
@@ -477,7 +436,7 @@ class _MeanRecursion:
             if not lo <= v <= hi:
                 clip_until = i0 + ny
         dot, multiply, subtract, add = np.dot, np.multiply, np.subtract, np.add
-        maximum, sqrt, exp = np.maximum, np.sqrt, np.exp
+        maximum = np.maximum
         for c0 in range(i0, n, chunk):
             c1_ = min(n, c0 + chunk)
             Uc = Ulag[c0:c1_]
@@ -494,29 +453,19 @@ class _MeanRecursion:
                     np.clip(xy, -LAG_CLIP, LAG_CLIP, out=xy)
                 dot(Zy2, xy, out=GG)
                 add(gy, GU[j], out=g)
-                if stationary:
+                if profiles:
                     add(gy2, R0[j], out=r)
                     r += float(dot(xy, xy))
                     maximum(r, 0.0, out=r)
-                    for kind, row, (_, c) in stationary:
-                        f = F[row]
-                        a = r if single else r.copy()
-                        if kind == "matern":  # (1 + a) exp(-a), a = sqrt(3) r / l (eq. 10); var below
-                            sqrt(a, out=a)
-                            a *= -c
-                            exp(a, out=f)
-                            subtract(1.0, a, out=a)
-                            f *= a
-                        else:  # rbf: exp(-r^2 / (2 l^2))
-                            multiply(a, c, out=f)
-                            exp(f, out=f)
-                if has_cubic:
+                    for row, (_, fill) in profiles:
+                        fill(r if single else r.copy(), F[row])
+                if has_moments:
                     multiply(g, g, out=g2)
                     multiply(g2, g, out=g3)
                 vals = dot(F, wv)
                 mu = const + c1 * vals[0] + c2 * vals[1] + c3 * vals[2]
-                for _, row, (var, _) in stationary:
-                    mu += var * vals[row]
+                for row, (scale, _) in profiles:
+                    mu += scale * vals[row]
                 y = mu * ys + ym
                 hist[ny + i] = y
                 if not lo <= y <= hi:

@@ -43,11 +43,12 @@ SCAN_UNROLL = 8  # steps per iteration of the compiled loop (fewer loop round tr
 
 
 def _posterior_arrays(posterior):
-    """(Z, w, F, mean_shift): the points, mean weights and variance factor (eq. 9 = k(x,x) - |F k|^2)."""
+    """(Z, w, F, mean_shift) of a ``posterior.Posterior``: its points, mean weights and variance factor
+    (eq. 9 = k(x,x) - |F k|^2)."""
     F = posterior.variance_factor
     if F is None:
         raise NotImplementedError("a legacy sparse bundle (no variance factor G) runs on backend 'numpy' only")
-    return posterior.X, posterior.mean_weights, F, posterior.mean_shift
+    return posterior.points, posterior.mean_weights, F, posterior.mean_shift
 
 
 def _block_steps(n_steps: int, P: int) -> int:

@@ -2,37 +2,87 @@
 
 The hyperparameters come from ML-II (``model.ml2``, eq. 13); a posterior holds the arrays that
 prediction needs (means, variances, their gradients for the linearised propagation and the local
-model of the Monte Carlo free run).
+model of the Monte Carlo free run). Both meet the ``posterior.Posterior`` contract, which is all the
+free runs and ``local_model`` read.
 """
 from __future__ import annotations
 
 import numpy as np
 from scipy import linalg
 
-from .kernels import Kernel
+from .kernels import Kernel, LocalKernel
 from .linalg import chol_inverse, cholesky_jitter
+from .posterior import Posterior
 
 
-class ExactPosterior:
+class _Posterior:
+    """What the exact and sparse posteriors share (``posterior.Posterior``): K(Xs, points) through one Gram
+    product, eq. 8's constant shift, and the mean, variance and mean gradient at one or many points.
+    A subclass provides ``points``, ``mean_weights``, ``reduction_rows`` and ``_reduction_one``."""
+
+    def __init__(self, kernel: Kernel, noise_var: float, points: np.ndarray, weights: np.ndarray):
+        self.kernel = kernel
+        self.noise_var = float(noise_var)
+        self._sq_points = np.einsum("ij,ij->i", points, points)
+        # kernel may be a capped copy (Kernel.for_posterior): K_full = K + shift, so the mean of
+        # eq. 8 is K w + shift * sum(w) while the variance uses the capped kernel
+        self.mean_shift = float(kernel.cap_shift()) * float(np.sum(weights))
+
+    @property
+    def n_points(self) -> int:
+        return self.points.shape[0]
+
+    def cross(self, Xs: np.ndarray) -> np.ndarray:
+        """K(Xs, points) with one Gram product shared by all kernel parts."""
+        return self.kernel.from_gram(Xs @ self.points.T, np.einsum("ij,ij->i", Xs, Xs), self._sq_points)
+
+    def mean_grad(self, xs: np.ndarray) -> tuple[float, float, np.ndarray]:
+        """Mean, latent variance and d mean / d xs at one point xs (D,)."""
+        k = self.cross(xs[None, :])
+        w = self.mean_weights
+        mean = float(k[0] @ w) + self.mean_shift
+        var = max(float(self.kernel.diag(xs[None, :])[0] - self._reduction_one(k)), 1e-300)
+        grad = self.kernel.grad_x(xs, self.points).T @ w
+        return mean, var, grad
+
+    def mean_var_grad(self, Xs: np.ndarray, block: int = 256):
+        """``mean_grad`` for many points at once: mean (eq. 8), latent variance (eq. 9, as ``predict``)
+        and d mean / d xs for every row of Xs, (rows,), (rows,), (rows, D); one kernel block per row block
+        sharing one Gram product with the mean's gradient (``LinearisableKernel.value_and_grad_dot``)."""
+        Xs = np.ascontiguousarray(Xs, dtype=float)
+        n = Xs.shape[0]
+        mean, var = np.empty(n), np.empty(n)
+        grad = np.empty(Xs.shape)
+        X, w = self.points, self.mean_weights
+        sqX = np.einsum("ij,ij->i", X, X)
+        for r0 in range(0, n, block):
+            r1 = min(n, r0 + block)
+            xb = Xs[r0:r1]
+            Ks, grad[r0:r1] = self.kernel.value_and_grad_dot(xb, X, w, xb @ X.T, np.einsum("ij,ij->i", xb, xb),
+                                                              sqX)
+            np.dot(Ks, w, out=mean[r0:r1])
+            mean[r0:r1] += self.mean_shift
+            var[r0:r1] = self.kernel.diag(xb) - self.reduction_rows(Ks)
+        np.maximum(var, 1e-300, out=var)
+        return mean, var, grad
+
+
+class ExactPosterior(_Posterior):
     """Full GP posterior, eqs. (8)-(9), on standardised data.
 
-    Stores alpha = (K + sigma_y^2 I)^-1 y and Linv = L^-1 (lower), so that for test points Xs:
-    mean = K(Xs, X) alpha (eq. 8) and var_f = k(Xs, Xs) - |Linv K(X, Xs)|^2 (eq. 9).
+    Stores the training rows ``X_train``, alpha = (K + sigma_y^2 I)^-1 y and Linv = L^-1 (lower), so
+    that for test points Xs: mean = K(Xs, X_train) alpha (eq. 8) and
+    var_f = k(Xs, Xs) - |Linv K(X_train, Xs)|^2 (eq. 9).
     """
 
     kind = "exact"
 
     def __init__(self, kernel: Kernel, noise_var: float, X: np.ndarray, alpha: np.ndarray, Linv: np.ndarray):
-        self.kernel = kernel
-        self.noise_var = float(noise_var)
-        self.X = X
+        self.X_train = X
         self.alpha = alpha
         self.Linv = np.ascontiguousarray(Linv)  # C order: Linv.T is its F-ordered (upper) view for BLAS
-        self._sqX = np.einsum("ij,ij->i", X, X)
         self._LinvT32 = None
-        # kernel may be a capped copy (Kernel.for_posterior): K_full = K + shift, so the mean of
-        # eq. 8 is K alpha + shift * sum(alpha) while the variance uses the capped kernel
-        self.mean_shift = float(kernel.cap_shift()) * float(np.sum(alpha))
+        super().__init__(kernel, noise_var, X, alpha)
 
     @classmethod
     def fit(cls, kernel: Kernel, noise_var: float, X: np.ndarray, y: np.ndarray,
@@ -61,12 +111,9 @@ class ExactPosterior:
         return alpha, np.tril(Linv)
 
     @property
-    def n_points(self) -> int:
-        return self.X.shape[0]
-
-    def cross(self, Xs: np.ndarray) -> np.ndarray:
-        """K(Xs, X) with one Gram product shared by all kernel parts."""
-        return self.kernel.from_gram(Xs @ self.X.T, np.einsum("ij,ij->i", Xs, Xs), self._sqX)
+    def points(self) -> np.ndarray:
+        """The training rows (N, D) the posterior conditions on."""
+        return self.X_train
 
     def predict(self, Xs: np.ndarray, return_var: bool = True, float32: bool = False):
         """Latent mean (eq. 8) and variance (eq. 9) at Xs (standardised units)."""
@@ -82,12 +129,12 @@ class ExactPosterior:
                                   overwrite_b=1).T
             red = np.einsum("ij,ij->i", V, V, dtype=np.float64)
         else:
-            red = self._reduction_rows(Ks)
+            red = self.reduction_rows(Ks)
         var = self.kernel.diag(Xs) - red
         np.maximum(var, 1e-300, out=var)
         return mean, var
 
-    def _reduction_rows(self, Ks: np.ndarray) -> np.ndarray:
+    def reduction_rows(self, Ks: np.ndarray) -> np.ndarray:
         """|Linv k|^2 per row of Ks (eq. 9), float64; Ks is overwritten."""
         # a triangular product: dtrmm computes Linv Ks^T in place in P N^2 flops (half the dense
         # Ks @ Linv.T). Ks.T and Linv.T are F-ordered views of the C-ordered arrays, so BLAS needs no
@@ -96,14 +143,9 @@ class ExactPosterior:
                               overwrite_b=1).T
         return np.einsum("ij,ij->i", V, V)
 
-    def mean_grad(self, xs: np.ndarray) -> tuple[float, float, np.ndarray]:
-        """Mean, latent variance and d mean / d xs at one point xs (D,)."""
-        k = self.cross(xs[None, :])[0]
-        mean = float(k @ self.alpha) + self.mean_shift
-        v = self.Linv @ k
-        var = max(float(self.kernel.diag(xs[None, :])[0] - v @ v), 1e-300)
-        grad = self.kernel.grad_x(xs, self.X).T @ self.alpha
-        return mean, var, grad
+    def _reduction_one(self, k: np.ndarray) -> float:
+        v = self.Linv @ k[0]
+        return float(v @ v)
 
     @property
     def mean_weights(self) -> np.ndarray:
@@ -115,55 +157,38 @@ class ExactPosterior:
         """F of eq. 9's variance k(x, x) - |F k|^2: Linv."""
         return self.Linv
 
-    def mean_var_grad(self, Xs: np.ndarray, block: int = 256):
-        """``mean_grad`` for many points at once: mean (eq. 8), latent variance (eq. 9) and
-        d mean / d xs for every row of Xs, (rows,), (rows,), (rows, D); one kernel block per row block."""
-        return _mean_var_grad(self, Xs, block)
-
     def arrays(self) -> dict:
-        return {"X": self.X, "alpha": self.alpha, "Linv": self.Linv}
+        return {"X": self.X_train, "alpha": self.alpha, "Linv": self.Linv}
 
     @classmethod
     def from_arrays(cls, kernel, noise_var, arrays) -> "ExactPosterior":
         return cls(kernel, noise_var, arrays["X"], arrays["alpha"], arrays["Linv"])
 
 
-def _mean_var_grad(post, Xs: np.ndarray, block: int):
-    """Mean (eq. 8), latent variance (eq. 9, the posterior's own ``predict``) and the mean's gradient
-    (``Kernel.grad_dot``) at every row of Xs, in row blocks sharing one Gram product per block."""
-    Xs = np.ascontiguousarray(Xs, dtype=float)
-    n = Xs.shape[0]
-    mean, var = np.empty(n), np.empty(n)
-    grad = np.empty(Xs.shape)
-    X, w = post.X, post.mean_weights
-    sqX = np.einsum("ij,ij->i", X, X)
-    for r0 in range(0, n, block):
-        r1 = min(n, r0 + block)
-        xb = Xs[r0:r1]
-        Ks, grad[r0:r1] = post.kernel.value_and_grad_dot(xb, X, w, xb @ X.T, np.einsum("ij,ij->i", xb, xb), sqX)
-        np.dot(Ks, w, out=mean[r0:r1])
-        mean[r0:r1] += post.mean_shift
-        var[r0:r1] = post.kernel.diag(xb) - post._reduction_rows(Ks)
-    np.maximum(var, 1e-300, out=var)
-    return mean, var, grad
+def has_local_model(post) -> bool:
+    """Whether ``local_model`` covers ``post``: a ``posterior.Posterior`` with a variance factor (not a
+    legacy sparse bundle) whose kernel meets ``LocalKernel``."""
+    return (isinstance(post, Posterior) and post.variance_factor is not None
+            and post.kernel.supports(LocalKernel))
 
 
-def local_model(post, x: np.ndarray, ny: int, Xc: np.ndarray | None = None):
+def local_model(post: Posterior, x: np.ndarray, ny: int, Xc: np.ndarray | None = None):
     """Second-order model of the predictive mean (eq. 8) and latent variance (eq. 9) around one
     regressor x in its first ``ny`` coordinates (the lagged outputs).
 
     mean(x + d) ~ m0 + gm . d + d^T Hm d / 2 and var(x + d) ~ v0 + gv . d + d^T Hv d / 2 for d zero
     beyond ny. The variance is expanded as a whole, k(x, x) - |F k(x)|^2 with F the posterior's
     factor (G, or Linv for the exact posterior): q = |F k|^2 has gradient 2 (F J)^T F k and Hessian
-    2 (F J)^T (F J) + 2 sum_n (F^T F k)_n d^2 k_n, J = d k / d x[:ny] (``Kernel.local_terms``).
+    2 (F J)^T (F J) + 2 sum_n (F^T F k)_n d^2 k_n, J = d k / d x[:ny] (``LocalKernel.local_terms``).
     Costs O(M^2 ny) for one point (no per-path work). With ``Xc`` (rows x D), also eq. 8-9 exactly
-    at those rows, sharing the one product with F. Returns (m0, gm, Hm, v0, gv, Hv, mean_c, var_c);
-    raises NotImplementedError for kernels without ``local_terms`` and for legacy bundles.
+    at those rows, sharing the one product with F. Returns (m0, gm, Hm, v0, gv, Hv, mean_c, var_c).
+    Called once per Monte Carlo step, so the contract is checked once per run by the caller
+    (``has_local_model``: a kernel that meets ``LocalKernel``, not a legacy sparse bundle).
     """
     F = post.variance_factor
     if F is None:
         raise NotImplementedError("legacy sparse bundle (no variance factor G)")
-    k, J, hess = post.kernel.local_terms(x, post.X, ny)
+    k, J, hess = post.kernel.local_terms(x, post.points, ny)
     kxx, gk, Hk = post.kernel.diag_local(x, ny)
     w = post.mean_weights
     nc = 0 if Xc is None else Xc.shape[0]
@@ -227,7 +252,7 @@ def choose_inducing(X: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
     return Z
 
 
-class SparsePosterior:
+class SparsePosterior(_Posterior):
     """Sparse (VFE / DTC predictive) posterior with M inducing inputs Z.
 
     With Kmm = K(Z, Z) = Lm Lm^T, Kmn = K(Z, X), Sigma = Kmm + sigma_y^-2 Kmn Knm:
@@ -252,9 +277,7 @@ class SparsePosterior:
 
     def __init__(self, kernel: Kernel, noise_var: float, Z: np.ndarray, w: np.ndarray,
                  G: np.ndarray | None = None, legacy_A: np.ndarray | None = None):
-        self.kernel = kernel
-        self.noise_var = float(noise_var)
-        self.X = Z
+        self.inducing = Z
         self.w = w
         if (G is None) == (legacy_A is None):
             raise ValueError("SparsePosterior needs the variance factor G (or legacy_A from an old bundle)")
@@ -263,9 +286,7 @@ class SparsePosterior:
         # the right-hand operand of the per-block product: G^T (C order), or the legacy A
         self._right = np.ascontiguousarray(self.G.T) if G is not None else legacy_A
         self._right32 = None
-        self._sqZ = np.einsum("ij,ij->i", Z, Z)
-        # as in ExactPosterior: with a capped kernel, mean = K w + shift * sum(w)
-        self.mean_shift = float(kernel.cap_shift()) * float(np.sum(w))
+        super().__init__(kernel, noise_var, Z, w)
 
     @property
     def A(self) -> np.ndarray:
@@ -299,11 +320,9 @@ class SparsePosterior:
         return Lm_inv, V, (V @ V.T) / noise_var
 
     @property
-    def n_points(self) -> int:
-        return self.X.shape[0]
-
-    def cross(self, Xs):
-        return self.kernel.from_gram(Xs @ self.X.T, np.einsum("ij,ij->i", Xs, Xs), self._sqZ)
+    def points(self) -> np.ndarray:
+        """The inducing inputs Z (M, D) the posterior conditions on."""
+        return self.inducing
 
     ROW_BLOCK = 256  # test rows per block: the (rows x M) kernel block and its temporaries stay in cache
 
@@ -334,7 +353,7 @@ class SparsePosterior:
         step = self.ROW_BLOCK
         for r0 in range(0, P, step):
             r1 = min(P, r0 + step)
-            Ks = self.kernel.from_gram(Xs[r0:r1] @ self.X.T, sqs[r0:r1], self._sqZ)
+            Ks = self.kernel.from_gram(Xs[r0:r1] @ self.inducing.T, sqs[r0:r1], self._sq_points)
             np.dot(Ks, self.w, out=mean[r0:r1])
             mean[r0:r1] += self.mean_shift
             if return_var:
@@ -344,16 +363,12 @@ class SparsePosterior:
         np.maximum(var, 1e-300, out=var)
         return mean, var
 
-    def _reduction_rows(self, Ks: np.ndarray) -> np.ndarray:
+    def reduction_rows(self, Ks: np.ndarray) -> np.ndarray:
         """k^T A k per row of Ks (eq. 9), float64."""
         return self._reduction(Ks, False)
 
-    def mean_grad(self, xs):
-        k = self.cross(xs[None, :])
-        mean = float(k[0] @ self.w) + self.mean_shift
-        var = max(float(self.kernel.diag(xs[None, :])[0] - self._reduction(k, False)[0]), 1e-300)
-        grad = self.kernel.grad_x(xs, self.X).T @ self.w
-        return mean, var, grad
+    def _reduction_one(self, k: np.ndarray) -> float:
+        return self._reduction(k, False)[0]
 
     @property
     def mean_weights(self) -> np.ndarray:
@@ -365,14 +380,10 @@ class SparsePosterior:
         """F of eq. 9's variance k(x, x) - |F k|^2: G (None for a legacy bundle that stores only A)."""
         return self.G
 
-    def mean_var_grad(self, Xs, block: int = 256):
-        """``mean_grad`` for many points at once (see ``ExactPosterior.mean_var_grad``)."""
-        return _mean_var_grad(self, Xs, block)
-
     def arrays(self) -> dict:
         if self.legacy_A is not None:
-            return {"Z": self.X, "w": self.w, "A": self.legacy_A}
-        return {"Z": self.X, "w": self.w, "G": self.G}
+            return {"Z": self.inducing, "w": self.w, "A": self.legacy_A}
+        return {"Z": self.inducing, "w": self.w, "G": self.G}
 
     @classmethod
     def from_arrays(cls, kernel, noise_var, arrays) -> "SparsePosterior":

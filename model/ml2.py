@@ -15,7 +15,7 @@ import numpy as np
 from scipy import linalg
 
 from .backend import BACKENDS
-from .kernels import Kernel, Sum
+from .kernels import GradientKernel, Kernel, WorkspaceKernel, require
 from .linalg import JITTERS, LOG_2PI, NotPositiveDefiniteError, _potrf_inplace, chol_inverse, cholesky_jitter
 
 NOISE_LOG_BOUNDS = (np.log(1e-8), np.log(10.0))
@@ -38,8 +38,8 @@ class NLMLWorkspace:
         self.X = X
         n = X.shape[0]
         self.n = n
-        self.parts = kernel.parts if isinstance(kernel, Sum) else [kernel]
-        self.fused = all(p.workspace_ready for p in self.parts)
+        self.parts = kernel.parts
+        self.fused = kernel.supports(WorkspaceKernel)
         if not self.fused:
             return
         self.KL = np.empty((n, n))
@@ -350,6 +350,7 @@ def fit_ml2(
     The kernel is left at the best hyperparameters; returns the best theta (kernel
     log-parameters then log sigma_y^2), its NLML and evaluation counts.
     """
+    require(kernel, GradientKernel, "ML-II (ml2.fit_ml2)")
     t0 = time.perf_counter()
     base = initial_theta(kernel, X, y) if theta0 is None else np.asarray(theta0, float)
     bounds = kernel.log_bounds() + [NOISE_LOG_BOUNDS]

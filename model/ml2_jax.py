@@ -95,8 +95,9 @@ def exact_solve_jax(kernel, noise_var: float, X: np.ndarray, y: np.ndarray) -> t
 
 
 def predict_exact_jax(posterior, Xs: np.ndarray, block: int = 4096) -> tuple[np.ndarray, np.ndarray]:
-    """eq. 8-9 of an exact posterior (``gp.ExactPosterior.predict``) at the rows of Xs, float64, on the JAX
-    device in row blocks: the held-out noise calibration of a posterior of N = 10-20 thousand rows."""
+    """eq. 8-9 of a posterior (``posterior.Posterior``: K(x, points) w and k(x, x) - |F k|^2, as
+    ``gp.ExactPosterior.predict``) at the rows of Xs, float64, on the JAX device in row blocks: the held-out
+    noise calibration of an exact posterior of N = 10-20 thousand rows."""
     jax = require_jax()
     jnp = jax.numpy
     key = ("predict", kernel_structure(posterior.kernel))
@@ -113,8 +114,9 @@ def predict_exact_jax(posterior, Xs: np.ndarray, block: int = 4096) -> tuple[np.
 
         prog = _CACHE[key] = jax.jit(program)
     d = lambda a: jnp.asarray(a, dtype=jnp.float64)  # noqa: E731
-    X = posterior.X
-    args = (d(X), d(np.einsum("ij,ij->i", X, X)), d(posterior.alpha), d(posterior.Linv.T), d(posterior.mean_shift))
+    X = posterior.points
+    args = (d(X), d(np.einsum("ij,ij->i", X, X)), d(posterior.mean_weights), d(posterior.variance_factor.T),
+            d(posterior.mean_shift))
     theta = d(kernel_theta(posterior.kernel))
     Xs = np.asarray(Xs, dtype=float)
     mean, var = np.empty(Xs.shape[0]), np.empty(Xs.shape[0])

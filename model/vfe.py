@@ -37,7 +37,7 @@ import numpy as np
 from scipy import linalg
 
 from . import ml2
-from .kernels import Kernel
+from .kernels import GradientKernel, Kernel, SparseBoundKernel, require
 from .linalg import LOG_2PI, NotPositiveDefiniteError, chol_inverse, cholesky_jitter
 
 DEFAULT_JITTER = 1e-8  # relative to mean(diag Kmm), as in SparsePosterior.fit
@@ -185,6 +185,8 @@ def fit_vfe(
     once two runs agree within ``agree_tol`` nats). The kernel is left at the best
     hyperparameters.
     """
+    for contract in (GradientKernel, SparseBoundKernel):
+        require(kernel, contract, "the sparse bound (vfe.fit_vfe)")
     t0 = time.perf_counter()
     y = np.asarray(y, dtype=float).ravel()
     bounds = kernel.log_bounds() + [ml2.NOISE_LOG_BOUNDS]

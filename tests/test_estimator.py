@@ -155,7 +155,7 @@ def test_sparse_vfe_refines_hyperparameters_on_all_rows(sdof_data):
     X, Y = narx_regressors(u, yn, 8, 8)
     Xs = vfe.x_scaler_.transform(X)
     Ys = (Y - vfe.y_scaler_.mean_[0]) / vfe.y_scaler_.scale_[0]
-    Z = vfe.posterior_.X
+    Z = vfe.posterior_.points
     k = vfe.kernel_.clone()
     f_sub, _ = vfe_nlml_and_grad(sub.theta_, k, Xs, Ys, Z)
     f_vfe, _ = vfe_nlml_and_grad(vfe.theta_, k, Xs, Ys, Z)
@@ -312,7 +312,7 @@ def test_sparse_variance_is_accurate_when_the_noise_is_at_its_floor(sdof_data, t
     X, _, _ = stack_regressors(data, 8, 8)
     Xt = m.x_scaler_.transform(X)
     Xs = m.x_scaler_.transform(narx_regressors(sdof_data["u2"][:800], sdof_data["y2"][:800], 8, 8)[0])
-    ref = sparse_variance_reference(post.kernel, post.X, Xt, Xs, post.noise_var)
+    ref = sparse_variance_reference(post.kernel, post.points, Xt, Xs, post.noise_var)
     var = {}
     for n in (1, 2):
         with threadpool_limits(limits=n, user_api="blas"):

@@ -146,8 +146,8 @@ def test_local_model_matches_posterior_at_its_centre(sparse_model, exact_model):
 
     for m in (sparse_model, exact_model):
         post = m.posterior_
-        x = post.X[3] + 0.01
-        Xc = post.X[:4] + 0.02
+        x = post.points[3] + 0.01
+        Xc = post.points[:4] + 0.02
         m0, gm, Hm, v0, gv, Hv, mc, vc = local_model(post, x, m.ny, Xc)
         mu, var = post.predict(np.vstack([x, Xc]))
         assert m0 == pytest.approx(mu[0], rel=1e-9, abs=1e-12)

@@ -1,7 +1,22 @@
 import numpy as np
 import pytest
 
-from gpnarx.model.kernels import RBF, CubicPolynomial, Kernel, Matern32, Sum, White, kernel_from_dict, make_kernel
+from gpnarx.model.kernels import (
+    CONTRACTS,
+    RBF,
+    CubicPolynomial,
+    GradientKernel,
+    Kernel,
+    LinearisableKernel,
+    LocalKernel,
+    Matern32,
+    SparseBoundKernel,
+    Sum,
+    White,
+    WorkspaceKernel,
+    kernel_from_dict,
+    make_kernel,
+)
 from gpnarx.model.linalg import NotPositiveDefiniteError, cholesky_jitter
 from gpnarx.model.ml2 import fit_ml2, initial_theta, nlml_and_grad
 
@@ -178,13 +193,13 @@ def test_capped_cubic_kernel_only_replaces_the_constant_term():
         capped.K_and_grads(X)
 
 
-class _Linear(Kernel):
-    """A kernel written outside the package: var x.x' with its own workspace and gradient formulas."""
+class _Linear(Kernel, GradientKernel, WorkspaceKernel, SparseBoundKernel):
+    """A kernel written outside the package: var x.x' with its own workspace and gradient formulas (the
+    contracts of ML-II, its workspace and the sparse bound; not the free runs' linearisation or local model)."""
 
     param_names = ("variance",)
     log_param_bounds = {"variance": (-5.0, 5.0)}
     workspace_input = "gram"
-    workspace_ready = True
 
     def __init__(self, variance=1.0):
         self.theta = np.log([variance])
@@ -245,3 +260,58 @@ def test_a_new_kernel_brings_its_own_formulas_to_ml2_and_vfe():
     assert k.log_bounds()[-1] == (-5.0, 5.0) and k.log_bounds()[0] == (-12.0, 12.0)
     assert k.redundant_indices() == [3]  # the cubic part's log scale: Matern32 has 2 parameters first
     assert initial_theta(k, X, y)[-2] == k.parts[-1].theta[0]  # no rule of its own: its current theta
+
+
+def test_kernels_meet_the_contracts_they_declare_and_consumers_refuse_the_others():
+    """Each consumer asks a kernel for its own small contract (kernels.base): every shipped kernel meets all
+    of them, a Sum meets one when every part does, and a consumer refuses a kernel that does not, naming the
+    contract and the part (the linearised run), or leaves the optional fast path (ML-II's workspace, the
+    Monte Carlo local model)."""
+    from gpnarx.model import freerun, vfe
+    from gpnarx.model.gp import ExactPosterior, has_local_model
+    from gpnarx.model.kernels import MeanTerms, require
+    from gpnarx.model.ml2 import NLMLWorkspace
+    from gpnarx.model.posterior import Posterior
+    from gpnarx.model.scaling import Standardizer
+
+    for k in (Matern32(), RBF(), CubicPolynomial(), White(), make_kernel("matern32+cubic")):
+        assert all(k.supports(c) for c in CONTRACTS), k
+    core = [n for n in vars(Kernel) if not n.startswith("__") or n in ("__call__", "__add__")]
+    assert len(core) <= 18, core  # the core stays small: a consumer's needs go in its own contract
+    mixed = make_kernel("matern32+cubic") + _Linear(0.5)
+    assert mixed.supports(GradientKernel) and mixed.supports(SparseBoundKernel) and mixed.supports(WorkspaceKernel)
+    assert not mixed.supports(LinearisableKernel) and not mixed.supports(LocalKernel)
+    with pytest.raises(TypeError, match=r"needs a LinearisableKernel \(grad_x.*_Linear"):
+        require(mixed, LinearisableKernel, "the linearised free run")
+
+    class Bare(Kernel):  # the core alone: enough for a posterior, nothing else
+        param_names = ("variance",)
+
+        def from_gram(self, G, sq1, sq2):
+            return np.exp(self.theta[0]) * G
+
+        def __call__(self, X, X2=None):
+            return self.from_gram(X @ (X if X2 is None else X2).T, None, None)
+
+        def diag(self, X):
+            return np.exp(self.theta[0]) * np.einsum("ij,ij->i", X, X)
+
+    rng = np.random.default_rng(3)
+    X, y = rng.normal(size=(40, 4)), rng.normal(size=40)
+    assert not NLMLWorkspace(Bare(), X).fused
+    with pytest.raises(TypeError, match="ML-II.*GradientKernel.*Bare"):
+        fit_ml2(Bare(), X, y)
+    with pytest.raises(TypeError, match="sparse bound.*Bare"):
+        vfe.fit_vfe(Bare(), X, y, X[:5])
+    post = ExactPosterior.fit(Bare(), 0.1, X, y)
+    assert isinstance(post, Posterior) and not has_local_model(post)
+    sc, ysc = Standardizer.from_arrays(np.zeros(4), np.ones(4)), Standardizer.from_arrays(np.zeros(1), np.ones(1))
+    run = freerun.simulate_mc(post, sc, ysc, 2, 2, rng.normal(size=30), n_paths=64, seed=0)
+    assert run.local_steps == 0 and np.all(np.isfinite(run.std))  # exact at every step, no local model
+    with pytest.raises(TypeError, match=r"linearised free run.*LinearisableKernel.*Bare"):
+        freerun.simulate_linear(post, sc, ysc, 2, 2, rng.normal(size=30))
+    # a Sum's MeanTerms: the constants and moments of its parts add, the profiles line up in order
+    w = rng.normal(size=40)
+    t = (Matern32() + CubicPolynomial(2.0, 0.5, 1.5) + White() + RBF()).mean_terms(w)
+    c = CubicPolynomial(2.0, 0.5, 1.5).mean_terms(w)
+    assert isinstance(t, MeanTerms) and t.moments == c.moments and t.const == c.const and len(t.profiles) == 2

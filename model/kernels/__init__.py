@@ -1,9 +1,10 @@
 """Covariance functions as small composable objects (GPflow style), one family per module.
 
 Every kernel holds its hyperparameters in log space (``theta``), so ML-II (eq. 13) optimises an
-unconstrained vector. Each kernel returns its covariance matrix, the analytic gradient of that
-matrix with respect to each log-hyperparameter, its diagonal, and the gradient of k(x*, X) with
-respect to the test point x* (used by the linearised uncertainty propagation).
+unconstrained vector. Every kernel meets the core contract ``Kernel`` (covariance, diagonal,
+parameters); what ML-II, its workspace, the sparse bound, the linearised free run and the Monte Carlo
+local model need beyond it are the small contracts ``GradientKernel``, ``WorkspaceKernel``,
+``SparseBoundKernel``, ``LinearisableKernel`` and ``LocalKernel`` (``kernels.base``).
 
 Inputs are standardised NARX regressors (dimensionless). Kernels of the paper:
 
@@ -17,7 +18,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import DEFAULT_LOG_BOUNDS, SQRT3, Kernel, Sum, squared_distances
+from .base import (
+    CONTRACTS,
+    DEFAULT_LOG_BOUNDS,
+    SQRT3,
+    GradientKernel,
+    Kernel,
+    LinearisableKernel,
+    LocalKernel,
+    MeanTerms,
+    SparseBoundKernel,
+    Sum,
+    WorkspaceKernel,
+    require,
+    squared_distances,
+)
 from .cubic import DEFAULT_CONSTANT_CAP, CubicPolynomial, check_constant_cap
 from .stationary import RBF, Matern32
 from .white import White
@@ -55,5 +70,7 @@ def make_kernel(spec: str = "matern32+cubic") -> Kernel:
     return parts[0] if len(parts) == 1 else Sum(*parts)
 
 
-__all__ = ["DEFAULT_CONSTANT_CAP", "DEFAULT_LOG_BOUNDS", "KERNEL_TYPES", "RBF", "SQRT3", "CubicPolynomial", "Kernel",
-           "Matern32", "Sum", "White", "check_constant_cap", "kernel_from_dict", "make_kernel", "squared_distances"]
+__all__ = ["CONTRACTS", "DEFAULT_CONSTANT_CAP", "DEFAULT_LOG_BOUNDS", "KERNEL_TYPES", "RBF", "SQRT3",
+           "CubicPolynomial", "GradientKernel", "Kernel", "LinearisableKernel", "LocalKernel", "Matern32", "MeanTerms",
+           "SparseBoundKernel", "Sum", "White", "WorkspaceKernel", "check_constant_cap", "kernel_from_dict",
+           "make_kernel", "require", "squared_distances"]

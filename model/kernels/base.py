@@ -1,17 +1,26 @@
-"""The kernel protocol (``Kernel``), the sum of kernels (``Sum``, eq. 12) and shared distance helpers.
+"""The kernel contracts, the sum of kernels (``Sum``, eq. 12) and shared distance helpers.
 
 Every kernel holds its hyperparameters in log space (``theta``), so ML-II (eq. 13) optimises an
-unconstrained vector. Each kernel owns its formulas: its covariance matrix, the analytic gradient of
-that matrix with respect to each log-hyperparameter (whole, by blocks for ``ml2.NLMLWorkspace``, and
-for cross-covariances and diagonals for the sparse bound of ``vfe``), its diagonal, the gradient of
-k(x*, X) with respect to the test point x* (the linearised propagation), the second-order local
-terms of the Monte Carlo free run, its starting values and bounds. Inputs are standardised NARX
-regressors (dimensionless).
+unconstrained vector, and each kernel owns its formulas. ``Kernel`` is the core every kernel meets
+(parameters, covariance, diagonal, serialisation: all a posterior needs); each consumer's needs are a
+small contract of their own, which a kernel class joins by inheriting it:
+
+* ``GradientKernel``: ML-II (eq. 13): dK/dtheta, starting values, bounds;
+* ``WorkspaceKernel``: ML-II's fused workspace (``ml2.NLMLWorkspace``): K and its gradients by blocks;
+* ``SparseBoundKernel``: the sparse bound of ``vfe``: cross-covariance and diagonal gradients;
+* ``LinearisableKernel``: the linearised free run: the gradient of k(x*, X) in the test point x* and
+  the kernel's share of the mean recursion (``MeanTerms``);
+* ``LocalKernel``: the Monte Carlo free run's local model: second-order terms in the output lags.
+
+``Kernel.supports(contract)`` says whether a kernel meets one (a ``Sum`` when every part does) and
+``require`` refuses one that does not, naming the consumer and what is missing. Inputs are
+standardised NARX regressors (dimensionless).
 """
 from __future__ import annotations
 
 import copy
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -61,16 +70,17 @@ def _gram_parts(X1, X2, G=None, sq1=None, sq2=None):
 
 
 class Kernel:
-    """Base class. Subclasses define ``param_names``, ``theta`` (log-parameters) and the methods."""
+    """The core contract every kernel meets: its log-parameters, its covariance, its diagonal, a copy for
+    posteriors and its serialisation. Posteriors (eqs. 8-9) and the exact Monte Carlo step need nothing
+    more. What a consumer needs beyond this is a small contract of its own (below), which a kernel class
+    joins by inheriting it; ``supports`` says whether a kernel (every part of a ``Sum``) meets one, and
+    ``require`` refuses a kernel that does not, naming what is missing."""
 
     param_names: tuple[str, ...] = ()
-    log_param_bounds: dict[str, tuple[float, float]] = {}  # per-parameter L-BFGS-B bounds in log space
-    redundant: tuple[str, ...] = ()  # parameters another combination of the others can stand in for
 
     def __init__(self) -> None:
         self.theta = np.zeros(len(self.param_names))
 
-    # --- parameters -------------------------------------------------------------------------
     @property
     def n_params(self) -> int:
         return len(self.param_names)
@@ -89,26 +99,16 @@ class Kernel:
         """Hyperparameters in natural (not log) units, by name."""
         return {n: float(np.exp(t)) for n, t in zip(self.param_names, self.theta)}
 
-    def log_bounds(self) -> list[tuple[float, float]]:
-        """Bounds on each log-parameter for L-BFGS-B, by name from ``log_param_bounds`` (default (-12, 12))."""
-        return [tuple(self.log_param_bounds.get(n, DEFAULT_LOG_BOUNDS)) for n in self.param_names]
+    @property
+    def parts(self) -> list["Kernel"]:
+        """The summands of eq. (12): [self] for one kernel, the parts of a ``Sum``."""
+        return [self]
 
-    def initial_theta(self, var_y: float, median_distance: float, n_dims: int) -> np.ndarray:
-        """Data-scaled starting log-parameters for ML-II (eq. 13) on standardised regressors: ``var_y``
-        is the target variance, ``median_distance`` the median pairwise regressor distance and ``n_dims``
-        the regressor dimension. Kernels without a rule start from their current theta."""
-        return self.get_theta()
+    def supports(self, contract: type) -> bool:
+        """Whether this kernel meets ``contract`` (one of the contracts below); a ``Sum`` when every part does."""
+        return isinstance(self, contract)
 
-    def redundant_indices(self) -> list[int]:
-        """Positions in theta of the parameters named in ``redundant`` (held fixed by ML-II on request)."""
-        return [i for i, n in enumerate(self.param_names) if n in self.redundant]
-
-    # --- maths --------------------------------------------------------------------------------
     def __call__(self, X: np.ndarray, X2: np.ndarray | None = None) -> np.ndarray:
-        raise NotImplementedError
-
-    def K_and_grads(self, X: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-        """K(X, X) and [dK/dtheta_j] for each log-parameter."""
         raise NotImplementedError
 
     def from_gram(self, G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> np.ndarray:
@@ -125,76 +125,9 @@ class Kernel:
     def diag(self, X: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
-    def grad_x(self, xs: np.ndarray, X: np.ndarray) -> np.ndarray:
-        """d k(xs, X_n) / d xs for one test point xs (D,), returned as (N, D)."""
-        raise NotImplementedError
-
-    def grad_dot(self, Xs: np.ndarray, X: np.ndarray, w: np.ndarray, G: np.ndarray | None = None,
-                 sq1: np.ndarray | None = None, sq2: np.ndarray | None = None) -> np.ndarray:
-        """sum_n w_n d k(xs_r, X_n) / d xs_r for every row xs_r of Xs, as (rows, D): the gradient of a
-        posterior mean K(xs, X) w (eq. 8) at many points at once. G = Xs X^T and the squared norms may
-        be passed when already computed. This generic version loops over rows (``grad_x``)."""
-        return np.stack([self.grad_x(x, X).T @ w for x in Xs]) if len(Xs) else np.zeros((0, X.shape[1]))
-
-    def value_and_grad_dot(self, Xs, X, w, G, sq1, sq2):
-        """(K(Xs, X), ``grad_dot``) from one Gram product; kernels that share work override it."""
-        return self.from_gram(G, sq1, sq2), self.grad_dot(Xs, X, w, G, sq1, sq2)
-
-    def local_terms(self, x: np.ndarray, X: np.ndarray, ny: int):
-        """Second-order terms of k(x, X_n) in the first ``ny`` coordinates of one point x (D,).
-
-        Returns (k, J, hess): k = K(x, X) (N,), J = d k / d x[:ny] (N, ny), and hess(beta), the
-        (ny, ny) matrix sum_n beta_n d^2 k(x, X_n) / d x[:ny]^2. Used by the Monte Carlo free run's
-        local model (``gp.local_model``). Kernels without it raise NotImplementedError.
-        """
-        raise NotImplementedError
-
-    def diag_local(self, x: np.ndarray, ny: int):
-        """k(x, x), its gradient and Hessian in x[:ny] (float, (ny,), (ny, ny))."""
-        raise NotImplementedError
-
-    # --- hyperparameter gradients of the bounds ML-II maximises --------------------------------
-    def iter_cross_grads(self, G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> Iterator[np.ndarray]:
-        """dK(X1, X2)/dtheta_j for each log-parameter in order, from G = X1 X2^T and the squared norms.
-
-        One (n1 x n2) array at a time, so the sparse bound (``vfe``) contracts and discards each."""
-        raise NotImplementedError(f"cross-covariance gradients are not implemented for {type(self).__name__}")
-
-    def diag_and_grads(self, X: np.ndarray, q: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
-        """diag K(X, X) (N,) and [d diag / dtheta_j] for each log-parameter; q = |x|^2 when known."""
-        raise NotImplementedError(f"diagonal gradients are not implemented for {type(self).__name__}")
-
-    # --- blocks of K for the ML-II workspace (``ml2.NLMLWorkspace``) --------------------------------
-    # The workspace precomputes, once per training set, what a kernel's blocks are a function of:
-    # ``workspace_input`` "distance" (r = |x - x'|) or "gram" (x.x'); None means the kernel only adds
-    # ``block_diagonal()`` to the diagonal. ``workspace_buffer`` asks for an N x N buffer the kernel
-    # fills in ``block_value`` and reads back in ``block_grad_sums`` (e.g. exp(-a)).
-    workspace_input: str | None = None
-    workspace_buffer: bool = False
-    workspace_ready: bool = False  # the four methods below are implemented
-
-    def block_value(self, base: np.ndarray, buf: np.ndarray | None) -> np.ndarray:
-        """One row block of K from the block ``base`` of the workspace input (a new array)."""
-        raise NotImplementedError
-
-    def block_diagonal(self) -> float:
-        """Constant added to the diagonal of K(X, X) beyond ``block_value`` (White's variance)."""
-        return 0.0
-
-    def block_grad_sums(self, W: np.ndarray, base: np.ndarray, buf: np.ndarray | None) -> np.ndarray:
-        """Partial sums over one block of W' (K^-1 - alpha alpha^T, lower triangle weighted) that
-        ``grads_from_sums`` turns into gradients; one entry per sum the kernel needs."""
-        return np.zeros(0)
-
-    def grads_from_sums(self, sums: np.ndarray, tr_w: float) -> list[float]:
-        """0.5 tr(W' dK/dtheta_j) per log-parameter from the summed block sums (lower triangle, so the
-        full trace is twice the sum) and tr_w = tr(W')."""
-        raise NotImplementedError
-
     def __add__(self, other: "Kernel") -> "Sum":
         return Sum(self, other)
 
-    # --- serialisation ----------------------------------------------------------------------
     def to_dict(self) -> dict:
         return {"type": type(self).__name__, "theta": [float(t) for t in self.theta]}
 
@@ -215,14 +148,169 @@ class Kernel:
         return f"{type(self).__name__}({ps})"
 
 
-class Sum(Kernel):
-    """Sum of kernels, eq. (12): k = k1 + k2 (+ ...). Parameters are concatenated in order."""
+def require(kernel: Kernel, contract: type, consumer: str) -> None:
+    """Refuse (TypeError) a kernel that does not meet ``contract``, naming the consumer, the parts that
+    lack it and the methods the contract asks for."""
+    if kernel.supports(contract):
+        return
+    lacking = sorted({type(p).__name__ for p in kernel.parts if not p.supports(contract)})
+    members = [n for n in vars(contract) if not n.startswith("_")]
+    raise TypeError(f"{consumer} needs a {contract.__name__} ({', '.join(members)}); kernel part(s) "
+                    f"{', '.join(lacking)} do not provide it")
+
+
+class GradientKernel:
+    """What ML-II (eq. 13, ``ml2.fit_ml2``, ``vfe.fit_vfe``) needs: dK/dtheta, starting values and bounds."""
+
+    log_param_bounds: dict[str, tuple[float, float]] = {}  # per-parameter L-BFGS-B bounds in log space
+    redundant: tuple[str, ...] = ()  # parameters another combination of the others can stand in for
+
+    def K_and_grads(self, X: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        """K(X, X) and [dK/dtheta_j] for each log-parameter."""
+        raise NotImplementedError
+
+    def initial_theta(self, var_y: float, median_distance: float, n_dims: int) -> np.ndarray:
+        """Data-scaled starting log-parameters for ML-II (eq. 13) on standardised regressors: ``var_y``
+        is the target variance, ``median_distance`` the median pairwise regressor distance and ``n_dims``
+        the regressor dimension. Kernels without a rule start from their current theta."""
+        return self.get_theta()
+
+    def log_bounds(self) -> list[tuple[float, float]]:
+        """Bounds on each log-parameter for L-BFGS-B, by name from ``log_param_bounds`` (default (-12, 12))."""
+        return [tuple(self.log_param_bounds.get(n, DEFAULT_LOG_BOUNDS)) for n in self.param_names]
+
+    def redundant_indices(self) -> list[int]:
+        """Positions in theta of the parameters named in ``redundant`` (held fixed by ML-II on request)."""
+        return [i for i, n in enumerate(self.param_names) if n in self.redundant]
+
+
+class WorkspaceKernel:
+    """Blocks of K for the ML-II workspace (``ml2.NLMLWorkspace``); a kernel without them takes the unfused
+    path (``GradientKernel.K_and_grads``).
+
+    The workspace precomputes, once per training set, what a kernel's blocks are a function of:
+    ``workspace_input`` "distance" (r = |x - x'|) or "gram" (x.x'); None means the kernel only adds
+    ``block_diagonal()`` to the diagonal. ``workspace_buffer`` asks for an N x N buffer the kernel
+    fills in ``block_value`` and reads back in ``block_grad_sums`` (e.g. exp(-a)).
+    """
+
+    workspace_input: str | None = None
+    workspace_buffer: bool = False
+
+    def block_value(self, base: np.ndarray, buf: np.ndarray | None) -> np.ndarray:
+        """One row block of K from the block ``base`` of the workspace input (a new array)."""
+        raise NotImplementedError
+
+    def block_diagonal(self) -> float:
+        """Constant added to the diagonal of K(X, X) beyond ``block_value`` (White's variance)."""
+        return 0.0
+
+    def block_grad_sums(self, W: np.ndarray, base: np.ndarray, buf: np.ndarray | None) -> np.ndarray:
+        """Partial sums over one block of W' (K^-1 - alpha alpha^T, lower triangle weighted) that
+        ``grads_from_sums`` turns into gradients; one entry per sum the kernel needs."""
+        return np.zeros(0)
+
+    def grads_from_sums(self, sums: np.ndarray, tr_w: float) -> list[float]:
+        """0.5 tr(W' dK/dtheta_j) per log-parameter from the summed block sums (lower triangle, so the
+        full trace is twice the sum) and tr_w = tr(W')."""
+        raise NotImplementedError
+
+
+class SparseBoundKernel:
+    """What the sparse (VFE) bound's gradient (``vfe``) needs: cross-covariance and diagonal gradients."""
+
+
+    def iter_cross_grads(self, G: np.ndarray, sq1: np.ndarray, sq2: np.ndarray) -> Iterator[np.ndarray]:
+        """dK(X1, X2)/dtheta_j for each log-parameter in order, from G = X1 X2^T and the squared norms.
+
+        One (n1 x n2) array at a time, so the sparse bound (``vfe``) contracts and discards each."""
+        raise NotImplementedError
+
+    def diag_and_grads(self, X: np.ndarray, q: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+        """diag K(X, X) (N,) and [d diag / dtheta_j] for each log-parameter; q = |x|^2 when known."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class MeanTerms:
+    """A kernel's share of the posterior mean sum_m w_m k(x, z_m) (eq. 8), written in what the linearised
+    free run's mean recursion (``freerun._MeanRecursion``) computes once per step for all M points:
+    g_m = z_m . x and r_m^2 = |x - z_m|^2 (standardised units).
+
+    The share is ``const`` + sum_p moments[p-1] sum_m w_m g_m^p (p = 1..3; None: no such term) +
+    sum over ``profiles`` (scale, fill) of scale * sum_m w_m f(r_m^2), where ``fill(a, out)`` writes
+    f(r^2) into ``out`` from a = r^2 (a may be overwritten).
+    """
+
+    const: float = 0.0
+    moments: tuple[float, float, float] | None = None
+    profiles: tuple = ()
+
+
+class LinearisableKernel:
+    """What the linearised free run (``freerun.simulate_linear``) needs: the gradient of k(x*, X) in the
+    test point x*, for one point (``grad_x``) and contracted with weights at many (``grad_dot``), and the
+    kernel's share of the mean recursion (``mean_terms``)."""
+
+
+    def grad_x(self, xs: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """d k(xs, X_n) / d xs for one test point xs (D,), returned as (N, D)."""
+        raise NotImplementedError
+
+    def grad_dot(self, Xs: np.ndarray, X: np.ndarray, w: np.ndarray, G: np.ndarray | None = None,
+                 sq1: np.ndarray | None = None, sq2: np.ndarray | None = None) -> np.ndarray:
+        """sum_n w_n d k(xs_r, X_n) / d xs_r for every row xs_r of Xs, as (rows, D): the gradient of a
+        posterior mean K(xs, X) w (eq. 8) at many points at once. G = Xs X^T and the squared norms may
+        be passed when already computed. This generic version loops over rows (``grad_x``)."""
+        return np.stack([self.grad_x(x, X).T @ w for x in Xs]) if len(Xs) else np.zeros((0, X.shape[1]))
+
+    def value_and_grad_dot(self, Xs, X, w, G, sq1, sq2):
+        """(K(Xs, X), ``grad_dot``) from one Gram product; kernels that share work override it."""
+        return self.from_gram(G, sq1, sq2), self.grad_dot(Xs, X, w, G, sq1, sq2)
+
+    def mean_terms(self, w: np.ndarray) -> MeanTerms | None:
+        """This kernel's ``MeanTerms`` for mean weights w (M,); None: no such form (the linearised run
+        then takes the reference loop, ``freerun_reference.simulate_linear_reference``)."""
+        return None
+
+
+class LocalKernel:
+    """What the Monte Carlo free run's local model (``gp.local_model``) needs: second-order terms of
+    k(x, X) and of k(x, x) in the output-lag coordinates."""
+
+
+    def local_terms(self, x: np.ndarray, X: np.ndarray, ny: int):
+        """Second-order terms of k(x, X_n) in the first ``ny`` coordinates of one point x (D,).
+
+        Returns (k, J, hess): k = K(x, X) (N,), J = d k / d x[:ny] (N, ny), and hess(beta), the
+        (ny, ny) matrix sum_n beta_n d^2 k(x, X_n) / d x[:ny]^2.
+        """
+        raise NotImplementedError
+
+    def diag_local(self, x: np.ndarray, ny: int):
+        """k(x, x), its gradient and Hessian in x[:ny] (float, (ny,), (ny, ny))."""
+        raise NotImplementedError
+
+
+CONTRACTS = (GradientKernel, WorkspaceKernel, SparseBoundKernel, LinearisableKernel, LocalKernel)
+
+
+class Sum(Kernel, GradientKernel, SparseBoundKernel, LinearisableKernel, LocalKernel):
+    """Sum of kernels, eq. (12): k = k1 + k2 (+ ...). Parameters are concatenated in order. It meets a
+    contract when every part does (``supports``); ML-II's workspace walks the parts themselves."""
 
     def __init__(self, *parts: Kernel) -> None:
         flat: list[Kernel] = []
         for p in parts:
-            flat.extend(p.parts if isinstance(p, Sum) else [p])
-        self.parts = flat
+            flat.extend(p.parts)
+        self._parts = flat
+
+    @property
+    def parts(self) -> list[Kernel]:  # type: ignore[override]
+        return self._parts
+
+    def supports(self, contract: type) -> bool:
+        return all(p.supports(contract) for p in self._parts)
 
     @property
     def param_names(self):  # type: ignore[override]
@@ -299,6 +387,17 @@ class Sum(Kernel):
     def diag_local(self, x, ny):
         terms = [p.diag_local(x, ny) for p in self.parts]
         return sum(t[0] for t in terms), sum(t[1] for t in terms), sum(t[2] for t in terms)
+
+    def mean_terms(self, w):
+        terms = [p.mean_terms(w) for p in self.parts]
+        if any(t is None for t in terms):
+            return None
+        const, moments = 0.0, None
+        for t in terms:
+            const += t.const
+            if t.moments is not None:
+                moments = t.moments if moments is None else tuple(a + b for a, b in zip(moments, t.moments))
+        return MeanTerms(const, moments, tuple(pr for t in terms for pr in t.profiles))
 
     def to_dict(self):
         return {"type": "Sum", "parts": [p.to_dict() for p in self.parts]}

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Kernel
+from .base import CONTRACTS, Kernel, MeanTerms
 
 DEFAULT_CONSTANT_CAP = 1.0  # variance of the standardised output; GPNARX(constant_cap=...) default
 
@@ -16,7 +16,7 @@ def check_constant_cap(cap, name: str = "constant_cap") -> float | None:
     return None if cap is None else float(cap)
 
 
-class CubicPolynomial(Kernel):
+class CubicPolynomial(Kernel, *CONTRACTS):  # meets every contract of kernels.base
     """Cubic polynomial kernel, eq. (11): sigma_p^2 (s x.x' + b)^3.
 
     Expanded, sigma_p^2 (t + b)^3 = sigma_p^2 [t (3 b^2 + 3 b t + t^2)] + sigma_p^2 b^3 with
@@ -124,6 +124,13 @@ class CubicPolynomial(Kernel):
 
         return k, J, hess
 
+    def mean_terms(self, w):
+        # through the moments S_p = sum_m w_m g_m^p, g_m = x.z_m (eq. 11, uncapped as the mean is eq. 8's):
+        # sum_m w_m var (s g_m + b)^3 = var (b^3 sum w + 3 b^2 s S1 + 3 b s^2 S2 + s^3 S3)
+        var, s_, b = (float(v) for v in np.exp(self.theta))
+        return MeanTerms(const=var * b**3 * float(np.sum(w)),
+                         moments=(3.0 * var * b * b * s_, 3.0 * var * b * s_ * s_, var * s_**3))
+
     def diag_local(self, x, ny):
         # k(x, x) = var [(t + b)^3 - b^3] + min(var b^3, cap) (or var (t + b)^3), t = s |x|^2:
         # grad = 3 var (t + b)^2 2 s x, Hessian = 6 var (t + b) 4 s^2 x x^T + 3 var (t + b)^2 2 s I
@@ -164,7 +171,6 @@ class CubicPolynomial(Kernel):
 
     # eq. (11) on a block of the Gram matrix G = x.x' (uncapped: ML-II uses eq. 11 as it is)
     workspace_input = "gram"
-    workspace_ready = True
 
     def block_value(self, base, buf):
         var, s, b = np.exp(self.theta)

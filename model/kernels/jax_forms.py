@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 
 from ..backend import require_jax
-from .base import SQRT3, Kernel, Sum
+from .base import SQRT3, Kernel
 from .cubic import CubicPolynomial
 from .stationary import RBF, Matern32
 from .white import White
@@ -92,10 +92,6 @@ class JaxKernel:
         return K + (self.white(theta) + noise_var) * jnp.eye(X.shape[0], dtype=K.dtype)
 
 
-def _parts(kernel: Kernel) -> list[Kernel]:
-    return list(kernel.parts) if isinstance(kernel, Sum) else [kernel]
-
-
 def jax_kernel(kernel: Kernel) -> JaxKernel:
     """The JAX twin of ``kernel`` (a ``Sum`` or one of Matern32, RBF, CubicPolynomial, White).
 
@@ -104,7 +100,7 @@ def jax_kernel(kernel: Kernel) -> JaxKernel:
 
     pieces = []  # (offset, n, cross or None, diag)
     off = 0
-    for p in _parts(kernel):
+    for p in kernel.parts:
         n = len(p.param_names)
         if type(p) is Matern32:
             pieces.append((off, n, _matern32, _stationary_diag, False))
@@ -144,9 +140,9 @@ def jax_kernel(kernel: Kernel) -> JaxKernel:
 
 def kernel_structure(kernel: Kernel) -> tuple:
     """The parts' types and constant caps: all a compiled program depends on besides theta."""
-    return tuple((type(p).__name__, getattr(p, "constant_cap", None)) for p in _parts(kernel))
+    return tuple((type(p).__name__, getattr(p, "constant_cap", None)) for p in kernel.parts)
 
 
 def kernel_theta(kernel: Kernel) -> np.ndarray:
     """The log-parameter vector the ``JaxKernel`` functions take (parts concatenated)."""
-    return np.concatenate([np.asarray(p.get_theta(), dtype=float) for p in _parts(kernel)])
+    return np.concatenate([np.asarray(p.get_theta(), dtype=float) for p in kernel.parts])

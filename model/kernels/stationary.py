@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import SQRT3, Kernel, _gram_parts, _r2_from_gram, squared_distances
+from .base import CONTRACTS, SQRT3, Kernel, MeanTerms, _gram_parts, _r2_from_gram, squared_distances
 
 
-class Stationary(Kernel):
+class Stationary(Kernel, *CONTRACTS):  # meets every contract of kernels.base
     """What a stationary kernel var * f(r / l) of two parameters shares: k(x, x) = var (so the diagonal,
     its gradients and its local terms are constants), the data-scaled start (var(y), the median
     distance), and, in the ML-II workspace, a block of distances r with one N x N buffer for the kernel's
@@ -15,7 +15,6 @@ class Stationary(Kernel):
     param_names = ("variance", "lengthscale")
     workspace_input = "distance"
     workspace_buffer = True
-    workspace_ready = True
 
     def __init__(self, variance: float = 1.0, lengthscale: float = 1.0) -> None:
         self.theta = np.log([variance, lengthscale]).astype(float)
@@ -131,6 +130,20 @@ class Matern32(Stationary):
 
         return k, J, hess
 
+    def mean_terms(self, w):
+        # (1 + a) exp(-a), a = sqrt(3) r / l (eq. 10), from a = r^2; the variance scales the sum
+        var, ls = np.exp(self.theta)
+        c = float(SQRT3 / ls)
+
+        def fill(a, f):
+            np.sqrt(a, out=a)
+            a *= -c
+            np.exp(a, out=f)
+            np.subtract(1.0, a, out=a)
+            f *= a
+
+        return MeanTerms(profiles=((float(var), fill),))
+
     def iter_cross_grads(self, G, sq1, sq2):
         var, ls = np.exp(self.theta)
         a = _r2_from_gram(G, sq1, sq2)
@@ -221,6 +234,17 @@ class RBF(Stationary):
             return H
 
         return k, J, hess
+
+    def mean_terms(self, w):
+        # exp(-r^2 / (2 l^2)) from a = r^2; the variance scales the sum
+        var, ls = np.exp(self.theta)
+        c = float(-0.5 / ls**2)
+
+        def fill(a, f):
+            np.multiply(a, c, out=f)
+            np.exp(f, out=f)
+
+        return MeanTerms(profiles=((float(var), fill),))
 
     def iter_cross_grads(self, G, sq1, sq2):
         var, ls = np.exp(self.theta)

@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Kernel
+from .base import CONTRACTS, Kernel, MeanTerms
 
 
-class White(Kernel):
+class White(Kernel, *CONTRACTS):  # meets every contract of kernels.base
     """White-noise kernel: sigma^2 on the diagonal of K(X, X), zero between distinct sets."""
 
     param_names = ("variance",)
@@ -38,6 +38,9 @@ class White(Kernel):
     def local_terms(self, x, X, ny):
         return np.zeros(X.shape[0]), np.zeros((X.shape[0], ny)), lambda beta: np.zeros((ny, ny))
 
+    def mean_terms(self, w):
+        return MeanTerms()  # zero between distinct sets: no share of the mean
+
     def diag_local(self, x, ny):
         return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
 
@@ -52,7 +55,7 @@ class White(Kernel):
         n = X.shape[0]
         return np.full(n, var), [np.full(n, var)]
 
-    workspace_ready = True  # workspace_input None: only the diagonal
+    # workspace_input None: only the diagonal
 
     def block_diagonal(self):
         return float(np.exp(self.theta[0]))
