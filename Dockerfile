@@ -21,6 +21,7 @@ WORKDIR /src
 COPY pyproject.toml README.md LICENSE ./
 COPY gpnarx ./gpnarx
 COPY model ./model
+COPY storage ./storage
 COPY training ./training
 COPY service ./service
 COPY cli ./cli
@@ -48,7 +49,7 @@ RUN groupadd --system --gid 10001 gpnarx \
 COPY --from=build /wheels /tmp/wheels
 RUN pip install --no-index --find-links /tmp/wheels "gpnarx[s3,dask,train]" \
     && rm -rf /tmp/wheels \
-    && python -c "import gpnarx.service.app, gpnarx.model.bundle, gpnarx.cli.main"
+    && python -c "import gpnarx.service.app, gpnarx.storage.bundle, gpnarx.cli.main"
 
 USER gpnarx
 WORKDIR /home/gpnarx

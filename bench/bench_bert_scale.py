@@ -36,7 +36,7 @@ import numpy as np
 
 import _common as C
 from gpnarx.model.metrics import coverage, fit_percent
-from gpnarx.model.records import Record
+from gpnarx.model.record import Record
 
 # equal work with the exact baselines: every Monte Carlo run here passes local=False, so the product evaluates
 # eq. 8-9 at every path (its default checked local model is compared like for like in bench_mc_speed.py)

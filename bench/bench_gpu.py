@@ -63,8 +63,8 @@ def main() -> None:
         model, u, y, fs, what = quick_setup()
         args.paths, args.seconds, args.baseline_seconds, args.reps = 256, 2.0, 0.5, 1
     else:
-        from gpnarx.model.bundle import load_bundle
-        from gpnarx.training.records import read_record
+        from gpnarx.storage.bundle import load_bundle
+        from gpnarx.storage.record_files import read_record
 
         b = load_bundle(args.bundle)
         rec = read_record(args.record, fs_default=b.fs)

@@ -70,9 +70,9 @@ def _noisy(y, seed, level=0.05):
 
 def train_bundle(registry: Path, quick: bool) -> str:
     """A small Bouc-Wen GP-NARX with a novelty calibration (3 healthy records, 1 % false alarms)."""
-    from gpnarx.model.bundle import save_bundle
     from gpnarx.model.estimator import GPNARX
     from gpnarx.model.novelty import calibrate_threshold, novelty_score
+    from gpnarx.storage.bundle import save_bundle
 
     n_rec = 768 if quick else 1024
     recs = []
@@ -274,7 +274,7 @@ def main(argv=None):
         registry = Path(args.registry)
         model = args.model
         if model is None:
-            from gpnarx.model.registry import Registry
+            from gpnarx.storage.registry import Registry
 
             reg = Registry(registry).scan()
             model = next((n for n in reg.names() if reg.get(n).fs == FS), None)

@@ -58,8 +58,8 @@ def quick_model():
 def bert_model(registry, record, classes=True):
     import bench_realtime as R
 
-    from gpnarx.model.registry import Registry
-    from gpnarx.training.records import read_record
+    from gpnarx.storage.record_files import read_record
+    from gpnarx.storage.registry import Registry
 
     reg, note = R.bert_registry(registry)
     b = Registry(reg).scan().get("bert-real")

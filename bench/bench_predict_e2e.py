@@ -7,7 +7,7 @@ points over all ~4000 training rows, ML-II on 1000 stride rows; trained once wit
 ``gpnarx simulate``). Timed: the whole ``python -m gpnarx predict --registry R --model
 bouc-wen REC --mc 1024 --out OUT.npz --json`` subprocess (interpreter start, imports, bundle load
 with checksums, 1024-path Monte Carlo free run from rest, writing OUT.npz and the JSON);
-path-steps = 2031 x 1024. The command applies its process tuning (``model/runtime.py``: one BLAS
+path-steps = 2031 x 1024. The command applies its process tuning (``gpnarx/runtime.py``: one BLAS
 thread, glibc mmap threshold 32 MiB).
 
 Baseline, equal work (``ratio=``): a subprocess of this script (``--reference-child``) that does
@@ -130,8 +130,8 @@ def cached_registry(quick: bool, retrain: bool) -> tuple[Path, str]:
 def reference_child(registry: str, record: str, out: str, paths: int) -> None:
     """The equal-work baseline process: same tuning, same bundle, numpy evaluation of its sparse posterior."""
     from gpnarx.model.metrics import summary
-    from gpnarx.model.registry import Registry
-    from gpnarx.model.runtime import tune_for_free_run
+    from gpnarx.runtime import tune_for_free_run
+    from gpnarx.storage.registry import Registry
 
     t0 = time.perf_counter()
     tuning = tune_for_free_run(None)
@@ -199,7 +199,7 @@ def run(args, tmp: Path):
     predict = ("predict", "--registry", reg, "--model", "bouc-wen", rec, "--mc", P, "--out", out, "--json")
 
     # the equal-work reference computes the bundle's own posterior: check it on one regressor block
-    from gpnarx.model.registry import Registry
+    from gpnarx.storage.registry import Registry
 
     model = Registry(reg).scan().get("bouc-wen").model
     Zp = model.posterior_.points

@@ -109,9 +109,9 @@ def band_stats(y, run) -> tuple[float, float]:
 
 def accuracy(registry: Path, name: str, record: Path, quick: bool) -> dict:
     """Linearised and few-path MC bands against the reference MC on 4 s windows (quick: 300 samples)."""
-    from gpnarx.model.registry import Registry
-    from gpnarx.model.runtime import tune_for_free_run
-    from gpnarx.training.records import read_record
+    from gpnarx.runtime import tune_for_free_run
+    from gpnarx.storage.record_files import read_record
+    from gpnarx.storage.registry import Registry
 
     tune_for_free_run(None)
     bundle = Registry(registry).scan().get(name)
@@ -167,7 +167,7 @@ def main():
             reg, note = bert_registry(args.registry)
             name = "bert-real"
             record = Path(args.record) if args.record else bert_data() / "Sine" / "Sine_20Hz"
-        from gpnarx.training.records import read_record
+        from gpnarx.storage.record_files import read_record
 
         rec = read_record(str(record), fs_default=None if q else 1024.0)
         duration = rec.n / rec.fs

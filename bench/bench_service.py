@@ -45,8 +45,8 @@ FS = 750.0
 
 
 def train_bundle(registry: Path) -> str:
-    from gpnarx.model.bundle import save_bundle
     from gpnarx.model.estimator import GPNARX
+    from gpnarx.storage.bundle import save_bundle
     from gpnarx.training import excitations as ex
     from gpnarx.training.simulators.boucwen import BoucWen
 
@@ -85,9 +85,9 @@ def main(argv=None):
     import httpx
 
     from gpnarx.model.metrics import summary
-    from gpnarx.model.registry import Registry
     from gpnarx.service.app import limit_blas_threads, render_json, tune_malloc
     from gpnarx.service.settings import Settings
+    from gpnarx.storage.registry import Registry
 
     # the in-process baseline runs under the same process tuning as the service (service.settings)
     limit_blas_threads(Settings().blas_threads)

@@ -76,8 +76,8 @@ def main() -> None:
     else:
         import bench_realtime as R
 
-        from gpnarx.model.registry import Registry
-        from gpnarx.training.records import read_record
+        from gpnarx.storage.record_files import read_record
+        from gpnarx.storage.registry import Registry
 
         reg, _ = R.bert_registry(args.registry)
         model = Registry(reg, lazy=True).scan(only="bert-real").get("bert-real").model

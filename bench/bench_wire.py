@@ -53,8 +53,8 @@ def sdof(u: np.ndarray, fs: float) -> np.ndarray:
 
 
 def build_registry(root: Path, fs: float) -> None:
-    from gpnarx.model.bundle import save_bundle
     from gpnarx.model.estimator import GPNARX
+    from gpnarx.storage.bundle import save_bundle
 
     rng = np.random.default_rng(0)
     u = rng.standard_normal(2048)
@@ -114,7 +114,7 @@ def call(client, kind: str, u: np.ndarray, fs: float):
         with np.load(io.BytesIO(r.content), allow_pickle=False) as z:
             arrays = {k: z[k] for k in ("mean", "lower", "upper", "std")}
     else:
-        from gpnarx.model.jsonsafe import dumps_json
+        from gpnarx.storage.jsonsafe import dumps_json
 
         r = client.post("/v1/models/m/predict", content=dumps_json({"u": u, "fs": fs, "method": "linear"}),
                         headers={"content-type": "application/json",

@@ -54,8 +54,8 @@ def _registry(args) -> str:
 
 
 def _scan(reg: str, name: str | None):
-    from gpnarx.model.bundle import BundleError
-    from gpnarx.model.registry import Registry
+    from gpnarx.storage.bundle import BundleError
+    from gpnarx.storage.registry import Registry
 
     try:
         return Registry(reg, lazy=True).scan(only=name)
@@ -64,8 +64,8 @@ def _scan(reg: str, name: str | None):
 
 
 def _current(reg: str, name: str) -> dict:
-    from gpnarx.model.bundle import BundleError
-    from gpnarx.model.registry import read_aliases
+    from gpnarx.storage.bundle import BundleError
+    from gpnarx.storage.registry import read_aliases
 
     try:
         return read_aliases(reg, name)
@@ -74,8 +74,8 @@ def _current(reg: str, name: str) -> dict:
 
 
 def run_set(args):
-    from gpnarx.model.bundle import BundleError, check_name
-    from gpnarx.model.registry import IMPLICIT_ALIASES, check_alias, check_version_ref, write_aliases
+    from gpnarx.storage.bundle import BundleError, check_name
+    from gpnarx.storage.registry import IMPLICIT_ALIASES, check_alias, check_version_ref, write_aliases
 
     reg = _registry(args)
     try:
@@ -99,8 +99,8 @@ def run_set(args):
 
 
 def run_rm(args):
-    from gpnarx.model.bundle import BundleError, check_name
-    from gpnarx.model.registry import check_alias, write_aliases
+    from gpnarx.storage.bundle import BundleError, check_name
+    from gpnarx.storage.registry import check_alias, write_aliases
 
     reg = _registry(args)
     try:
@@ -118,7 +118,7 @@ def run_rm(args):
 
 
 def run_list(args):
-    from gpnarx.model.bundle import BundleError, check_name
+    from gpnarx.storage.bundle import BundleError, check_name
 
     reg = _registry(args)
     if args.name is not None:

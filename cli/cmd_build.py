@@ -27,8 +27,8 @@ def run(args):
     import os
 
     from gpnarx.cli.errors import CLIError
-    from gpnarx.model.registry import Registry
-    from gpnarx.model.storage import as_local
+    from gpnarx.storage.registry import Registry
+    from gpnarx.storage.remote import as_local
     from gpnarx.training.defaults import default_names, ensure_default_registry
 
     target = args.registry or os.environ.get("GPNARX_REGISTRY")

@@ -2,7 +2,7 @@
 
 Writes a new version of the bundle whose novelty threshold, calibration envelope and probe contract
 come from the given healthy records; the GP is not refitted (its arrays are copied byte for byte).
-CLI only: the service never writes its registry (see ``gpnarx.training.calibrate``).
+CLI only: the service never writes its registry (see ``gpnarx.training.novelty_calibration``).
 
 Imports of the model and training packages sit inside the functions that use them: every command module is
 imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
@@ -39,11 +39,11 @@ def add_parser(sub):
 
 def run(args):
     from gpnarx.cli.cmd_predict import open_model, parse_window, resolve_registry
-    from gpnarx.model.bundle import BundleError
-    from gpnarx.model.registry import parse_model_ref
-    from gpnarx.model.runtime import tune_for_free_run
-    from gpnarx.training.calibrate import calibrate
-    from gpnarx.training.records import read_record
+    from gpnarx.runtime import tune_for_free_run
+    from gpnarx.storage.bundle import BundleError
+    from gpnarx.storage.record_files import read_record
+    from gpnarx.storage.registry import parse_model_ref
+    from gpnarx.training.novelty_calibration import calibrate
 
     if not 0.0 < args.false_alarm_rate < 0.5:
         raise UsageError(f"--false-alarm-rate must be in (0, 0.5), got {args.false_alarm_rate}")

@@ -11,8 +11,8 @@ import sys
 import numpy as np
 
 from gpnarx.cli.errors import CLIError, UsageError
-from gpnarx.model.atomicio import atomic_file
 from gpnarx.model.envelope import assess
+from gpnarx.storage.atomicio import atomic_file
 
 
 def _common(p):
@@ -86,7 +86,7 @@ def resolve_registry(registry, name: str | None = None):
     and the wait is said on stderr (``training.defaults.build_lock``)."""
     if registry:
         return registry
-    from gpnarx.model.storage import is_url
+    from gpnarx.storage.remote import is_url
 
     env = os.environ.get("GPNARX_REGISTRY", "")
     if env and is_url(env):
@@ -101,7 +101,7 @@ def resolve_registry(registry, name: str | None = None):
 
 
 def load(args):
-    from gpnarx.training.records import read_record
+    from gpnarx.storage.record_files import read_record
 
     check_mc(args.mc, None)
     if args.window:
@@ -145,13 +145,13 @@ def check_mc(mc, bundle=None) -> int:
 
 def load_model(args):
     """The bundle named by ``--registry`` and ``--model`` (after tuning BLAS for free runs)."""
-    from gpnarx.model.bundle import BundleError
-    from gpnarx.model.registry import parse_model_ref
-    from gpnarx.model.runtime import tune_for_free_run
+    from gpnarx.runtime import tune_for_free_run
+    from gpnarx.storage.bundle import BundleError
+    from gpnarx.storage.registry import parse_model_ref
 
     if args.blas_threads is not None and args.blas_threads < 0:
         raise UsageError(f"--blas-threads must be >= 0, got {args.blas_threads}")
-    tune_for_free_run(args.blas_threads)  # one BLAS thread and no per-step mmaps (see model/runtime.py)
+    tune_for_free_run(args.blas_threads)  # one BLAS thread and no per-step mmaps (see gpnarx/runtime.py)
 
     try:
         name, version = parse_model_ref(args.model)
@@ -164,8 +164,8 @@ def open_model(root, name: str, version: str | None):
     """Model ``name`` at ``version`` (a version, an alias such as production, or None: latest) from
     the registry ``root`` (a folder or an fsspec URL): that model's versions are verified, only the
     one asked for is built."""
-    from gpnarx.model.registry import Registry
-    from gpnarx.model.storage import as_local
+    from gpnarx.storage.registry import Registry
+    from gpnarx.storage.remote import as_local
 
     local = as_local(root)
     if local is not None and not local.is_dir():
@@ -184,8 +184,8 @@ def open_model(root, name: str, version: str | None):
 def model_names(root) -> list[str]:
     """Names of the models in registry ``root``: folders holding a version with a manifest (a local
     registry, without verifying anything), else a scan."""
-    from gpnarx.model.registry import Registry
-    from gpnarx.model.storage import as_local
+    from gpnarx.storage.registry import Registry
+    from gpnarx.storage.remote import as_local
 
     local = as_local(root)
     if local is not None:

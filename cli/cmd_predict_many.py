@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gpnarx.cli.errors import CLIError, UsageError
-from gpnarx.model.atomicio import write_atomic
+from gpnarx.storage.atomicio import write_atomic
 
 INDEX = "index.json"
 
@@ -163,10 +163,10 @@ def run(args):
 
 def _run(args, runner, mc: int) -> dict:
     from gpnarx.cli.cmd_predict import check_fs, load_model
-    from gpnarx.model.jsonsafe import to_json_safe
-    from gpnarx.model.runtime import blas_threads_from_env
+    from gpnarx.runtime import blas_threads_from_env
+    from gpnarx.storage.jsonsafe import to_json_safe
+    from gpnarx.storage.record_files import read_record
     from gpnarx.training.distributed import Failed
-    from gpnarx.training.records import read_record
 
     out = _Results(args.out)
     bundle = load_model(args)

@@ -36,7 +36,7 @@ import sys
 from pathlib import Path
 
 from gpnarx.cli.errors import CLIError, UsageError
-from gpnarx.model.atomicio import write_atomic
+from gpnarx.storage.atomicio import write_atomic
 
 DEFAULT_OPENAPI = os.path.join("openapi", "openapi.json")
 
@@ -63,7 +63,7 @@ def add_parser(sub):
 def _registry(arg) -> tuple[Path | str, dict | None]:
     """The registry (a folder, or an object-store URL as given) and, for the default registry, the
     default-build plan (``training.defaults.plan_defaults``: present, missing and skipped names)."""
-    from gpnarx.model.storage import as_local, is_url
+    from gpnarx.storage.remote import as_local, is_url
 
     env = os.environ.get("GPNARX_REGISTRY", "")
     if not arg and is_url(env):  # an object store is served as it is: no default build into it

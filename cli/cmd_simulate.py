@@ -8,7 +8,7 @@
 
 The record file holds 1-D float64 arrays ``u`` and ``y`` and a scalar ``fs`` [Hz] (``.npz``), or
 the columns ``time,u,y`` (``.csv``). Other extensions are accepted when the shared record writer
-``training.records.write_record`` supports them.
+``storage.record_files.write_record`` supports them.
 
 Systems (defaults follow the paper's protocol, sections 3 and 4):
 
@@ -54,9 +54,9 @@ import time
 import numpy as np
 
 from gpnarx.cli.errors import CLIError, UsageError
-from gpnarx.model.atomicio import atomic_file
-from gpnarx.model.records import Record
-from gpnarx.training.records import write_record
+from gpnarx.model.record import Record
+from gpnarx.storage.atomicio import atomic_file
+from gpnarx.storage.record_files import write_record
 from gpnarx.training.simulation_specs import (
     DEFAULTS,
     EXCITATIONS,
@@ -280,7 +280,7 @@ def _write_record(path: str, u: np.ndarray, y: np.ndarray, fs: float, units: dic
 
 
 def _write(path: str, u: np.ndarray, y: np.ndarray, fs: float, units: dict, name: str, meta: dict) -> str:
-    """Write with the shared writer ``training.records.write_record`` (atomic, through :func:`_atomic_target`)."""
+    """Write with the shared writer ``storage.record_files.write_record`` (atomic, through :func:`_atomic_target`)."""
     target = _atomic_target(path)
     write_record(target, Record(u, y, fs, units=dict(units), name=name, meta=meta))
     return target

@@ -74,9 +74,9 @@ def _record_chunks(rec, n: int):
 
 def run_stream(args):
     from gpnarx.cli.cmd_predict import check_mc, load_model
-    from gpnarx.model.jsonsafe import dumps_json
     from gpnarx.model.metrics import summary
     from gpnarx.model.novelty import assess_novelty, novelty_start
+    from gpnarx.storage.jsonsafe import dumps_json
 
     if not args.chunk > 0:
         raise UsageError(f"--chunk must be a positive number of seconds, got {args.chunk}")
@@ -91,7 +91,7 @@ def run_stream(args):
     if args.record == "-":
         chunks = _stdin_chunks(n)
     else:
-        from gpnarx.training.records import read_record
+        from gpnarx.storage.record_files import read_record
 
         rec = read_record(args.record, fs_default=fs)
         if abs(rec.fs - fs) > 1e-9 * fs:

@@ -19,7 +19,7 @@ import numpy as np
 
 from gpnarx import __version__
 from gpnarx.cli.errors import EXIT_RUNTIME, EXIT_USAGE, CLIError, UsageError
-from gpnarx.model.jsonsafe import dumps_json
+from gpnarx.storage.jsonsafe import dumps_json
 
 # Subcommand modules, in the order shown by --help.
 COMMAND_MODULES = [

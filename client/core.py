@@ -38,10 +38,10 @@ import httpx
 import numpy as np
 from pydantic import BaseModel
 
-from gpnarx.model.jsonsafe import dumps_json
 from gpnarx.service.problems import SLUGS, TYPE_BASE
 from gpnarx.service.schemas import LoopsResponse, NoveltyResponse, PredictResponse
 from gpnarx.service.wire import NPZ_MEDIA_TYPE, json_loads_npz_meta
+from gpnarx.storage.jsonsafe import dumps_json
 
 _RESPONSES = {"predict": PredictResponse, "loops": LoopsResponse, "novelty": NoveltyResponse}
 _OPTIONS = ("mc_paths", "seed", "confidence", "method", "backend", "start", "state", "return_state")

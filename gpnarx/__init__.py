@@ -1,6 +1,7 @@
 """GP-NARX surrogate of hysteretic bolted structures (Teloli et al., MSSP 159 (2021) 107751).
 
-Subpackages: ``gpnarx.model`` (the surrogate, numpy/scipy only), ``gpnarx.training`` (offline work:
+Subpackages: ``gpnarx.model`` (the surrogate, numpy/scipy only), ``gpnarx.storage`` (bundles, the
+registry, record files), ``gpnarx.training`` (offline work:
 records, simulators, configs, lag surface, training pipeline), ``gpnarx.service`` (the FastAPI app)
 and ``gpnarx.cli`` (the ``gpnarx`` console script).
 """

@@ -12,12 +12,12 @@ from sklearn.base import BaseEstimator
 
 from . import freerun
 from .backend import check_backend
-from .discrepancy import calibrate_scale, widen
+from .discrepancy import calibrate_scale, check_discrepancy, widen
 from .envelope import check_envelope, divergence_limit, training_envelope
 from .gp import ExactPosterior, SparsePosterior, choose_inducing
-from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, make_kernel
+from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, kernel_from_dict, make_kernel
 from .ml2 import default_warm_start_subset, fit_ml2
-from .records import Record, RecordError
+from .record import Record, RecordError
 from .regressors import check_lags, first_index, narx_regressors, stack_regressors
 from .scaling import Standardizer
 from .selection import SELECTIONS, select_rows
@@ -194,7 +194,7 @@ class GPNARX(BaseEstimator):
         theta: optional fixed log-hyperparameters (kernel then log sigma_y^2); skips ML-II.
         heldout: optional records NOT in ``records`` (Record objects or (u, y) pairs). When given,
             sigma_y^2 is raised to the held-out maximum-likelihood value of their one-step residuals
-            (``model.calibration``; never below ML-II's) and the posterior is rebuilt with it. The
+            (``model.heldout_noise``; never below ML-II's) and the posterior is rebuilt with it. The
             ML-II value stays in ``noise_var_ml2_``; ``noise_calibration_`` records what was done.
         """
         self._check_params()
@@ -260,8 +260,8 @@ class GPNARX(BaseEstimator):
         return self
 
     def _calibrate_noise(self, pairs, build) -> None:
-        """Raise sigma_y^2 to its held-out ML value (model.calibration) and rebuild the posterior."""
-        from .calibration import heldout_noise_var  # here: training-only, kept out of a predict start-up
+        """Raise sigma_y^2 to its held-out ML value (model.heldout_noise) and rebuild the posterior."""
+        from .heldout_noise import heldout_noise_var  # here: training-only, kept out of a predict start-up
 
         X, Y, _ = stack_regressors(pairs, self.ny, self.nu)
         if self.fit_backend == "jax" and self.posterior_.kind == "exact":
@@ -417,6 +417,81 @@ class GPNARX(BaseEstimator):
             return freerun.simulate_linear(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
                                            y0=y0, confidence=confidence, include_noise=self.include_noise,
                                            progress=progress, cov_window=cov_window, state=state)
+
+    # ------------------------------------------------------------------------------------------
+    # The fitted model as plain values: what a bundle stores (gpnarx.storage.bundle lays them out in files)
+    def fitted_arrays(self) -> dict:
+        """Every array needed to predict, by name: the scalers, ``theta`` and the posterior's (``posterior_*``)."""
+        self._check_fitted()
+        arrays = {
+            "x_mean": self.x_scaler_.mean_, "x_scale": self.x_scaler_.scale_,
+            "y_mean": self.y_scaler_.mean_, "y_scale": self.y_scaler_.scale_,
+            "theta": self.theta_,
+        }
+        for k, v in self.posterior_.arrays().items():
+            arrays[f"posterior_{k}"] = v
+        return arrays
+
+    def fitted_description(self) -> dict:
+        """The fitted model's values other than its arrays, JSON-able: lags, mode, kernel (the posterior's,
+        constant cap included), hyperparameters, noise variance and its held-out calibration, band
+        discrepancy, training envelope, NLML, training rows and the estimator's settings."""
+        self._check_fitted()
+        return {
+            "lags": {"ny": self.ny, "nu": self.nu},
+            "mode": self.posterior_.kind,
+            "kernel": self.posterior_.kernel.to_dict(),  # the posterior's (constant cap included)
+            "hyperparameters": {**self.kernel_.params, "noise_var": self.noise_var_},
+            "noise_var": self.noise_var_,
+            "noise_calibration": getattr(self, "noise_calibration_", None),
+            "band_discrepancy": getattr(self, "band_discrepancy_", None),
+            "training_envelope": getattr(self, "envelope_", None),
+            "nlml": None if not np.isfinite(self.nlml_) else self.nlml_,
+            "n_train": self.n_train_,
+            "estimator": {"include_noise": bool(self.include_noise), "n_inducing": int(self.n_inducing),
+                          "max_train_points": self.max_train_points, "selection": self.selection,
+                          "seed": int(self.seed), "hyper": self.hyper,
+                          "constant_cap": self.constant_cap,
+                          "kernel_spec": self.kernel if isinstance(self.kernel, str) else None},
+        }
+
+    @classmethod
+    def from_fitted(cls, description: dict, arrays: dict) -> "GPNARX":
+        """The fitted model of ``fitted_description()`` and ``fitted_arrays()`` (no refit: the same posterior).
+
+        ``description`` may hold more keys (a bundle manifest); ``ValueError``/``KeyError`` when it or the
+        arrays are inconsistent.
+        """
+        ny, nu = int(description["lags"]["ny"]), int(description["lags"]["nu"])
+        est = description["estimator"]
+        kernel = kernel_from_dict(description["kernel"])
+        model = cls(ny=ny, nu=nu, kernel=est["kernel_spec"] or kernel, mode=description["mode"],
+                    n_inducing=int(est["n_inducing"]), max_train_points=est["max_train_points"],
+                    selection=est["selection"], seed=int(est["seed"]),
+                    include_noise=bool(est["include_noise"]), hyper=est["hyper"],
+                    constant_cap=est["constant_cap"])
+        model._check_params()
+        model.kernel_ = kernel
+        model.theta_ = arrays["theta"]
+        model.noise_var_ = float(description["noise_var"])
+        model.envelope_ = check_envelope(description["training_envelope"])  # None: no range checks
+        model.noise_calibration_ = description["noise_calibration"]  # None: no held-out calibration
+        # None: no model-discrepancy term in the band (model.discrepancy); absent in older bundles
+        model.band_discrepancy_ = check_discrepancy(description.get("band_discrepancy"))
+        model.noise_var_ml2_ = float(model.noise_calibration_["noise_var_ml2"]) if model.noise_calibration_ \
+            else model.noise_var_
+        model.nlml_ = float("nan") if description["nlml"] is None else float(description["nlml"])
+        model.n_train_ = int(description["n_train"])
+        model.x_scaler_ = Standardizer.from_arrays(arrays["x_mean"], arrays["x_scale"])
+        model.y_scaler_ = Standardizer.from_arrays(arrays["y_mean"], arrays["y_scale"])
+        post = {k[len("posterior_"):]: v for k, v in arrays.items() if k.startswith("posterior_")}
+        if description["mode"] == "exact":
+            model.posterior_ = ExactPosterior.from_arrays(kernel, model.noise_var_, post)
+        elif description["mode"] == "sparse":
+            model.posterior_ = SparsePosterior.from_arrays(kernel, model.noise_var_, post)
+        else:
+            raise ValueError(f"mode {description['mode']!r} unknown")
+        return model
 
     def __repr__(self) -> str:
         return f"GPNARX(ny={self.ny}, nu={self.nu}, kernel={self.kernel!r}, mode={self.mode!r})"

@@ -40,7 +40,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.gzip import GZipMiddleware
 from starlette.staticfiles import StaticFiles
 
-from gpnarx.model.runtime import limit_blas, tune_malloc  # process tuning shared with the CLI
+from gpnarx.runtime import limit_blas, tune_malloc  # process tuning shared with the CLI
 
 from .deps import API_KEY_HEADER
 from .middleware import GuardMiddleware

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from gpnarx.model.backend import jax_available
-from gpnarx.model.bundle import Bundle
 from gpnarx.model.cycles import cov_window_for, cycles
 from gpnarx.model.envelope import assess
 from gpnarx.model.freerun_core import FreeRunState, check_state
@@ -22,6 +21,7 @@ from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import UnusableProbeContract, assess_novelty, novelty_start
 from gpnarx.model.restoring import loop_area, loop_units, restoring_force
 from gpnarx.model.stream_token import StateMismatch, StateTokenError, decode_state, encode_state
+from gpnarx.storage.bundle import Bundle
 
 from .problems import ProblemError
 from .settings import Settings

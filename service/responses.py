@@ -6,7 +6,7 @@ from typing import Any
 
 from starlette.responses import JSONResponse, Response
 
-from gpnarx.model.jsonsafe import dumps_json
+from gpnarx.storage.jsonsafe import dumps_json
 
 from .observability import REQUEST_ID, REQUEST_ID_HEADER
 from .problems import PROBLEM_MEDIA_TYPE, ProblemError

@@ -10,7 +10,7 @@ The table of settings, variables, defaults and what exceeding a bound answers is
 the fields below (``settings_table()``; docs/api.md holds it, checked by tests/test_settings.py).
 
 ``registry`` is a folder or an fsspec URL (``s3://bucket/prefix``, ``gs://...``, ``file://...``;
-``model.storage`` says where credentials, endpoint and ``GPNARX_STORAGE_OPTIONS`` come from).
+``storage.remote`` says where credentials, endpoint and ``GPNARX_STORAGE_OPTIONS`` come from).
 Every ``registry_poll`` seconds the server rescans its registry by itself (like ``POST
 /v1/admin/reload``; unchanged versions are not verified again), so each of several replicas on one
 registry serves a new version within that interval. A version is verified when it is first seen
@@ -58,7 +58,7 @@ from pydantic import Field, ValidationError, model_validator
 from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
-from gpnarx.model.runtime import DEFAULT_BLAS_THREADS, DEFAULT_MMAP_THRESHOLD, env_int
+from gpnarx.runtime import DEFAULT_BLAS_THREADS, DEFAULT_MMAP_THRESHOLD, env_int
 
 MiB = 1024 * 1024
 CONFIRM_WINDOW = 300.0  # [s] polls a held registry listing needs by default (registry_confirm_scans)

@@ -9,9 +9,9 @@ from pathlib import Path
 
 from fastapi import Request
 
-from gpnarx.model.bundle import BundleError, check_name, remove_stale_temps
-from gpnarx.model.registry import Registry, check_version_ref
-from gpnarx.model.storage import StorageError
+from gpnarx.storage.bundle import BundleError, check_name, remove_stale_temps
+from gpnarx.storage.registry import Registry, check_version_ref
+from gpnarx.storage.remote import StorageError
 
 from .metrics import ServiceMetrics
 from .problems import ProblemError

@@ -15,8 +15,8 @@ older report's relative image links (``record_x.png`` next to ``report.html``) a
 serve time, so the page (or a saved copy) opens without the bundle folder. Reports are sent with a
 Content-Security-Policy that allows no script and no outside load.
 
-Record files are parsed by :mod:`gpnarx.model.record_formats` (the same parsers as the CLI's
-``training.records``): CSV, NPZ, NPY, MATLAB v5 .mat, or the two files of an LMS Test.Lab export.
+Record files are parsed by :mod:`gpnarx.storage.record_formats` (the same parsers as the CLI's
+``storage.record_files``): CSV, NPZ, NPY, MATLAB v5 .mat, or the two files of an LMS Test.Lab export.
 
 The vendored libraries (versions, sources and checksums in ``static/vendor/VENDORED.md``): uPlot
 (plots on the page), swagger-ui-dist and redoc (API documentation).
@@ -36,13 +36,13 @@ from fastapi import Request
 from pydantic import BaseModel, Field
 from starlette.datastructures import UploadFile
 
-from gpnarx.model.record_formats import LMS_INPUT, LMS_OUTPUT, parse_lms, parse_record
+from gpnarx.storage.record_formats import LMS_INPUT, LMS_OUTPUT, parse_lms, parse_record
 
 from .problems import ProblemError
 from .schemas import NAME_PATTERN, VERSION_PATTERN
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
-REPORT_FILE = Path("report") / "report.html"  # inside a bundle folder (model.bundle attach_dir)
+REPORT_FILE = Path("report") / "report.html"  # inside a bundle folder (storage.bundle attach_dir)
 #: The training report may load nothing from outside itself (its figures are data: URIs) and runs no script.
 REPORT_CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'; base-uri 'none'; form-action 'none'"
 #: The page loads only the service's own files and calls only the service.
@@ -114,7 +114,7 @@ class ParsedRecord(BaseModel):
 
 
 _PARSE_DESC = (
-    "Parse an uploaded record file into JSON, as `training.records` reads files for the CLI: send "
+    "Parse an uploaded record file into JSON, as `storage.record_files` reads files for the CLI: send "
     "`multipart/form-data` with one file in `files` (`.csv` with a header naming `time`, `u`, `y`; `.npz` "
     "with arrays `u`, `y`, scalar `fs`; `.npy`; MATLAB v5 `.mat` with `u`, `y`, `fs`) or the two files of an "
     "LMS Test.Lab export (`Time.mat` and `TimeShaker.mat`, both in `files`), and `fs` [Hz] when the file "

@@ -182,7 +182,7 @@ def render_npz(content: dict) -> bytes:
         else:
             rest[key] = v
     if rest:
-        from gpnarx.model.jsonsafe import dumps_json
+        from gpnarx.storage.jsonsafe import dumps_json
 
         arrays["json"] = np.asarray(dumps_json(rest).decode())
     buf = io.BytesIO()

@@ -1,10 +1,10 @@
-"""The one atomic-write helper (gpnarx.model.atomicio)."""
+"""The one atomic-write helper (gpnarx.storage.atomicio)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from gpnarx.model.atomicio import atomic_file, write_atomic
+from gpnarx.storage.atomicio import atomic_file, write_atomic
 
 
 def test_write_atomic_text_and_bytes(tmp_path):

@@ -208,7 +208,7 @@ def test_backend_choice_and_its_errors(sparse_model, data, monkeypatch):
 
 def test_cli_predict_with_the_jax_backend(sparse_model, data, tmp_path, capsys):
     from gpnarx.cli.main import main
-    from gpnarx.model.bundle import save_bundle
+    from gpnarx.storage.bundle import save_bundle
 
     save_bundle(sparse_model, tmp_path / "reg", "duffing", fs=500.0, units={"u": "N", "y": "m"})
     rec = tmp_path / "r.npz"

@@ -1,6 +1,6 @@
 """Registry writes are atomic: a bundle write killed midway leaves no partial version visible.
 
-A separate Python process re-saves a bundle of the test registry with ``model.bundle.save_bundle``
+A separate Python process re-saves a bundle of the test registry with ``storage.bundle.save_bundle``
 whose writes are slowed down at one stage (while writing the arrays, or with everything written
 but before the final rename); once the hidden temporary folder exists and holds files, the process
 is killed with SIGKILL. Then ``Registry.scan``, ``next_version``, and the service's
@@ -23,10 +23,10 @@ import pytest
 from fastapi.testclient import TestClient
 from test_service_support import FS, built_registry, copy_registry
 
-from gpnarx.model.bundle import STALE_TMP_SECONDS, next_version, remove_stale_temps, save_bundle
-from gpnarx.model.registry import Registry
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
+from gpnarx.storage.bundle import STALE_TMP_SECONDS, next_version, remove_stale_temps, save_bundle
+from gpnarx.storage.registry import Registry
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SIGKILL")
@@ -36,7 +36,7 @@ pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs SI
 WRITER = textwrap.dedent("""
     import sys, time
     import numpy as np
-    import gpnarx.model.bundle as mb
+    import gpnarx.storage.bundle as mb
 
     root, name, version, stage = sys.argv[1:5]
     bundle = mb.load_bundle(f"{root}/boucwen/1")
@@ -118,7 +118,7 @@ def test_killed_write_leaves_no_partial_version(tmp_path, stage):
     assert before == ({"boucwen": ["1", "2"], "plain": ["1"]}, [])
 
     tmp = _kill_midway(root, "boucwen", "3", stage)
-    # model.bundle: nothing new, nothing refused, the next version is still 3
+    # storage.bundle: nothing new, nothing refused, the next version is still 3
     assert _visible(root) == before
     assert next_version(root, "boucwen") == "3"
     # the service: model list, model detail and readiness show the same bundles, no refused entry
@@ -166,7 +166,7 @@ def test_schema_1_manifest_is_migrated_and_a_future_schema_refused(tmp_path):
     import hashlib
     import json
 
-    from gpnarx.model.bundle import SCHEMA_VERSION, BundleError, load_bundle, migrate_manifest
+    from gpnarx.storage.bundle import SCHEMA_VERSION, BundleError, load_bundle, migrate_manifest
 
     m1 = {"schema_version": 1, "estimator": {"n_inducing": 64}}
     out = migrate_manifest(m1)

@@ -1,9 +1,9 @@
-"""Held-out calibration of the noise variance sigma_y^2 (model.calibration, GPNARX.fit(heldout=...))."""
+"""Held-out calibration of the noise variance sigma_y^2 (model.heldout_noise, GPNARX.fit(heldout=...))."""
 import numpy as np
 import pytest
 
-from gpnarx.model.calibration import heldout_noise_var
 from gpnarx.model.estimator import GPNARX
+from gpnarx.model.heldout_noise import heldout_noise_var
 from gpnarx.model.metrics import coverage
 
 
@@ -86,7 +86,7 @@ def test_bad_heldout_fails_before_ml2(sdof_data):
 
 
 def test_calibrated_model_round_trips_through_a_bundle(clean_and_noisy, tmp_path):
-    from gpnarx.model.bundle import load_bundle, save_bundle
+    from gpnarx.storage.bundle import load_bundle, save_bundle
 
     train, held, test = clean_and_noisy
     m = GPNARX(ny=4, nu=4, mode="sparse", n_inducing=64, max_train_points=400, n_restarts=0).fit(

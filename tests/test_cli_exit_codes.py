@@ -58,8 +58,8 @@ def test_exit_codes(argv, needle, code, registry, tmp_path, capsys):
 def test_unreadable_record_is_a_runtime_error(tmp_path, capsys):
     from conftest import sdof_simulate
 
-    from gpnarx.model.bundle import save_bundle
     from gpnarx.model.estimator import GPNARX
+    from gpnarx.storage.bundle import save_bundle
 
     rng = np.random.default_rng(0)
     u = rng.standard_normal(300)

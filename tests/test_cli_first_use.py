@@ -10,7 +10,7 @@ import pytest
 from test_service_support import FS, built_registry, copy_registry
 
 from gpnarx.cli.main import main
-from gpnarx.model.bundle import save_bundle
+from gpnarx.storage.bundle import save_bundle
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def registry(tmp_path_factory):
-    from gpnarx.model.bundle import save_bundle
+    from gpnarx.storage.bundle import save_bundle
 
     root = copy_registry(tmp_path_factory.mktemp("client") / "reg")
     # the README's example calls the default registry's model name

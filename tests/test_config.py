@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gpnarx.model.records import Record
+from gpnarx.model.record import Record
+from gpnarx.storage.record_files import write_record
 from gpnarx.training.config import ConfigError, DatasetConfig, load_config, parse_range
 from gpnarx.training.datapaths import bert_data_dir
-from gpnarx.training.records import write_record
 
 DATA = bert_data_dir()
 

@@ -1,5 +1,5 @@
 """Per-cycle loops (model.cycles), the probe contract (model.probe) and recalibration without refit
-(model.bundle.derive_bundle, training.calibrate, gpnarx calibrate), unit by unit and end to end on the
+(storage.bundle.derive_bundle, training.novelty_calibration, gpnarx calibrate), unit by unit and end to end on the
 small Bouc-Wen registry of test_service_support (HTTP loops and novelty, CLI loops, calibrate, novelty).
 """
 from __future__ import annotations
@@ -206,8 +206,8 @@ def test_verdict_with_probe_mismatch_is_not_from_the_score():
 
 # ------------------------------------------------------------------------------------------ derive / calibrate
 def test_derive_bundle_keeps_the_gp(tmp_path):
-    from gpnarx.model.bundle import BundleError, derive_bundle, load_bundle
-    from gpnarx.model.registry import Registry
+    from gpnarx.storage.bundle import BundleError, derive_bundle, load_bundle
+    from gpnarx.storage.registry import Registry
 
     root = copy_registry(tmp_path / "reg")
     src = Registry(root).scan().get("boucwen", "2")
@@ -251,9 +251,9 @@ def _cli_json(capsys, argv):
 
 
 def test_calibrate_cli_http_and_novelty(calibrated, capsys):
-    from gpnarx.model.registry import Registry
     from gpnarx.service.app import create_app
     from gpnarx.service.settings import Settings
+    from gpnarx.storage.registry import Registry
 
     tmp, root, recs = calibrated
     res = _cli_json(capsys, ["calibrate", "--registry", str(root), "--model", "boucwen:1", *map(str, recs[1:]),

@@ -78,9 +78,9 @@ noise = { fraction = 0.01, seed = 3 }
 # path fails the task (and so the test) with this message.
 PRELOAD = '''
 def dask_setup(worker):
-    import gpnarx.model.bundle as bundle
+    import gpnarx.storage.bundle as bundle
     import gpnarx.training.config as config
-    import gpnarx.training.records as records
+    import gpnarx.storage.record_files as records
 
     def refuse(*args, **kwargs):
         raise RuntimeError(f"a Dask worker read from a path: {args[:1]}")
@@ -135,7 +135,7 @@ def cluster(tmp_path_factory):
         with Client(address, timeout="60s") as client:
             client.wait_for_workers(2, timeout=90)
             assert sum(client.nthreads().values()) == 2
-            from gpnarx.training.records import read_record
+            from gpnarx.storage.record_files import read_record
 
             with pytest.raises(RuntimeError, match="read from a path"):  # the preload is in force
                 client.submit(read_record, str(preload), pure=False).result(timeout=60)

@@ -10,10 +10,10 @@ import pytest
 from fastapi.testclient import TestClient
 from test_service_support import FS, built_registry, multisine
 
-from gpnarx.model.bundle import default_method, derive_bundle
-from gpnarx.model.registry import Registry
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
+from gpnarx.storage.bundle import default_method, derive_bundle
+from gpnarx.storage.registry import Registry
 
 
 @pytest.mark.parametrize("manifest, op, expected", [

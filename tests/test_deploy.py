@@ -183,7 +183,7 @@ def test_dockerfile_steps_build_the_wheel_install_it_and_run_the_image_command(t
     _run([py, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--force-reinstall", built[0]], cwd=tmp_path)
     extras = _run([py, "-m", "pip", "install", "--no-index", "--find-links", wheels, requirement], cwd=tmp_path)
     assert "does not provide the extra" not in extras.stdout + extras.stderr, extras.stderr
-    where = _run([py, "-c", "import gpnarx, gpnarx.service.app, gpnarx.model.bundle, gpnarx.cli.main; "
+    where = _run([py, "-c", "import gpnarx, gpnarx.service.app, gpnarx.storage.bundle, gpnarx.cli.main; "
                             "print(gpnarx.__file__)"], cwd=tmp_path).stdout.strip()
     assert where.startswith(str(env_dir)), where
     exe = env_dir / "bin" / "gpnarx"

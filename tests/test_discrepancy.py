@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpnarx.model.bundle import load_bundle, save_bundle
 from gpnarx.model.discrepancy import SCALE_GRID, calibrate_scale, check_discrepancy, local_amplitude, widen
 from gpnarx.model.freerun import FreeRun
+from gpnarx.storage.bundle import load_bundle, save_bundle
 
 FS = 1000.0
 

@@ -106,7 +106,7 @@ def test_model_learns_and_bundles_its_training_envelope():
     built = built_registry()
     env = built.model.envelope_
     assert env["u_peak"] > 0 and env["y_peak"] > 0
-    from gpnarx.model.registry import Registry
+    from gpnarx.storage.registry import Registry
 
     loaded = Registry(built.root).scan().get("boucwen")
     assert loaded.model.envelope_["u_peak"] == pytest.approx(env["u_peak"], rel=1e-12)

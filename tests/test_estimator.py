@@ -4,7 +4,7 @@ import pytest
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.metrics import band_width, coverage, fit_percent, nrmse, rmse
 from gpnarx.model.psd import peak_frequencies, psd
-from gpnarx.model.records import Record, RecordError
+from gpnarx.model.record import Record, RecordError
 from gpnarx.model.regressors import narx_regressors, stack_regressors
 
 
@@ -227,7 +227,7 @@ def test_constant_cap_keeps_the_predictive_variance_exact(sdof_data):
 
 
 def test_capped_model_round_trips_through_a_bundle(sdof_data, tmp_path):
-    from gpnarx.model.bundle import load_bundle, save_bundle
+    from gpnarx.storage.bundle import load_bundle, save_bundle
 
     theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
     for mode in ("sparse", "exact"):
@@ -268,7 +268,7 @@ def test_linearised_run_of_a_diverging_model_stays_finite_and_quiet():
 def test_bundle_built_before_the_variance_fix_warns_on_load(sdof_data, tmp_path):
     import json
 
-    from gpnarx.model.bundle import BundleWarning, _sha256, load_bundle, save_bundle
+    from gpnarx.storage.bundle import BundleWarning, _sha256, load_bundle, save_bundle
 
     theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
     m = GPNARX(ny=6, nu=6, mode="sparse", n_inducing=64, max_train_points=400, constant_cap=None).fit(
@@ -299,9 +299,9 @@ def test_sparse_variance_is_accurate_when_the_noise_is_at_its_floor(sdof_data, t
     # the BLAS thread count, and survive the bundle round trip bit for bit
     from threadpoolctl import threadpool_limits
 
-    from gpnarx.model.bundle import load_bundle, save_bundle
     from gpnarx.model.gp import sparse_variance_reference
     from gpnarx.model.regressors import stack_regressors
+    from gpnarx.storage.bundle import load_bundle, save_bundle
 
     # the real-BERT optimum's shape: a long Matérn length scale and a large cubic offset, so Kmm is
     # jitter-conditioned and the variance (1e-5) sits far below k(x, x) (1.2)
@@ -337,7 +337,7 @@ def test_sparse_bundle_with_the_single_matrix_variance_loads_and_warns(sdof_data
     # predict as they did (k** - k^T A k), and warn to retrain
     import json
 
-    from gpnarx.model.bundle import BundleWarning, _sha256, load_bundle, save_bundle
+    from gpnarx.storage.bundle import BundleWarning, _sha256, load_bundle, save_bundle
 
     theta = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
     m = GPNARX(ny=6, nu=6, mode="sparse", n_inducing=64, max_train_points=400).fit(

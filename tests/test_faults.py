@@ -155,7 +155,7 @@ def test_emptied_object_store_keeps_serving_from_the_verified_copies(tmp_path, m
     """The issue's outage on fsspec's in-memory store: the bucket is wiped; no model was built before."""
     import fsspec
 
-    from gpnarx.model.bundle import save_bundle
+    from gpnarx.storage.bundle import save_bundle
 
     monkeypatch.setenv("GPNARX_CACHE", str(tmp_path / "cache"))
     url = f"memory://faults-{tmp_path.name}"
@@ -557,7 +557,7 @@ def test_busy_answer_before_the_body_is_read_with_retry_after_from_the_queue():
 _KILLED_WRITER = """
 import sys, time
 from pathlib import Path
-from gpnarx.model import bundle
+from gpnarx.storage import bundle
 
 def fill(tmp, version):
     (tmp / "theta.npy").write_bytes(b"partial")
@@ -574,7 +574,7 @@ def test_killed_write_leftover_is_removed_at_start_and_by_a_scan(tmp_path, caplo
     import subprocess
     import sys
 
-    from gpnarx.model.bundle import writer_tag
+    from gpnarx.storage.bundle import writer_tag
 
     root = copy_registry(tmp_path / "reg")
 
@@ -614,7 +614,7 @@ def test_chaos_two_replicas_on_moto_emptied_and_killed_store(tmp_path, monkeypat
     server_mod = pytest.importorskip("moto.server")
     import s3fs
 
-    from gpnarx.model.bundle import save_bundle
+    from gpnarx.storage.bundle import save_bundle
 
     server = server_mod.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
     server.start()

@@ -44,7 +44,7 @@ def _wait(cond, timeout=30.0, what="condition"):
 
 
 def _save(root, name):
-    from gpnarx.model.bundle import save_bundle
+    from gpnarx.storage.bundle import save_bundle
 
     return save_bundle(built_registry().model, root, name, fs=FS, units={"u": "N", "y": "m"}, training={})
 

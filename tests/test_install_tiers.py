@@ -1,6 +1,7 @@
-"""Install tiers: the core install serves and predicts without the extra train's matplotlib and tqdm.
+"""Install tiers: the core install serves and predicts without the extra train's matplotlib and tqdm, and
+a local registry needs no object-storage package (the extra s3's fsspec).
 
-A subprocess hides both packages (``sys.modules[name] = None``: every import of them fails, as in a
+A subprocess hides these packages (``sys.modules[name] = None``: every import of them fails, as in a
 core install) and then builds a small model, serves it, predicts over HTTP and with the CLI; training
 with a report refuses at once with one line naming the extra.
 """
@@ -15,14 +16,14 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = textwrap.dedent('''
     import io, json, sys, warnings
     from contextlib import redirect_stderr
-    HIDE = ("matplotlib", "tqdm")
+    HIDE = ("matplotlib", "tqdm", "fsspec")
     if sys.argv[2] == "hide":
         for name in HIDE:
             sys.modules[name] = None
     import numpy as np
     from fastapi.testclient import TestClient
     from gpnarx.cli.main import main
-    from gpnarx.model.bundle import save_bundle
+    from gpnarx.storage.bundle import save_bundle
     from gpnarx.model.estimator import GPNARX
     from gpnarx.service.app import create_app
     from gpnarx.service.settings import Settings
@@ -72,6 +73,7 @@ def test_core_serves_and_predicts_without_matplotlib_and_tqdm(tmp_path):
 def test_serving_does_not_import_the_plotting_stack(tmp_path):
     out = run(tmp_path, "show")
     assert out["http"] == 200 and "matplotlib" not in out["imported"], out
+    assert "fsspec" not in out["imported"], out  # a local registry never imports the object-storage stack
 
 
 def test_pyproject_tiers():

@@ -1,4 +1,4 @@
-"""The one JSON converter of numpy values (gpnarx.model.jsonsafe)."""
+"""The one JSON converter of numpy values (gpnarx.storage.jsonsafe)."""
 from __future__ import annotations
 
 import json
@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from gpnarx.model.jsonsafe import json_default, to_json_safe
+from gpnarx.storage.jsonsafe import json_default, to_json_safe
 
 
 def test_to_json_safe_converts_numpy_and_nulls_non_finite():

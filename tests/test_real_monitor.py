@@ -32,7 +32,7 @@ def registry(tmp_path_factory):
 
 
 def test_monitor_is_the_same_gp_with_a_probe_and_threshold(registry):
-    from gpnarx.model.registry import Registry
+    from gpnarx.storage.registry import Registry
     from gpnarx.training.real_monitor import CALIBRATION, WINDOW_SECONDS
 
     reg = Registry(registry).scan()
@@ -51,7 +51,7 @@ def test_monitor_is_the_same_gp_with_a_probe_and_threshold(registry):
 def test_monitor_judges_an_unseen_healthy_window_and_refuses_an_off_probe_drive(registry):
     from gpnarx.model.novelty import novelty_score, novelty_start
     from gpnarx.model.probe import probe_check
-    from gpnarx.model.registry import Registry
+    from gpnarx.storage.registry import Registry
     from gpnarx.training.real_monitor import OFF_PROBE, TEST, windows
 
     mon = Registry(registry).scan().get("bert-real-monitor")

@@ -40,7 +40,7 @@ def model():
 @pytest.mark.parametrize("folder", RECORDS, ids=[p.name for p in RECORDS])
 def test_whole_record_from_rest_does_not_diverge_and_is_covered(model, folder):
     from gpnarx.model.envelope import assess
-    from gpnarx.training.records import read_record
+    from gpnarx.storage.record_files import read_record
 
     rec = read_record(folder)
     run = model.simulate(rec.u, method="linear")
@@ -53,7 +53,7 @@ def test_whole_record_from_rest_does_not_diverge_and_is_covered(model, folder):
 
 
 def test_monte_carlo_at_resonance_keeps_every_path(model):
-    from gpnarx.training.records import read_record
+    from gpnarx.storage.record_files import read_record
 
     sines = [p for p in RECORDS if p.name == "Sine_19Hz"]
     if not sines:
@@ -87,7 +87,7 @@ def test_a_drive_beyond_the_trained_frequencies_says_so_and_the_real_records_do_
     90 Hz lies in it) at 0.05-0.20 V is flagged, a 0-40 Hz sweep at the same levels and every real record of
     the data folder are not."""
     from gpnarx.model.envelope import out_of_range
-    from gpnarx.training.records import read_record
+    from gpnarx.storage.record_files import read_record
 
     fs = 1024.0
     for amp in (0.05, 0.10, 0.20):

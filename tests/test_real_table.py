@@ -3,7 +3,7 @@ lag search, the class ARX never fitted on the record it scores, and the acceptan
 import numpy as np
 import pytest
 
-from gpnarx.model.records import Record
+from gpnarx.model.record import Record
 from gpnarx.training import real_table as rt
 from gpnarx.training.baselines import LinearARX, arx_lag_search
 

@@ -1,7 +1,7 @@
 """Lab record formats (extra ``formats``): UFF-58 (pyuff), TDMS (npTDMS), HDF5 and MATLAB v7.3 (h5py).
 
 Each test writes a file with the format's own library and reads it back through the one
-record-reading function (``training.records.read_record``) and the service's upload parser.
+record-reading function (``storage.record_files.read_record``) and the service's upload parser.
 """
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from gpnarx.model.record_formats import FORMATS, RecordFileError, parse_record
-from gpnarx.training.records import read_record
+from gpnarx.storage.record_files import read_record
+from gpnarx.storage.record_formats import FORMATS, RecordFileError, parse_record
 
 FS = 1024.0
 N = 600

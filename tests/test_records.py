@@ -10,15 +10,14 @@ import scipy.io
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gpnarx.model.records import Record
-from gpnarx.training.datapaths import bert_data_dir
-from gpnarx.training.records import (
+from gpnarx.model.record import Record
+from gpnarx.model.velocity import velocity_to_acceleration, velocity_to_displacement
+from gpnarx.storage.record_files import (
     RecordFileError,
     read_record,
-    velocity_to_acceleration,
-    velocity_to_displacement,
     write_record,
 )
+from gpnarx.training.datapaths import bert_data_dir
 
 DATA = bert_data_dir()
 SINE_DIRS = sorted((DATA / "Sine").glob("Sine_*")) if DATA.is_dir() else []

@@ -26,8 +26,8 @@ import httpx
 import numpy as np
 import pytest
 
-from gpnarx.model.bundle import BundleError, save_bundle
-from gpnarx.model.registry import Registry, parse_model_ref, write_aliases
+from gpnarx.storage.bundle import BundleError, save_bundle
+from gpnarx.storage.registry import Registry, parse_model_ref, write_aliases
 
 ROOT = Path(__file__).resolve().parents[1]
 POLL = 1.0  # GPNARX_REGISTRY_POLL of the replicas [s]
@@ -302,7 +302,7 @@ def mem(tmp_path, monkeypatch):
 
 
 def test_publish_writes_the_manifest_last_and_unpublished_versions_are_skipped(mem, monkeypatch):
-    from gpnarx.model import storage
+    from gpnarx.storage import remote as storage
 
     url, fs = mem
     model = _tiny_model(1)
@@ -421,9 +421,9 @@ def test_cli_on_a_registry_url(mem, tmp_path, capsys):
 def test_unreadable_store_starts_unready_then_keeps_the_last_good_registry(mem, monkeypatch):
     from fastapi.testclient import TestClient
 
-    from gpnarx.model import storage
     from gpnarx.service.app import create_app
     from gpnarx.service.settings import Settings
+    from gpnarx.storage import remote as storage
 
     url, fs = mem
     save_bundle(_tiny_model(1), url, "m", fs=FS, units={"u": "N", "y": "m"})

@@ -1,10 +1,10 @@
-"""The one parser of GPNARX_BLAS_THREADS / GPNARX_MMAP_THRESHOLD (gpnarx.model.runtime), shared by the
+"""The one parser of GPNARX_BLAS_THREADS / GPNARX_MMAP_THRESHOLD (gpnarx.runtime), shared by the
 CLI, the Dask workers and the service settings."""
 from __future__ import annotations
 
 import pytest
 
-from gpnarx.model.runtime import MiB, blas_threads_from_env, env_int, mmap_threshold_from_env
+from gpnarx.runtime import MiB, blas_threads_from_env, env_int, mmap_threshold_from_env
 from gpnarx.service.settings import Settings
 
 

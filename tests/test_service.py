@@ -478,7 +478,7 @@ def test_queue_full_sheds_503_and_live_stays_fast(registry):
 
 # ------------------------------------------------------------------------------------------ faults, reload
 def test_corrupted_bundle_refused_others_serve_and_reload(tmp_path):
-    from gpnarx.model.bundle import save_bundle
+    from gpnarx.storage.bundle import save_bundle
 
     root = copy_registry(tmp_path / "reg")
     npy = sorted((root / "boucwen" / "2").glob("*.npy"))[0]
@@ -623,7 +623,7 @@ def test_cli_serve_subprocess_and_sighup_reload(tmp_path):
     import signal
     import socket
 
-    from gpnarx.model.bundle import save_bundle
+    from gpnarx.storage.bundle import save_bundle
 
     root = copy_registry(tmp_path / "reg")
     s = socket.socket()
@@ -661,8 +661,8 @@ def test_cli_serve_subprocess_and_sighup_reload(tmp_path):
 
 
 def test_model_detail_reports_a_held_out_noise_calibration(tmp_path):
-    from gpnarx.model.bundle import save_bundle
     from gpnarx.model.estimator import GPNARX
+    from gpnarx.storage.bundle import save_bundle
 
     u, y = short_record(600, 1)
     u2, y2 = short_record(300, 2)

@@ -53,10 +53,10 @@ class Built:
 @functools.lru_cache(maxsize=1)
 def built_registry() -> Built:
     """Train once per session; returns the registry folder (do not modify it: copy it)."""
-    from gpnarx.model.bundle import save_bundle
     from gpnarx.model.estimator import GPNARX
     from gpnarx.model.novelty import calibrate_threshold, novelty_score, record_envelope
     from gpnarx.service.app import limit_blas_threads
+    from gpnarx.storage.bundle import save_bundle
     from gpnarx.training import excitations as ex
 
     limit_blas_threads(1)  # as the service does; multi-threaded BLAS on small products only oversubscribes

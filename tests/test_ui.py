@@ -2,7 +2,7 @@
 
 /ui, /docs and /redoc reference only the service's own files; vendored files match VENDORED.md;
 training reports are served self-contained (GET /v1/models/{name}[/versions/{v}]/report);
-POST /v1/records/parse reads what training.records reads, with problem details for bad uploads.
+POST /v1/records/parse reads what storage.record_files reads, with problem details for bad uploads.
 """
 from __future__ import annotations
 
@@ -19,12 +19,12 @@ import scipy.io
 from fastapi.testclient import TestClient
 from test_service_support import FS, built_registry, copy_registry, short_record
 
-from gpnarx.model.records import Record
+from gpnarx.model.record import Record
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
 from gpnarx.service.ui import STATIC_DIR, inline_images
+from gpnarx.storage.record_files import read_record, write_record
 from gpnarx.training.datapaths import bert_data_dir
-from gpnarx.training.records import read_record, write_record
 
 ROOT = Path(__file__).resolve().parents[1]
 BERT_SINE = bert_data_dir() / "Sine" / "Sine_09Hz"

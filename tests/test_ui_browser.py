@@ -25,11 +25,11 @@ import pytest
 from test_service_support import FS, LiveServer, built_registry, copy_registry, noisy, short_record, simulate
 from test_ui import make_reports
 
-from gpnarx.model.records import Record
+from gpnarx.model.record import Record
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
 from gpnarx.service.ui import STATIC_DIR
-from gpnarx.training.records import write_record
+from gpnarx.storage.record_files import write_record
 
 CHROMIUM = os.environ.get("GPNARX_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
 API_KEY = "s3cret-key"
@@ -214,8 +214,8 @@ def test_a_longer_record_is_used_whole_and_a_narrowed_run_says_so(page, live, tm
 @pytest.fixture(scope="module")
 def live_monitor(tmp_path_factory):
     """A monitor whose probe contract is a 30 Hz sine (the test model's calibration, with a probe added)."""
-    from gpnarx.model.bundle import save_bundle
-    from gpnarx.model.registry import Registry
+    from gpnarx.storage.bundle import save_bundle
+    from gpnarx.storage.registry import Registry
 
     root = copy_registry(tmp_path_factory.mktemp("uim") / "registry")
     src = Registry(root).scan().get("boucwen", "2").manifest

@@ -216,7 +216,7 @@ def test_etag_changes_when_the_metadata_does(tmp_path):
     root = copy_registry(tmp_path / "reg")
     c = TestClient(create_app(root, Settings(workers=1, queue_size=2)), raise_server_exceptions=False)
     etag = c.get("/v1/models/boucwen/versions/1").headers["etag"]
-    from gpnarx.model.bundle import save_bundle
+    from gpnarx.storage.bundle import save_bundle
 
     save_bundle(built_registry().model, root, "boucwen", "3", fs=FS, units={"u": "N", "y": "m"})
     assert c.post("/v1/admin/reload").status_code == 200

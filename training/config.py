@@ -28,7 +28,7 @@ key name below is a contract)::
     restarts = 3                      # ML-II restarts
     seed = 0
     noise_calibration = "none"        # "none" (ML-II's sigma_y^2, the paper) | "lags": raise sigma_y^2 to
-                                      # its held-out ML value on the 'lags' records (model.calibration)
+                                      # its held-out ML value on the 'lags' records (model.heldout_noise)
     band_calibration = "none"         # "none" | "lags": add the model-discrepancy term to the free-run
                                       # band, calibrated on the 'lags' records (model.discrepancy)
     band_window = 0.25                # [s] window of its local amplitude
@@ -52,7 +52,7 @@ key name below is a contract)::
     [[records]]                       # one table per record
     name = "sweep-10N"                # unique (required)
     roles = ["train"]                 # any of train, lags, verify, validate, healthy, damaged
-    path = "data/sweep.npz"           # a record file or LMS folder (see training.records) ...
+    path = "data/sweep.npz"           # a record file or LMS folder (see storage.record_files) ...
     simulate = { system = "bouc-wen", excitation = "sweep", amplitude = 10.0 }   # ... OR a simulation
     noise = { fraction = 0.1, reference = "sweep-10N", seed = 11 }
     window = [0.0, 2.0]               # optional time window [s], start inclusive, end exclusive
@@ -102,12 +102,12 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from gpnarx.model.records import Record, RecordError
+from gpnarx.model.record import Record, RecordError
+from gpnarx.storage.record_files import RecordFileError, read_record
 from gpnarx.training import config_schema as schema
 from gpnarx.training import simulation_specs as specs
 from gpnarx.training.config_schema import ConfigError, parse_range
 from gpnarx.training.datapaths import bert_data_dir
-from gpnarx.training.records import RecordFileError, read_record
 from gpnarx.training.simulators.bert_standin import BertStandin
 from gpnarx.training.simulators.boucwen import BoucWen
 

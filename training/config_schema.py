@@ -56,9 +56,9 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from gpnarx.model.novelty import METHODS as NOVELTY_METHODS
-from gpnarx.model.records import RecordError
+from gpnarx.model.record import RecordError
+from gpnarx.storage.record_files import normalize_unit
 from gpnarx.training import simulation_specs as specs
-from gpnarx.training.records import normalize_unit
 
 ROLES = ("train", "lags", "verify", "validate", "healthy", "damaged")
 KERNELS = ("rbf", "matern32", "rbf+cubic", "matern32+cubic")

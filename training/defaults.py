@@ -30,7 +30,7 @@ except ImportError:  # pragma: no cover - not POSIX
     fcntl = None
 
 from gpnarx.configs import CONFIG_DIR, shipped_config, shipped_config_names
-from gpnarx.model.registry import Registry
+from gpnarx.storage.registry import Registry
 from gpnarx.training.config import bert_data_dir
 from gpnarx.training.pipeline import train
 from gpnarx.training.real_monitor import build_real_monitor

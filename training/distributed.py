@@ -15,7 +15,7 @@ from __future__ import annotations
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 
-from gpnarx.model.runtime import blas_threads_from_env, mmap_threshold_from_env, tune_malloc
+from gpnarx.runtime import blas_threads_from_env, mmap_threshold_from_env, tune_malloc
 
 __all__ = ["DASK_HINT", "TaskRunner", "check_dask"]
 
@@ -196,7 +196,7 @@ _TUNED = []
 
 
 def on_worker(fn: Callable, *args):
-    """Run ``fn(*args)`` in a worker process tuned for free runs as a local run is (``model.runtime``):
+    """Run ``fn(*args)`` in a worker process tuned for free runs as a local run is (``gpnarx.runtime``):
     glibc's mmap/trim thresholds set once per process (a Dask nanny starts workers with
     MALLOC_TRIM_THRESHOLD_=65536, which returns every step's temporaries to the kernel: free runs
     measured 3-4x slower), and BLAS held to ``GPNARX_BLAS_THREADS`` (default 1) threads during the task,

@@ -23,7 +23,7 @@ import numpy as np
 import scipy.io as sio
 
 from gpnarx.model.probe import drive_of, sine_fit
-from gpnarx.training.records import read_record
+from gpnarx.storage.record_files import read_record
 
 AMPLITUDE = 0.15  # V: the level of the recorded sines (0.15 V nominal)
 FREQUENCIES = (3.0, 4.0, 7.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0, 16.0, 22.0, 23.0, 25.0, 28.0, 30.0)  # Hz

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 from joblib import Parallel, delayed
 
-from gpnarx.model.atomicio import write_atomic
 from gpnarx.model.metrics import fit_percent
+from gpnarx.storage.atomicio import write_atomic
 from gpnarx.training.config import load_config
 from gpnarx.training.lagchoice import DEFAULT_TOLERANCE, choose_lags, edge_message, grid_edge
 from gpnarx.training.prepare import model_from_config, shorten

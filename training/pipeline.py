@@ -15,9 +15,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from gpnarx._progress import progress_bar
-from gpnarx.model.bundle import save_bundle
 from gpnarx.model.estimator import GPNARX
-from gpnarx.model.jsonsafe import to_json_safe
 from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import (
     RMS_METHOD,
@@ -28,7 +26,9 @@ from gpnarx.model.novelty import (
     record_envelope,
 )
 from gpnarx.model.probe import probe_contract
-from gpnarx.model.records import Record
+from gpnarx.model.record import Record
+from gpnarx.storage.bundle import save_bundle
+from gpnarx.storage.jsonsafe import to_json_safe
 from gpnarx.training.baselines import fit_baselines, score_baselines
 from gpnarx.training.config import DatasetConfig, load_config
 from gpnarx.training.distributed import TaskRunner

@@ -3,7 +3,7 @@ model with the config's ``[model]`` settings, and records cut short for quick ru
 from __future__ import annotations
 
 from gpnarx.model.estimator import GPNARX
-from gpnarx.model.records import Record
+from gpnarx.model.record import Record
 from gpnarx.training.config import ConfigError, DatasetConfig
 
 

@@ -18,10 +18,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from gpnarx.model.records import Record
-from gpnarx.model.registry import Registry
-from gpnarx.training.calibrate import calibrate
-from gpnarx.training.records import read_record
+from gpnarx.model.record import Record
+from gpnarx.storage.record_files import read_record
+from gpnarx.storage.registry import Registry
+from gpnarx.training.novelty_calibration import calibrate
 
 SOURCE_MODEL = "bert-real"
 MONITOR_NAME = "bert-real-monitor"

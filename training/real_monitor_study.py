@@ -33,10 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
+from gpnarx.storage.record_files import read_record
 from gpnarx.training.cli_runner import run_cli
 from gpnarx.training.config import bert_data_dir
 from gpnarx.training.real_monitor import CALIBRATION, OFF_PROBE, TEST
-from gpnarx.training.records import read_record
 
 
 def _cli(argv: list[str]) -> dict:

@@ -36,10 +36,10 @@ import numpy as np
 from gpnarx.model.envelope import assess
 from gpnarx.model.metrics import band_width, coverage, fit_percent
 from gpnarx.model.probe import drive_of
-from gpnarx.model.records import Record
+from gpnarx.model.record import Record
+from gpnarx.storage.record_files import read_record
 from gpnarx.training.baselines import LinearARX, arx_lag_search
 from gpnarx.training.frf_check import RESONANCE_BAND, frf_check
-from gpnarx.training.records import read_record
 
 CLASSES = ("sine near resonance", "sine away from resonance", "sweep", "noise")
 CLASS_ARX_LAGS = (16, 16)  # the class ARX's order (ny, nu): the order a user fits a noise run with first

@@ -26,13 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnarx.model.bundle import load_bundle
 from gpnarx.model.metrics import fit_percent
 from gpnarx.model.novelty import RMS_METHOD, calibrate_threshold, novelty_score, novelty_start
+from gpnarx.storage.bundle import load_bundle
+from gpnarx.storage.jsonsafe import to_json_safe
 from gpnarx.training.config import bert_data_dir, load_config, simulate_record
 from gpnarx.training.defaults import shipped_config
 from gpnarx.training.frf_check import markdown as frf_markdown
-from gpnarx.training.jsonsafe import to_json_safe
 from gpnarx.training.lags import edge_message, lag_surface, write_surface
 from gpnarx.training.pipeline import train
 from gpnarx.training.real_table import markdown, real_table, table_checks

@@ -36,7 +36,7 @@ import numpy as np
 
 from gpnarx.model.cycles import cycles
 from gpnarx.model.novelty import calibrate_threshold, method_of, novelty_score, novelty_start
-from gpnarx.model.registry import Registry
+from gpnarx.storage.registry import Registry
 from gpnarx.training.cli_runner import run_cli
 
 

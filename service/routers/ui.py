@@ -14,7 +14,7 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagge
 from starlette.datastructures import UploadFile
 from starlette.responses import HTMLResponse
 
-from gpnarx.model.record_formats import FORMATS, RecordFileError
+from gpnarx.storage.record_formats import FORMATS, RecordFileError
 
 from ..deps import V1, SettingsDep, StateDep
 from ..problems import ProblemError

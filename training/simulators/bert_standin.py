@@ -95,9 +95,9 @@ from pathlib import Path
 import numpy as np
 from scipy import signal
 
+from gpnarx.storage.record_files import read_record
 from gpnarx.training.datapaths import bert_data_dir
 from gpnarx.training.excitations import band_limited_noise
-from gpnarx.training.records import read_record
 
 __all__ = [
     "BertStandin",

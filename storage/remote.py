@@ -12,7 +12,7 @@ usual ``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``/``AWS_ENDPOINT_URL`` varia
 
 Verified copies of remote bundle files are kept under ``cache_root()``: ``$GPNARX_CACHE`` or
 ``$XDG_CACHE_HOME/gpnarx/objects`` (default ``~/.cache/gpnarx/objects``), one folder per registry
-URL. Nothing here knows the bundle format (``model.bundle`` does); this module moves bytes and
+URL. Nothing here knows the bundle format (``storage.bundle`` does); this module moves bytes and
 names objects.
 """
 from __future__ import annotations

@@ -1,10 +1,9 @@
-"""Record readers and writers (CSV, NPZ, NPY, MATLAB .mat, LMS Test.Lab exports) and
-frequency-domain integration / differentiation of measured velocities.
+"""Record files and folders: readers and writers (CSV, NPZ, NPY, MATLAB .mat, LMS Test.Lab exports).
 
 Reading
 -------
-``read_record(path, fs=None, name=None)`` returns a :class:`model.records.Record` and dispatches on
-the path (the parsing of the file contents is :mod:`gpnarx.model.record_formats`, shared with the
+``read_record(path, fs=None, name=None)`` returns a :class:`model.record.Record` and dispatches on
+the path (the parsing of the file contents is :mod:`gpnarx.storage.record_formats`, shared with the
 service's ``POST /v1/records/parse``):
 
 - ``.csv``: a header line names the columns (case-insensitive, in any order): ``u`` (required),
@@ -22,7 +21,7 @@ service's ``POST /v1/records/parse``):
   LMS export is read as its folder (below).
 - with the extra ``formats``: UFF-58 (``.uff``, ``.unv``), TDMS (``.tdms``), HDF5 (``.h5``,
   ``.hdf5``) and MATLAB v7.3 ``.mat`` files; how u, y and fs are found in each is in
-  :mod:`gpnarx.model.record_formats_lab`.
+  :mod:`gpnarx.storage.record_formats_lab`.
 - a folder holding ``Time.mat`` and ``TimeShaker.mat`` (LMS Test.Lab MATLAB export, as in the
   UNESP-BERT records): input ``u`` is the struct ``Time_Shaker__X`` of ``TimeShaker.mat`` (shaker
   amplifier voltage, ``V``), output ``y`` the struct ``Time_Laser__X`` of ``Time.mat`` (free-end
@@ -53,25 +52,23 @@ Writing
 file in the destination folder which is then renamed over the destination with ``os.replace``;
 on any error the temporary file is removed and an existing destination is left untouched.
 
-Integration / differentiation
------------------------------
-``velocity_to_displacement`` and ``velocity_to_acceleration`` work in the frequency domain; see
-their docstrings.
+The frequency-domain integration and differentiation of measured velocities (signal processing,
+not file handling) is ``gpnarx.model.velocity``.
 """
 from __future__ import annotations
 
 import io
-import math
 import os
 from pathlib import Path
 
 import numpy as np
 
-from gpnarx.model.atomicio import atomic_file
+from gpnarx.model.record import Record
+from gpnarx.storage.atomicio import atomic_file
 
-# The parsers live in gpnarx.model.record_formats (no filesystem access there), so the service can
+# The parsers live in gpnarx.storage.record_formats (no filesystem access there), so the service can
 # parse uploaded files without importing training; this module opens files and folders.
-from gpnarx.model.record_formats import (
+from gpnarx.storage.record_formats import (
     FORMATS,
     FORMATS_TEXT,
     KNOWN_UNITS,
@@ -83,7 +80,6 @@ from gpnarx.model.record_formats import (
     parse_lms,
     parse_record,
 )
-from gpnarx.model.records import Record
 
 __all__ = [
     "RecordFileError",
@@ -93,8 +89,6 @@ __all__ = [
     "write_record",
     "read_lms",
     "is_lms_folder",
-    "velocity_to_displacement",
-    "velocity_to_acceleration",
 ]
 
 _LMS_INPUT = LMS_INPUT
@@ -205,83 +199,3 @@ def write_record(path, record: Record) -> Path:
     except Exception as exc:  # noqa: BLE001
         raise RecordFileError(p, f"cannot write the record ({type(exc).__name__}: {exc})") from None
     return p
-
-
-# ============================================================================ integration
-def _hp_weight(f: np.ndarray, f_highpass: float) -> np.ndarray:
-    """0 below f_hp/2, raised-cosine taper from f_hp/2 to f_hp, 1 above."""
-    w = np.ones_like(f)
-    if f_highpass <= 0:
-        w[f == 0] = 0.0
-        return w
-    lo = 0.5 * f_highpass
-    w[f <= lo] = 0.0
-    band = (f > lo) & (f < f_highpass)
-    w[band] = 0.5 - 0.5 * np.cos(np.pi * (f[band] - lo) / (f_highpass - lo))
-    return w
-
-
-def velocity_to_displacement(v, fs: float, f_highpass: float = 2.0, periodic: bool = False) -> np.ndarray:
-    """Drift-free displacement [m] from a velocity signal [m/s] sampled at ``fs`` [Hz].
-
-    Frequency-domain integration: the mean is removed, the signal is zero-padded to at least twice
-    its length (unless ``periodic``, when the record is taken as one period and not padded), its
-    FFT is divided by ``j 2 pi f`` and multiplied by a high-pass weight that is 0 below
-    ``f_highpass / 2``, rises as a raised cosine to 1 at ``f_highpass`` [Hz] and is 1 above (the
-    DC bin is always 0). This removes the drift that time-domain integration of sensor offset and
-    low-frequency noise produces. Content below ``f_highpass`` is lost (default 2 Hz, well under
-    the 18.8 Hz first mode of BERT and the 5 Hz lower sweep limit of the Bouc-Wen protocol); the
-    first and last ``~1 / f_highpass`` seconds of a non-periodic record are less accurate.
-    """
-    x = np.asarray(v, dtype=np.float64)
-    if x.ndim != 1 or x.size == 0:
-        raise ValueError(f"v must be a non-empty 1-D signal, got shape {x.shape}")
-    fs = float(fs)
-    if not math.isfinite(fs) or fs <= 0:
-        raise ValueError(f"fs must be a positive frequency in Hz, got {fs}")
-    n = x.size
-    x = x - x.mean()
-    nfft = n if periodic else _next_len(2 * n)
-    spec = np.fft.rfft(x, nfft)
-    f = np.fft.rfftfreq(nfft, 1.0 / fs)
-    w = _hp_weight(f, float(f_highpass))
-    out = np.zeros_like(spec)
-    nz = f > 0
-    out[nz] = spec[nz] * w[nz] / (2j * np.pi * f[nz])
-    if nfft % 2 == 0:
-        out[-1] = 0.0  # Nyquist bin of an even length: no phase information
-    return np.fft.irfft(out, nfft)[:n]
-
-
-def velocity_to_acceleration(v, fs: float, periodic: bool = False) -> np.ndarray:
-    """Acceleration [m/s^2] from a velocity signal [m/s] sampled at ``fs`` [Hz].
-
-    Frequency-domain differentiation: the FFT is multiplied by ``j 2 pi f`` (DC and an even-length
-    Nyquist bin set to 0). Unless ``periodic``, the signal is first extended by its mirror image so
-    that the transformed sequence has no jump at the wrap-around (no Gibbs ringing at the ends).
-    """
-    x = np.asarray(v, dtype=np.float64)
-    if x.ndim != 1 or x.size == 0:
-        raise ValueError(f"v must be a non-empty 1-D signal, got shape {x.shape}")
-    fs = float(fs)
-    if not math.isfinite(fs) or fs <= 0:
-        raise ValueError(f"fs must be a positive frequency in Hz, got {fs}")
-    n = x.size
-    ext = x if periodic else np.concatenate([x, x[::-1]])
-    m = ext.size
-    spec = np.fft.rfft(ext)
-    f = np.fft.rfftfreq(m, 1.0 / fs)
-    spec = spec * (2j * np.pi * f)
-    spec[0] = 0.0
-    if m % 2 == 0:
-        spec[-1] = 0.0
-    return np.fft.irfft(spec, m)[:n]
-
-
-def _next_len(n: int) -> int:
-    try:
-        from scipy.fft import next_fast_len
-
-        return int(next_fast_len(n, real=True))
-    except Exception:  # noqa: BLE001
-        return 1 << (n - 1).bit_length()

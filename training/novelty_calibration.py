@@ -5,7 +5,7 @@ and the service do (free run from the record's first ny measured outputs, the bu
 method, ``model.novelty``), fits the threshold for the false-alarm rate (``calibrate_threshold``),
 takes the calibration envelope (peak |u|, |y| range) and the probe contract (``model.probe``:
 excitation kind, frequency, amplitude range, start rule) from the same records, and writes a new
-version of the bundle whose arrays are the source's, byte for byte (``model.bundle.derive_bundle``).
+version of the bundle whose arrays are the source's, byte for byte (``storage.bundle.derive_bundle``).
 
 Why offline only (a CLI command, no HTTP route): the service is read-only over its registry (it
 loads versions written by training and never writes them), so a new threshold goes through the same
@@ -15,7 +15,6 @@ one free run per healthy record, which is training-sized work, not request-sized
 """
 from __future__ import annotations
 
-from gpnarx.model.bundle import Bundle, derive_bundle
 from gpnarx.model.novelty import (
     RMS_METHOD,
     calibrate_threshold,
@@ -27,13 +26,14 @@ from gpnarx.model.novelty import (
     record_envelope,
 )
 from gpnarx.model.probe import probe_contract
+from gpnarx.storage.bundle import Bundle, derive_bundle
 
 __all__ = ["calibrate", "score_healthy"]
 
 
 def score_healthy(bundle: Bundle, records, method: str, n_paths: int = 1024, seed: int = 0,
                   propagation: str = "mc", progress=None) -> list[dict]:
-    """Novelty score of each record (``model.records.Record`` with y) by the scoring rule of
+    """Novelty score of each record (``model.record.Record`` with y) by the scoring rule of
     ``gpnarx novelty``; record k uses seed ``seed + k``."""
     model = bundle.model
     out = []

@@ -1,5 +1,5 @@
-"""In-memory input/output record (no file I/O here: file contents are parsed by ``model.record_formats``,
-files and folders are read by ``training.records``)."""
+"""In-memory input/output record (no file I/O here: file contents are parsed by ``storage.record_formats``,
+files and folders are read by ``storage.record_files``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

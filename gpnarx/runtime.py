@@ -2,8 +2,8 @@
 values) and the one-shot CLI commands (``gpnarx predict``, ``gpnarx novelty``).
 
 A free run is thousands of small steps, each a few (paths x points) matrix products. Two process
-settings matter for them (``model/`` holds them because both ``training/`` and ``service/`` may
-import it):
+settings matter for them. They are the process's, not the method's, so the package root holds them
+(``gpnarx.runtime``), where ``training/``, ``service/`` and ``cli/`` all may import them:
 
 * BLAS threads: on a machine whose cores are shared, multi-threaded OpenBLAS pays a scheduler
   wake-up per small product; one thread is the default (``GPNARX_BLAS_THREADS``, 0 = leave BLAS

@@ -1,6 +1,6 @@
 """Record formats of data-acquisition software, read with optional packages (extra ``formats``).
 
-``model.record_formats.parse_record`` dispatches here by extension; each reader takes the file's
+``storage.record_formats.parse_record`` dispatches here by extension; each reader takes the file's
 contents (a seekable binary file) and returns the pieces ``record_formats._make`` builds a
 :class:`Record` from. The optional packages are imported when a file of their format is read; a
 missing one raises :class:`LabFormatError` naming the extra (``pip install 'gpnarx[formats]'``), which

@@ -5,7 +5,7 @@ fsynced, and the file then replaces the destination with ``os.replace``: a reade
 file or the new one, never half of one, and a failed write leaves no temporary file behind. The file
 gets the mode a plain ``open()`` would give it (0666 less the umask: 0644 under the usual 022), not
 the temporary file's private 0600.
-(Bundles are folders: ``model.bundle`` publishes them by renaming a temporary folder.)
+(Bundles are folders: ``storage.bundle`` publishes them by renaming a temporary folder.)
 """
 from __future__ import annotations
 

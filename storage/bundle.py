@@ -17,13 +17,20 @@ progress elsewhere is never touched), or at once with ``remove_stale_temps(regis
 Versions are positive integers, increasing; an existing version is never overwritten.
 
 A registry may also live on object storage behind an fsspec URL (``s3://bucket/prefix``,
-``gs://...``; ``model.storage``). There a version is published by writing its array files (and
+``gs://...``; ``storage.remote``). There a version is published by writing its array files (and
 report) first and ``manifest.json`` last, so a version whose manifest is absent (in progress, or a
 killed write) is not listed; ``manifest.sha256`` goes just before it. Readers copy a version's
 objects into a local cache, verify them against the manifest's checksums and load from there; an
 object rewritten in the store is noticed by its listing (size and ETag) and verified again.
 
-The registry that lists, verifies and serves bundles, and model aliases, are in ``model.registry``.
+The registry that lists, verifies and serves bundles, and model aliases, are in ``storage.registry``.
+
+What is the method's and what is the file's: a fitted model as plain values (lags, mode, kernel and
+hyperparameters, noise variance and its calibration, band discrepancy, training envelope, NLML, the
+estimator's settings, and its arrays: scalers, theta, posterior) is the estimator's own description,
+``GPNARX.fitted_description()`` / ``fitted_arrays()``, rebuilt by ``GPNARX.from_fitted`` (``gpnarx.model``:
+what the values mean). This module is the file format around them: the manifest's other keys, schema
+versions and migrations, file names, checksums, atomic publication and verified loading.
 """
 from __future__ import annotations
 
@@ -40,14 +47,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .discrepancy import check_discrepancy
-from .envelope import check_envelope
-from .estimator import GPNARX
-from .gp import ExactPosterior, SparsePosterior
+from gpnarx.model.estimator import GPNARX
+from gpnarx.model.kernels import DEFAULT_CONSTANT_CAP
+
 from .jsonsafe import json_default
-from .kernels import DEFAULT_CONSTANT_CAP, kernel_from_dict
-from .scaling import Standardizer
-from .storage import RemoteStore, StorageError, as_local
+from .remote import RemoteStore, StorageError, as_local
 
 SCHEMA_VERSION = 2  # what save_bundle writes; older manifests are migrated on load (MIGRATIONS)
 MANIFEST = "manifest.json"
@@ -117,18 +121,6 @@ def _own_version() -> str:
         return version("gpnarx")
     except Exception:  # not installed (running from a checkout)
         return "0+unknown"
-
-
-def model_arrays(model: GPNARX) -> dict:
-    """Every array needed to predict, by file stem."""
-    arrays = {
-        "x_mean": model.x_scaler_.mean_, "x_scale": model.x_scaler_.scale_,
-        "y_mean": model.y_scaler_.mean_, "y_scale": model.y_scaler_.scale_,
-        "theta": model.theta_,
-    }
-    for k, v in model.posterior_.arrays().items():
-        arrays[f"posterior_{k}"] = v
-    return arrays
 
 
 def default_method(manifest: dict, operation: str = "predict") -> str:
@@ -356,7 +348,7 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
 
     def fill(tmp: Path, version: str) -> None:
         files = {}
-        for stem, arr in model_arrays(model).items():
+        for stem, arr in model.fitted_arrays().items():  # one .npy file per array, named by its stem
             fn = f"{stem}.npy"
             np.save(tmp / fn, np.ascontiguousarray(arr, dtype=np.float64), allow_pickle=False)
             files[fn] = _sha256(tmp / fn)
@@ -370,21 +362,7 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
             "name": name,
             "version": version,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "lags": {"ny": model.ny, "nu": model.nu},
-            "mode": model.posterior_.kind,
-            "kernel": model.posterior_.kernel.to_dict(),  # the posterior's (constant cap included)
-            "hyperparameters": {**model.kernel_.params, "noise_var": model.noise_var_},
-            "noise_var": model.noise_var_,
-            "noise_calibration": getattr(model, "noise_calibration_", None),
-            "band_discrepancy": getattr(model, "band_discrepancy_", None),
-            "training_envelope": getattr(model, "envelope_", None),
-            "nlml": None if not np.isfinite(model.nlml_) else model.nlml_,
-            "n_train": model.n_train_,
-            "estimator": {"include_noise": bool(model.include_noise), "n_inducing": int(model.n_inducing),
-                          "max_train_points": model.max_train_points, "selection": model.selection,
-                          "seed": int(model.seed), "hyper": model.hyper,
-                          "constant_cap": model.constant_cap,
-                          "kernel_spec": model.kernel if isinstance(model.kernel, str) else None},
+            **model.fitted_description(),  # lags, mode, kernel, ... estimator: the method's description
             "fs": float(fs),
             "units": dict(units),
             "physics": dict(physics or {}),
@@ -558,35 +536,8 @@ def load_bundle(path) -> Bundle:
         for fn, sha in files.items():
             if not fn.endswith(".npy") and (not (path / fn).is_file() or _sha256(path / fn) != sha):
                 raise BundleError(f"{path / fn}: missing or sha256 checksum does not match the manifest")
-        ny, nu = int(manifest["lags"]["ny"]), int(manifest["lags"]["nu"])
-        est = manifest["estimator"]
-        kernel = kernel_from_dict(manifest["kernel"])
-        model = GPNARX(ny=ny, nu=nu, kernel=est["kernel_spec"] or kernel, mode=manifest["mode"],
-                       n_inducing=int(est["n_inducing"]), max_train_points=est["max_train_points"],
-                       selection=est["selection"], seed=int(est["seed"]),
-                       include_noise=bool(est["include_noise"]), hyper=est["hyper"],
-                       constant_cap=est["constant_cap"])
-        model._check_params()
-        model.kernel_ = kernel
-        model.theta_ = arrays["theta"]
-        model.noise_var_ = float(manifest["noise_var"])
-        model.envelope_ = check_envelope(manifest["training_envelope"])  # None: no range checks
-        model.noise_calibration_ = manifest["noise_calibration"]  # None: no held-out calibration
-        # None: no model-discrepancy term in the band (model.discrepancy); absent in older bundles
-        model.band_discrepancy_ = check_discrepancy(manifest.get("band_discrepancy"))
-        model.noise_var_ml2_ = float(model.noise_calibration_["noise_var_ml2"]) if model.noise_calibration_ \
-            else model.noise_var_
-        model.nlml_ = float("nan") if manifest["nlml"] is None else float(manifest["nlml"])
-        model.n_train_ = int(manifest["n_train"])
-        model.x_scaler_ = Standardizer.from_arrays(arrays["x_mean"], arrays["x_scale"])
-        model.y_scaler_ = Standardizer.from_arrays(arrays["y_mean"], arrays["y_scale"])
-        post = {k[len("posterior_"):]: v for k, v in arrays.items() if k.startswith("posterior_")}
-        if manifest["mode"] == "exact":
-            model.posterior_ = ExactPosterior.from_arrays(kernel, model.noise_var_, post)
-        elif manifest["mode"] == "sparse":
-            model.posterior_ = SparsePosterior.from_arrays(kernel, model.noise_var_, post)
-        else:
-            raise BundleError(f"mode {manifest['mode']!r} unknown")
+        model = GPNARX.from_fitted(manifest, arrays)  # the manifest's keys are the fitted description's
+        kernel, ny, nu = model.kernel_, model.ny, model.nu
         D = ny + nu
         if model.x_scaler_.mean_.shape != (D,) or model.posterior_.points.shape[1] != D:
             raise BundleError(f"array shapes do not match lags ny={ny}, nu={nu}")

@@ -1,7 +1,7 @@
 """The registry: versioned bundles by model name, their aliases, and models built on first use.
 
 A registry is a local folder or an fsspec URL (``s3://bucket/prefix``, ``gs://...``) holding
-``NAME/VERSION/`` bundles (``model.bundle``). ``Registry.scan`` verifies every version and records
+``NAME/VERSION/`` bundles (``storage.bundle``). ``Registry.scan`` verifies every version and records
 the refused ones; a refused version never stops the others from serving.
 
 Aliases: ``NAME/aliases.json`` (``{"aliases": {"production": "3"}}``), written in one atomic
@@ -43,7 +43,7 @@ from .bundle import (
     load_bundle,
     verify_bundle,
 )
-from .storage import RemoteStore, StorageError, as_local, cache_dir_for
+from .remote import RemoteStore, StorageError, as_local, cache_dir_for
 
 ALIASES = "aliases.json"  # NAME/aliases.json: {"aliases": {ALIAS: VERSION}}
 ALIAS_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")

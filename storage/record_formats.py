@@ -1,11 +1,11 @@
 """Record file formats parsed from their contents: CSV, NPZ, NPY, MATLAB .mat (v5, and v7.3 with the
 extra ``formats``), LMS Test.Lab, and with the extra ``formats`` UFF-58, TDMS and HDF5
-(``model.record_formats_lab``).
+(``storage.record_formats_lab``).
 
 No filesystem access here: callers hand over the bytes (or an open binary file) and a file name
-that picks the format. ``training.records.read_record`` opens files and LMS folders and calls
+that picks the format. ``storage.record_files.read_record`` opens files and LMS folders and calls
 these parsers; the service parses uploaded files with them (``POST /v1/records/parse``). The
-formats are documented in ``training.records``.
+formats are documented in ``storage.record_files``.
 
 - :func:`parse_record` ``(data, filename, fs=None, name=None, fs_default=None, source=None)``:
   ``.csv``, ``.npz``, ``.npy``, ``.mat``, ``.uff``/``.unv``, ``.tdms`` or ``.h5``/``.hdf5`` by the
@@ -27,8 +27,9 @@ from pathlib import PurePath
 
 import numpy as np
 
+from gpnarx.model.record import Record, RecordError
+
 from .record_formats_lab import LAB_FORMATS
-from .records import Record, RecordError
 
 __all__ = [
     "RecordFileError",
@@ -158,7 +159,7 @@ def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, so
 
 def parse_lms(shaker, time, *, fs=None, name=None, source="LMS export", shaker_source=None,
               time_source=None) -> Record:
-    """Parse an LMS Test.Lab export from the contents of its two files (see ``training.records``).
+    """Parse an LMS Test.Lab export from the contents of its two files (see ``storage.record_files``).
 
     shaker: ``TimeShaker.mat`` (input u, struct ``Time_Shaker__X``); time: ``Time.mat`` (output y,
     struct ``Time_Laser__X``); each bytes or a seekable binary file. source names the export in
@@ -434,7 +435,7 @@ def _loadmat(p, fh) -> dict:
 
 
 def _read_lab(p, fh, ext, fs, name) -> Record:
-    """UFF-58, TDMS, HDF5 or MATLAB v7.3 (``model.record_formats_lab``)."""
+    """UFF-58, TDMS, HDF5 or MATLAB v7.3 (``storage.record_formats_lab``)."""
     from . import record_formats_lab as lab
 
     reader = {".uff": lab.read_uff, ".unv": lab.read_uff, ".tdms": lab.read_tdms, ".h5": lab.read_hdf5,
