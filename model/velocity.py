@@ -25,6 +25,17 @@ def _hp_weight(f: np.ndarray, f_highpass: float) -> np.ndarray:
     return w
 
 
+def _signal(v, fs) -> tuple[np.ndarray, float]:
+    """``v`` as a non-empty 1-D float64 signal and ``fs`` as a positive frequency [Hz], else ``ValueError``."""
+    x = np.asarray(v, dtype=np.float64)
+    if x.ndim != 1 or x.size == 0:
+        raise ValueError(f"v must be a non-empty 1-D signal, got shape {x.shape}")
+    fs = float(fs)
+    if not math.isfinite(fs) or fs <= 0:
+        raise ValueError(f"fs must be a positive frequency in Hz, got {fs}")
+    return x, fs
+
+
 def velocity_to_displacement(v, fs: float, f_highpass: float = 2.0, periodic: bool = False) -> np.ndarray:
     """Drift-free displacement [m] from a velocity signal [m/s] sampled at ``fs`` [Hz].
 
@@ -37,12 +48,7 @@ def velocity_to_displacement(v, fs: float, f_highpass: float = 2.0, periodic: bo
     the 18.8 Hz first mode of BERT and the 5 Hz lower sweep limit of the Bouc-Wen protocol); the
     first and last ``~1 / f_highpass`` seconds of a non-periodic record are less accurate.
     """
-    x = np.asarray(v, dtype=np.float64)
-    if x.ndim != 1 or x.size == 0:
-        raise ValueError(f"v must be a non-empty 1-D signal, got shape {x.shape}")
-    fs = float(fs)
-    if not math.isfinite(fs) or fs <= 0:
-        raise ValueError(f"fs must be a positive frequency in Hz, got {fs}")
+    x, fs = _signal(v, fs)
     n = x.size
     x = x - x.mean()
     nfft = n if periodic else _next_len(2 * n)
@@ -64,12 +70,7 @@ def velocity_to_acceleration(v, fs: float, periodic: bool = False) -> np.ndarray
     Nyquist bin set to 0). Unless ``periodic``, the signal is first extended by its mirror image so
     that the transformed sequence has no jump at the wrap-around (no Gibbs ringing at the ends).
     """
-    x = np.asarray(v, dtype=np.float64)
-    if x.ndim != 1 or x.size == 0:
-        raise ValueError(f"v must be a non-empty 1-D signal, got shape {x.shape}")
-    fs = float(fs)
-    if not math.isfinite(fs) or fs <= 0:
-        raise ValueError(f"fs must be a positive frequency in Hz, got {fs}")
+    x, fs = _signal(v, fs)
     n = x.size
     ext = x if periodic else np.concatenate([x, x[::-1]])
     m = ext.size
