@@ -1,4 +1,6 @@
-"""``gpnarx reproduce bouc-wen|bert-standin|bert-real|bert-real-paper [--quick] [--out DIR]``.
+"""``gpnarx reproduce bouc-wen|bert-standin|bert-real|bert-real-paper [--quick] [--out DIR]``, and
+``gpnarx reproduce STUDY -- ARGS``: a study of the repository's ``studies/`` folder (a checkout's, not the
+wheel's) with its own arguments.
 
 Imports of the model and training packages sit inside the functions that use them: every command module is
 imported to build the parser (``gpnarx.cli.main``), so each command loads only what it runs.
@@ -7,11 +9,18 @@ from __future__ import annotations
 
 import sys
 
+SYSTEMS = ("bouc-wen", "bert-standin", "bert-real", "bert-real-paper")
+
 
 def add_parser(sub):
+    from gpnarx.training.checkout import STUDIES  # a dict of names only: no numerics imported
+
     p = sub.add_parser("reproduce", help="run the paper's protocol end to end (lag surface, train, verify, "
-                                         "validate, baselines, report)")
-    p.add_argument("system", choices=("bouc-wen", "bert-standin", "bert-real", "bert-real-paper"))
+                                         "validate, baselines, report), or a study of a repository checkout")
+    p.add_argument("system", choices=SYSTEMS + tuple(STUDIES),
+                   help="a protocol, or a study of the repository's studies/ folder (needs a checkout; give its "
+                        "own arguments after --, e.g. gpnarx reproduce cycle-study -- --registry R --help)")
+    p.add_argument("study_args", nargs="*", metavar="-- ARGS", help="a study's own arguments (after --)")
     p.add_argument("--out", default=None, help="output folder (default: runs/reproduce-SYSTEM)")
     p.add_argument("--quick", action="store_true", help="same code path on a tiny grid, short records, few paths")
     p.add_argument("--jobs", type=int, default=-1, help="parallel jobs for the lag surface")
@@ -31,6 +40,13 @@ def add_parser(sub):
 
 
 def run(args):
+    if args.system not in SYSTEMS:
+        return run_study(args)
+    if args.study_args:
+        from gpnarx.cli.errors import UsageError
+
+        raise UsageError(f"gpnarx reproduce {args.system} takes no arguments after its options: "
+                         f"{' '.join(args.study_args)}")
     # start-up: imported when the command runs (see gpnarx.cli)
     from gpnarx.training.reproduce import reproduce
 
@@ -80,3 +96,18 @@ def run(args):
         res["real_table_checks"] = s["real_table"]["checks"]
     res["out"] = out
     return res
+
+
+def run_study(args):
+    """A study of the checkout's studies/ folder with its own arguments; CLIError from an installed wheel."""
+    from gpnarx.cli.errors import CLIError
+    from gpnarx.training.checkout import CheckoutRequired
+    from gpnarx.training.checkout import run_study as run
+
+    try:
+        rc = run(args.system, args.study_args)
+    except CheckoutRequired as e:
+        raise CLIError(str(e)) from None
+    if rc:
+        raise CLIError(f"the study {args.system} failed (exit {rc})")
+    return {"study": args.system, "args": args.study_args} if args.json else None

@@ -343,7 +343,7 @@ def test_boucwen_50N_sine_cycle_energy_intervals_cover_the_simulator(tmp_path):
     simulator's own loop area, on at least 90 % of the steady cycles; the measured energy agrees with
     the simulator's own to 1e-3."""
     from gpnarx.cli.main import main
-    from gpnarx.training.cycle_study import study
+    from studies.cycle_study import study
 
     reg = tmp_path / "R"
     assert main(["--json", "train", "bouc-wen", "--registry", str(reg), "--no-report"]) == 0

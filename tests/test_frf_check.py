@@ -1,4 +1,4 @@
-"""The FRF comparison's parts (training/frf_check.py) on synthetic data: the drive-frequency amplitude it
+"""The FRF comparison's parts (studies/frf_check.py) on synthetic data: the drive-frequency amplitude it
 takes from model.probe, the LMS FRF reader and its refusal of other files, and a linear model checked
 against its own FRF."""
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 import scipy.io as sio
 
 from gpnarx.model.probe import sine_fit
-from gpnarx.training import frf_check as fc
+from studies import frf_check as fc
 
 
 def test_sine_amplitude_recovers_the_drive_component_next_to_an_offset_and_a_harmonic():

@@ -26,7 +26,7 @@ def registry(tmp_path_factory):
     from gpnarx.training.pipeline import train
 
     root = tmp_path_factory.mktemp("reg")
-    train(defaults.shipped_config("bert-real"), root, report=False, method="linear")
+    train(defaults.shipped_config("bert-real"), root, report=False, report_method="linear")
     defaults.build_default("bert-real-monitor", root, mc_paths=16)
     return root
 

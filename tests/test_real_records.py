@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from gpnarx.training.config import bert_data_dir
-from gpnarx.training.real_table import find_records
+from studies.real_table import find_records
 
 DATA = bert_data_dir()
 RECORDS = find_records(DATA) if DATA.is_dir() else []
@@ -70,7 +70,7 @@ def test_steady_sine_between_the_recorded_frequencies_follows_the_rig_frf(model)
     are at 5-9.75, 17, 19 and 20 Hz): the model's steady amplitude for a 0.15 V sine lies within
     0.85-1.05 of the rig's own FRF (LMS FRF.mat of the noise run). The recorded 0.15 V sines themselves
     sit at 0.90-0.97 of that FRF, so the tolerance is the reference's own spread and a little more."""
-    from gpnarx.training.frf_check import frf_check
+    from studies.frf_check import frf_check
 
     check = frf_check(model, DATA, fs=1024.0, freqs=(4.0, 7.0, 12.0, 14.0, 16.0, 22.0, 25.0, 30.0), seconds=6.0,
                       recorded=[p for p in RECORDS if p.parent.name == "Sine"])

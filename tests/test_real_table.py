@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from gpnarx.model.record import Record
-from gpnarx.training import real_table as rt
 from gpnarx.training.baselines import LinearARX, arx_lag_search
+from studies import real_table as rt
 
 FS = 1024.0
 

@@ -163,7 +163,7 @@ def test_reproduce_bert_real_quick(tmp_path, capsys):
     assert nc["method"] == "heldout_ml" and nc["n_records"] == 4 and nc["n_residuals"] > 0
     # the table scores every record of the data folder, with its role, both methods and both ARX baselines
     table = json.loads((tmp_path / "summary.json").read_text())["real_table"]
-    from gpnarx.training.real_table import find_records
+    from studies.real_table import find_records
 
     assert set(table["records"]) == {p.name for p in find_records(BERT_DATA)}
     roles = {k: v["role"] for k, v in table["records"].items()}
@@ -455,7 +455,36 @@ def test_docs_real_results_page_is_the_render_of_its_stored_run():
     assert summary["system"] == "bert-real" and not summary["quick"] and summary["real_table"]["mc_paths"] == 1024
     assert (docs / "results-bert-real.md").read_text() == results_page(summary, surface)
     checks = summary["real_table"]["checks"]
-    from gpnarx.training.real_table import find_records
+    from studies.real_table import find_records
 
     n_shared = len(find_records(BERT_DATA)) if BERT_DATA.is_dir() else 18
     assert checks["diverged"] == [] and checks["n_records"] == n_shared
+
+
+def test_reproduce_runs_a_study_of_the_checkout(tmp_path):
+    """gpnarx reproduce STUDY -- ARGS runs studies/MODULE.py (not in the wheel) with its own arguments."""
+    from gpnarx.cli.main import main
+
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    out = tmp_path / "page.md"
+    assert main(["reproduce", "accelerator-page", "--", str(docs / "runs" / "accelerator"), str(out)]) == 0
+    assert out.read_text() == (docs / "results-accelerator.md").read_text()
+
+
+def test_reproduce_says_a_study_needs_a_checkout(monkeypatch, capsys):
+    """Where no studies/ folder is found (an installed wheel), the study's command is one error line, exit 1."""
+    import sys
+
+    import gpnarx.training.checkout as checkout
+    from gpnarx.cli.main import main
+
+    for name in [m for m in sys.modules if m == "studies" or m.startswith("studies.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if not (Path(p or ".").resolve() / "studies").is_dir()])
+    monkeypatch.chdir(Path(__file__).resolve().parent)
+    monkeypatch.setattr(checkout, "checkout_root", lambda: None)
+    assert main(["reproduce", "cycle-study", "--", "--help"]) == 1
+    err = capsys.readouterr().err
+    assert "studies/ folder" in err and "checkout" in err and "Traceback" not in err
+    with pytest.raises(checkout.CheckoutRequired):
+        checkout.load_study("real_table")

@@ -29,8 +29,8 @@ def test_docs_results_page_is_the_render_of_its_stored_run(system):
 
 def test_docs_accelerator_page_is_the_render_of_its_stored_gpu_run():
     """docs/results-accelerator.md is what training.accelerator_page renders from docs/runs/accelerator/ (the
-    GPU run of bench/bench_gpu.py and training/rows_study.py): every figure on it comes from that run."""
-    from gpnarx.training.accelerator_page import render
+    GPU run of bench/bench_gpu.py and studies/rows_study.py): every figure on it comes from that run."""
+    from studies.accelerator_page import render
 
     run = DOCS / "runs" / "accelerator"
     page = (DOCS / "results-accelerator.md").read_text()
@@ -43,9 +43,9 @@ def test_docs_accelerator_page_is_the_render_of_its_stored_gpu_run():
 
 
 def test_docs_exact_real_page_is_the_render_of_its_stored_run():
-    """docs/results-bert-real-exact.md is training.exact_study's render of docs/runs/bert-real-exact (and of the
+    """docs/results-bert-real-exact.md is studies.exact_study's render of docs/runs/bert-real-exact (and of the
     shipped model's stored run it is set against)."""
-    from gpnarx.training.exact_study import render
+    from studies.exact_study import render
 
     summary = json.loads((DOCS / "runs" / "bert-real-exact" / "summary.json").read_text())
     shipped = json.loads((DOCS / "runs" / "bert-real" / "summary.json").read_text())
@@ -58,3 +58,65 @@ def test_docs_exact_real_page_is_the_render_of_its_stored_run():
     for name, r in summary["real_table"]["records"].items():
         if r["role"] == "validate":
             assert f"| {name} | {r['whole_linear']['fit']:.1f} |" in page, name
+
+
+def test_bouc_wen_page_says_which_model_its_figures_come_from():
+    """The stored run chose its own lags; the page names them and the shipped config's, which differ."""
+    from gpnarx.training.config import load_config
+    from gpnarx.training.defaults import shipped_config
+
+    summary = json.loads((DOCS / "runs" / "bouc-wen" / "summary.json").read_text())
+    page = (DOCS / "results-bouc-wen.md").read_text()
+    ch, model = summary["chosen_lags"], load_config(shipped_config("bouc-wen")).model
+    assert f"Model of these figures: ny={ch['ny']}, nu={ch['nu']}" in page
+    if (model["ny"], model["nu"]) != (ch["ny"], ch["nu"]):
+        assert f"ny={model['ny']}, nu={model['nu']}: the model `gpnarx train bouc-wen`" in page
+
+
+def _bench_page():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_results_page", DOCS.parent / "bench" / "results_page.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_docs_benchmarks_page_is_the_render_of_its_stored_result_lines():
+    """docs/benchmarks.md is bench/results_page.py's render of the RESULT lines stored under docs/runs/: each
+    stored line's ratio is on the page, and the page holds no figure of its own (history: CHANGELOG.md)."""
+    bench = _bench_page()
+    page = (DOCS / "benchmarks.md").read_text()
+    assert page == bench.render(), "docs/benchmarks.md differs from the render of docs/runs/bench/"
+    stored = 0
+    for rel, _, _ in bench.SOURCES:
+        _, rows = bench.parse((DOCS / "runs" / rel).read_text())
+        for _, kv in rows:
+            assert f"| {kv['ratio']} |" in page, kv
+            stored += 1
+    assert stored >= 10
+    for script in sorted(p.name for p in (DOCS.parent / "bench").glob("bench_*.py")):
+        assert f"`{script}`" in page, f"{script} is not in the method table"
+
+
+def test_docs_monitoring_page_is_the_render_of_its_stored_runs():
+    """docs/results-monitoring.md is studies.monitoring_page's render of docs/runs/monitoring (the cycle, torque and
+    real-monitor studies' JSON and the facts of their bundles)."""
+    from studies.monitoring_page import CYCLE_RUNS, render
+
+    run = DOCS / "runs" / "monitoring"
+    page = (DOCS / "results-monitoring.md").read_text()
+    assert page == render(run), "docs/results-monitoring.md differs from its runs' render"
+    for name, _ in CYCLE_RUNS:
+        r = json.loads((run / name).read_text())
+        assert f"| {r['energy_mean']:.4g} J |" in page, name
+
+
+def test_docs_standin_page_is_the_render_of_its_stored_calibration():
+    from studies.standin_page import render
+
+    cal = json.loads((DOCS / "runs" / "standin" / "calibration.json").read_text())
+    page = (DOCS / "standin.md").read_text()
+    assert page == render(cal), "docs/standin.md differs from its stored calibration's render"
+    for r in cal["rows"]:
+        assert f"| {r['freq']:.2f} | {r['volts']:.4f} | {r['real']:.4g} | {r['standin']:.4g} |" in page

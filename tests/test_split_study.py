@@ -1,9 +1,9 @@
-"""training.split_study: the plan parser and the config it varies (the study itself runs on an accelerator)."""
+"""studies.split_study: the plan parser and the config it varies (the study itself runs on an accelerator)."""
 from __future__ import annotations
 
 import pytest
 
-from gpnarx.training.split_study import parse_plan, split_config_text
+from studies.split_study import parse_plan, split_config_text
 
 
 def test_plan_cells_parse_and_bad_cells_name_themselves():

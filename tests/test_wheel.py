@@ -22,7 +22,9 @@ import pytest
 from venv_support import make_venv
 
 ROOT = Path(__file__).resolve().parents[1]
-GENERIC_TOP_LEVEL = {"model", "service", "training", "configs", "cli", "tests", "bench"}
+GENERIC_TOP_LEVEL = {"model", "service", "training", "configs", "cli", "tests", "bench", "studies"}
+# the repository's studies (studies/*.py): run from a checkout by gpnarx reproduce, never shipped
+STUDY_MODULES = {p.stem for p in (ROOT / "studies").glob("*.py") if p.stem != "__init__"}
 SHIPPED = {"bouc-wen", "bert-standin", "bert-standin-monitor", "bert-real"}
 _IGNORE_NAMES = shutil.ignore_patterns(".git", "build", "dist", "*.egg-info", "__pycache__", "*.pyc", ".hypothesis",
                                        ".pytest_cache", ".benchmarks", ".lagcache", "runs", "registry", "reports",
@@ -84,6 +86,9 @@ def test_wheel_holds_one_import_package_and_the_shipped_configs(wheel):
     assert SHIPPED <= configs, configs
     entry_points = next(n for n in names if n.endswith(".dist-info/entry_points.txt"))
     assert "gpnarx = gpnarx.cli.main:main" in zipfile.ZipFile(wheel).read(entry_points).decode()
+    assert {"cycle_study", "real_table", "frf_check", "exact_study"} <= STUDY_MODULES
+    shipped_modules = {Path(n).stem for n in names if n.endswith(".py")}
+    assert not shipped_modules & STUDY_MODULES, f"study modules in the wheel: {sorted(shipped_modules & STUDY_MODULES)}"
 
 
 _SNIPPET = """
@@ -121,6 +126,10 @@ def test_wheel_installs_into_a_fresh_venv_and_runs_from_an_empty_folder(wheel, t
     helptext = _run([bindir / "gpnarx", "--help"], cwd=empty).stdout
     for cmd in ("simulate", "train", "predict", "serve"):
         assert cmd in helptext
+    # a study is the checkout's: the installed package says so, in one line, with exit code 1
+    study = subprocess.run([str(bindir / "gpnarx"), "reproduce", "cycle-study", "--", "--help"], cwd=empty,
+                           env=_clean_env(), capture_output=True, text=True, timeout=120)
+    assert study.returncode == 1 and "checkout" in study.stderr and "Traceback" not in study.stderr, study.stderr
     assert list(empty.iterdir()) == [], "running from an empty folder wrote files into it"
 
 
@@ -136,18 +145,3 @@ def test_train_takes_a_shipped_config_by_name_from_any_folder(tmp_path, monkeypa
     assert resolve_config("my.toml") == Path("my.toml")  # a path is left to the config reader
     with pytest.raises(CLIError, match="shipped: .*bouc-wen"):
         resolve_config("no-such-config")
-
-
-def test_wheel_ships_storage_apart_from_the_method(wheel):
-    """gpnarx.storage holds the files and objects (bundles, registry, fsspec, atomic writes, record files);
-    gpnarx.model ships the method only, and gpnarx.runtime (process tuning) sits at the package root."""
-    names = set(zipfile.ZipFile(wheel).namelist())
-    assert "storage" not in {n.split("/")[0] for n in names}
-    for mod in ("__init__", "bundle", "registry", "remote", "atomicio", "record_formats", "record_formats_lab",
-                "record_files", "jsonsafe"):
-        assert f"gpnarx/storage/{mod}.py" in names, mod
-    assert "gpnarx/runtime.py" in names and "gpnarx/model/record.py" in names
-    in_model = {Path(n).stem for n in names if n.startswith("gpnarx/model/") and n.endswith(".py")}
-    storage_modules = {"bundle", "registry", "storage", "remote", "atomicio", "record_formats", "record_formats_lab",
-                       "records", "record_files", "jsonsafe", "runtime"}
-    assert not in_model & storage_modules, sorted(in_model & storage_modules)

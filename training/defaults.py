@@ -108,7 +108,7 @@ def build_default(name: str, root, progress: bool = False, log=None, mc_paths: i
     if not report and log:
         log(f"{name}: matplotlib is not installed (extra train), so the bundle has no training report")
     return train(shipped_config(name), Path(root), progress=progress, mc_paths=mc_paths, log=log,
-                 method=LIGHT_METHOD.get(name), report=report)
+                 report_method=LIGHT_METHOD.get(name), report=report)
 
 
 def ensure_default_registry(path=None, progress: bool = True, names=None, mc_paths: int = DEFAULT_MC,

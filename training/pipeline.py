@@ -1,10 +1,12 @@
 """Offline training pipeline: config -> ML-II -> verification/validation -> novelty -> bundle + report.
 
-``train(config, registry)`` fits the GP-NARX with the config's lags and settings on the ``train``
-records, runs Monte Carlo free-run on every ``verify`` and ``validate`` record (and ``lags``,
-``healthy`` and ``damaged`` ones), scores them (fit % eq. 14, RMSE, 99% coverage, band width, PSD
-peaks, loop areas), calibrates the novelty threshold on ``healthy`` records when present, and
-writes a versioned bundle with its report folder, atomically, into ``REGISTRY/NAME/VERSION``.
+``train(config, registry)`` runs five steps: ``fit`` (the GP-NARX with the config's lags and settings,
+ML-II on the ``train`` records, and the config's noise and band calibrations), ``evaluate`` (Monte
+Carlo or linearised free run of every ``lags``, ``verify``, ``validate``, ``healthy`` and ``damaged``
+record, scored: fit % eq. 14, RMSE, 99% coverage, band width; the baselines beside them),
+``calibrate_novelty`` (the threshold on the ``healthy`` records when present), ``write_report`` (PSD
+peaks, loop areas, figures) and ``save`` (a versioned bundle with its report folder, atomically, into
+``REGISTRY/NAME/VERSION``).
 """
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ import json
 import tempfile
 import time
 from contextlib import ExitStack
+from dataclasses import dataclass
 from pathlib import Path
 
 from gpnarx._progress import progress_bar
@@ -34,8 +37,8 @@ from gpnarx.training.config import DatasetConfig, load_config
 from gpnarx.training.distributed import TaskRunner
 from gpnarx.training.prepare import model_from_config, shorten
 
-__all__ = ["EVAL_ROLES", "as_config", "basic_metrics", "evaluate_record", "model_from_config", "score_records",
-           "train"]
+__all__ = ["EVAL_ROLES", "as_config", "basic_metrics", "calibrate_novelty", "evaluate", "evaluate_record", "fit",
+           "model_from_config", "save", "score_records", "train", "training_metrics", "write_report"]
 
 EVAL_ROLES = ("lags", "verify", "validate", "healthy", "damaged")
 
@@ -131,25 +134,219 @@ def train(config, registry, name: str | None = None, version: str | None = None,
           mc_paths: int | None = None, ny: int | None = None, nu: int | None = None, report: bool = True,
           lag_surface: dict | None = None, baselines: dict | None = None, paper: dict | None = None,
           model_overrides: dict | None = None, log=None, max_seconds: float | None = None,
-          extra_evals: list | None = None, method: str | None = None, scheduler=None) -> dict:
+          extra_evals: list | None = None, report_method: str | None = None, scheduler=None) -> dict:
     """Train from a dataset config and write a bundle; returns name, version, path and metrics.
 
-    ``method`` ('mc' or 'linear') overrides the config's ``predict.method`` for the report's free
-    runs only (the model written is the same); ``mc_paths`` likewise overrides ``predict.mc_paths``.
+    The steps, in order: ``fit`` (ML-II and the config's noise and band calibrations), ``evaluate``
+    (a free run of every scored record, its metrics and the baselines), ``calibrate_novelty`` (the
+    threshold on the ``healthy`` records), ``write_report`` and ``save``.
+
+    ``report_method`` ('mc' or 'linear') overrides the config's ``predict.method`` for the report's free
+    runs only (the model written, and the bundle's default propagation, are the same); ``mc_paths``
+    likewise overrides ``predict.mc_paths``. ``max_seconds`` [s] cuts every record to its first seconds.
     ``scheduler`` (a Dask scheduler address or ``distributed.Client``): the verification/validation
     free runs and the report's per-record metrics and figures run as tasks on that cluster, with
     the fitted model and the record arrays sent to the workers; the seeds, and so the bundle's
     metrics, are those of the local run. ML-II, the baselines and the novelty calibration stay here.
     """
+    cfg = as_config(config)
+    log = log or (lambda msg: None)
+    t0 = time.perf_counter()
     with ExitStack() as stack:
         runner = None
         if scheduler not in (None, ""):
             runner = stack.enter_context(TaskRunner(scheduler))
-            (log or (lambda msg: None))(f"tasks on {runner.where}")
-        return _train(config, registry, name, version, progress=progress, mc_paths=mc_paths, ny=ny, nu=nu,
-                      report=report, lag_surface=lag_surface, baselines=baselines, paper=paper,
-                      model_overrides=model_overrides, log=log, max_seconds=max_seconds, extra_evals=extra_evals,
-                      method=method, runner=runner)
+            log(f"tasks on {runner.where}")
+        plan = _Plan.of(cfg, mc_paths, report_method, max_seconds)
+        train_recs = plan.records("train")
+        model = fit(cfg, train_recs, plan.records, ny=ny, nu=nu, model_overrides=model_overrides, log=log)
+        todo = [(role, rec) for role in EVAL_ROLES for rec in plan.records(role)]
+        evals = evaluate(model, todo, plan, runner=runner, progress=progress, log=log)
+        if baselines is None:
+            baselines = score_against_baselines(train_recs, [rec for _, rec in todo], model.ny, model.nu, log)
+        novelty = calibrate_novelty(cfg, evals, plan.n_paths)
+        metrics = training_metrics(model, train_recs, evals, plan, baselines)
+        physics = physics_of(cfg)
+        with tempfile.TemporaryDirectory() as tmp:
+            report_dir = None
+            if report:
+                report_dir = Path(tmp) / "report"
+                write_report(report_dir, cfg, model, plan, evals + list(extra_evals or []), metrics, novelty,
+                             physics=physics, lag_surface=lag_surface, baselines=baselines, paper=paper,
+                             runner=runner)
+            metrics["wall_seconds"] = time.perf_counter() - t0
+            path = save(model, cfg, registry, name, version, physics=physics, novelty=novelty, metrics=metrics,
+                        report_dir=report_dir)
+    log(f"bundle written to {path}")
+    return {"name": name or cfg.name, "version": path.name, "path": str(path),
+            "metrics": to_json_safe(metrics), "evals": evals, "model": model,
+            "novelty": to_json_safe(novelty)}
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What a training run evaluates with: Monte Carlo paths, confidence, the report's propagation
+    ('mc' or 'linear') and the record cut [s] (None: whole records)."""
+
+    cfg: DatasetConfig
+    n_paths: int
+    confidence: float
+    propagation: str
+    max_seconds: float | None
+
+    @classmethod
+    def of(cls, cfg: DatasetConfig, mc_paths: int | None, report_method: str | None,
+           max_seconds: float | None) -> _Plan:
+        propagation = report_method or cfg.predict.get("method", "mc")
+        if propagation not in ("mc", "linear"):
+            raise ValueError(f"method must be 'mc' or 'linear', got {propagation!r}")
+        return cls(cfg, int(mc_paths or cfg.predict.get("mc_paths", 1024)),
+                   float(cfg.predict.get("confidence", 0.99)), propagation, max_seconds)
+
+    def records(self, role: str) -> list[Record]:
+        """The config's records of ``role``, each cut to its first ``max_seconds`` when set."""
+        recs = self.cfg.records_for(role)
+        return [shorten(r, self.max_seconds) for r in recs] if self.max_seconds else recs
+
+
+def fit(cfg: DatasetConfig, train_recs: list[Record], records, *, ny: int | None = None, nu: int | None = None,
+        model_overrides: dict | None = None, log=None) -> GPNARX:
+    """The GP-NARX of the config (lags ``ny``/``nu`` [samples] override the config's) fitted by ML-II on
+    ``train_recs``; with the config's ``noise_calibration = "lags"`` the noise variance and with
+    ``band_calibration = "lags"`` the band's discrepancy scale are calibrated on ``records("lags")``."""
+    log = log or (lambda msg: None)
+    model = model_from_config(cfg, ny, nu, **(model_overrides or {}))
+    log(f"training {cfg.name}: ny={model.ny} nu={model.nu} mode={model.mode} on {len(train_recs)} record(s)")
+    calibrate_noise = cfg.model.get("noise_calibration", "none") == "lags"
+    model.fit(train_recs, heldout=records("lags") if calibrate_noise else None)
+    log(f"ML-II done in {model.fit_seconds_:.1f} s (N={model.n_train_}, NLML={model.nlml_:.1f})")
+    if model.noise_calibration_ is not None:
+        nc = model.noise_calibration_
+        log(f"noise calibrated on {nc['n_records']} held-out 'lags' record(s), {nc['n_residuals']} one-step "
+            f"residuals: sigma_y^2 {nc['noise_var_ml2']:.3g} (ML-II) -> {nc['noise_var']:.3g} (standardised)")
+    if cfg.model.get("band_calibration", "none") == "lags":
+        calibrate_band_from_config(model, cfg, records("lags"), log)
+    return model
+
+
+def _run_key(role: str, rec: Record) -> tuple:
+    """A record with several roles (e.g. lags and verify) is simulated once; each further role reuses that
+    prediction unless the start rule differs (novelty roles start from measured outputs, see evaluate_record)."""
+    return rec.name, role in ("healthy", "damaged")
+
+
+def evaluate(model: GPNARX, todo: list, plan: _Plan, *, runner: TaskRunner | None = None, progress: bool = False,
+             log=None) -> list[dict]:
+    """The free run (``plan.propagation``, ``plan.n_paths`` paths, seed = the record's position in ``todo``)
+    and basic metrics (fit %, RMSE, coverage %, band width) of every (role, record) of ``todo``, in order."""
+    log = log or (lambda msg: None)
+    done = {}
+    if runner is not None:  # the free runs as tasks on the cluster, then reported in the same order
+        done = _evaluate_remote(runner, model, todo, _run_key, plan.n_paths, plan.confidence, plan.propagation,
+                                progress, log)
+    bar = _Progress(progress and runner is None, sum(r.n for _, r in {_run_key(*t): t for t in todo}.values()),
+                    "free-run")
+    evals = []
+    for k, (role, rec) in enumerate(todo):
+        key = _run_key(role, rec)
+        if key in done:
+            ev = {**done[key], "role": role}
+        else:
+            ev = evaluate_record(model, rec, role, plan.n_paths, seed=k, confidence=plan.confidence,
+                                 method=plan.propagation, progress=bar.callback(rec.n))
+            bar.advance(rec.n)
+            done[key] = ev
+        ev["metrics"] = basic_metrics(ev)
+        evals.append(ev)
+        log(f"  {role:8s} {rec.name}: " + ", ".join(f"{k}={v:.4g}" for k, v in ev["metrics"].items()))
+    bar.close()
+    return evals
+
+
+def score_against_baselines(train_recs: list[Record], scored: list[Record], ny: int, nu: int, log=None) -> dict:
+    """The baseline models (training.baselines) fitted on ``train_recs`` with the model's lags [samples] and
+    scored on ``scored``: {record name: {baseline: metrics}}."""
+    return score_baselines(fit_baselines(train_recs, ny, nu, log=log), scored)
+
+
+def calibrate_novelty(cfg: DatasetConfig, evals: list[dict], n_paths: int) -> dict | None:
+    """The novelty threshold at the config's false-alarm rate from the scores of the ``healthy`` records
+    (None with fewer than two), by the config's ``[novelty] method`` score, with the envelope and probe
+    contract it holds for; each healthy or damaged record's metrics gain its score and verdict."""
+    healthy = [ev for ev in evals if ev["role"] == "healthy"]
+    if len(healthy) < 2:
+        return None
+    far = float(cfg.novelty.get("false_alarm_rate", 0.01))
+    score_method = cfg.novelty.get("method", RMS_METHOD)
+    scored = [ev for ev in evals if ev["role"] in ("healthy", "damaged")]
+    for ev, score in zip(scored, score_records(scored, score_method)):
+        ev["metrics"]["novelty_score"] = score
+    novelty = calibrate_threshold([ev["metrics"]["novelty_score"] for ev in healthy], far)
+    novelty["method"] = score_method
+    novelty["mc_paths"] = n_paths
+    novelty["envelope"] = record_envelope([(ev["u"], ev["y"]) for ev in healthy])
+    # the probe contract: the excitation (and start rule) the threshold holds for (model.probe)
+    novelty["probe"] = probe_contract([ev["u"] for ev in healthy], cfg.fs, start="measured")
+    for ev in scored:
+        # the records the probe contract is derived from: judged on score and envelope only
+        ev["metrics"]["verdict"] = judge(novelty, ev["metrics"]["novelty_score"], ev["u"], ev["y"], cfg.fs,
+                                         check_probe=False)["verdict"]
+    return novelty
+
+
+def training_metrics(model: GPNARX, train_recs: list[Record], evals: list[dict], plan: _Plan,
+                     baselines: dict) -> dict:
+    """The manifest's ``training`` block: ML-II time [s], rows, NLML, each scored record's metrics, the
+    report's propagation and baselines (``wall_seconds`` [s] is filled in just before saving)."""
+    return {
+        "fit_seconds": model.fit_seconds_, "n_train": model.n_train_, "n_rows": model.n_rows_,
+        "nlml": model.nlml_, "train_records": [r.name for r in train_recs],
+        "records": {ev["name"]: {"role": ev["role"], **{k: v for k, v in ev["metrics"].items()}} for ev in evals},
+        "mc_paths": plan.n_paths, "method": plan.propagation, "confidence": plan.confidence, "wall_seconds": None,
+        "baselines": baselines,
+    }
+
+
+def physics_of(cfg: DatasetConfig) -> dict:
+    """The config's physical constants (mass [kg], ...) with the output kind (default: displacement)."""
+    physics = dict(cfg.physics)
+    physics.setdefault("output", cfg.system.get("output", "displacement"))
+    return physics
+
+
+def write_report(report_dir: Path, cfg: DatasetConfig, model: GPNARX, plan: _Plan, evals: list[dict],
+                 metrics: dict, novelty: dict | None, *, physics: dict, lag_surface=None, baselines=None,
+                 paper=None, runner=None) -> None:
+    """The training report (HTML, figures, report.json) into ``report_dir``; its richer per-record metrics
+    (PSD peaks [Hz], loop areas [J]) are merged into ``metrics["records"]``."""
+    # the report module imports matplotlib and selects its Agg backend: imported only when a
+    # report is written, so importing the pipeline leaves a caller's plotting set-up alone
+    from gpnarx.training.report import write_report as write_html_report
+
+    full = write_html_report(report_dir, f"GP-NARX {cfg.name}", {
+        "config": str(cfg.path), "ny": model.ny, "nu": model.nu, "mode": model.mode,
+        "kernel": repr(model.kernel_), "noise_var": model.noise_var_,
+        "noise_calibration": model.noise_calibration_, "n_train": model.n_train_,
+        "fit_seconds": model.fit_seconds_, "mc_paths": plan.n_paths, "method": plan.propagation,
+        "novelty": novelty,
+    }, evals, physics=physics, lag_surface=lag_surface, baselines=baselines, paper=paper, runner=runner)
+    rj = json.loads((report_dir / "report.json").read_text())
+    for rm in rj.get("records", []):
+        nm = rm.get("name")
+        if nm in metrics["records"]:
+            metrics["records"][nm].update({k: v for k, v in rm.get("metrics", {}).items()
+                                           if not isinstance(v, (list, dict)) or k.startswith("psd")})
+    del full
+
+
+def save(model: GPNARX, cfg: DatasetConfig, registry, name: str | None, version: str | None, *, physics: dict,
+         novelty: dict | None, metrics: dict, report_dir: Path | None) -> Path:
+    """The bundle, written atomically into ``REGISTRY/NAME/VERSION`` with the report folder attached; the
+    answers' default propagation is the config's ``[predict]``, not a lighter report's override."""
+    return save_bundle(model, registry, name or cfg.name, version, fs=cfg.fs, units=cfg.units,
+                       physics=physics, novelty=novelty, training=to_json_safe(metrics), attach_dir=report_dir,
+                       extra={"predict": {"method": cfg.predict.get("method", "mc"),
+                                          "mc_paths": int(cfg.predict.get("mc_paths", 1024))}})
 
 
 def _evaluate_remote(runner: TaskRunner, model: GPNARX, todo: list, run_key, n_paths: int, conf: float, method: str,
@@ -171,126 +368,3 @@ def _evaluate_remote(runner: TaskRunner, model: GPNARX, todo: list, run_key, n_p
             bar.close()
     log(f"{len(firsts)} free run(s) on {runner.where} in {time.perf_counter() - t0:.1f} s")
     return dict(zip(firsts, results))
-
-
-def _train(config, registry, name, version, *, progress, mc_paths, ny, nu, report, lag_surface, baselines, paper,
-           model_overrides, log, max_seconds, extra_evals, method, runner) -> dict:
-    cfg = as_config(config)
-    log = log or (lambda msg: None)
-    t0 = time.perf_counter()
-    def records(role):
-        recs = cfg.records_for(role)
-        return [shorten(r, max_seconds) for r in recs] if max_seconds else recs
-
-    train_recs = records("train")
-    model = model_from_config(cfg, ny, nu, **(model_overrides or {}))
-    log(f"training {cfg.name}: ny={model.ny} nu={model.nu} mode={model.mode} on {len(train_recs)} record(s)")
-    calibrate = cfg.model.get("noise_calibration", "none") == "lags"
-    model.fit(train_recs, heldout=records("lags") if calibrate else None)
-    log(f"ML-II done in {model.fit_seconds_:.1f} s (N={model.n_train_}, NLML={model.nlml_:.1f})")
-    if model.noise_calibration_ is not None:
-        nc = model.noise_calibration_
-        log(f"noise calibrated on {nc['n_records']} held-out 'lags' record(s), {nc['n_residuals']} one-step "
-            f"residuals: sigma_y^2 {nc['noise_var_ml2']:.3g} (ML-II) -> {nc['noise_var']:.3g} (standardised)")
-    if cfg.model.get("band_calibration", "none") == "lags":
-        calibrate_band_from_config(model, cfg, records("lags"), log)
-    n_paths = int(mc_paths or cfg.predict.get("mc_paths", 1024))
-    conf = float(cfg.predict.get("confidence", 0.99))
-    method = method or cfg.predict.get("method", "mc")
-    if method not in ("mc", "linear"):
-        raise ValueError(f"method must be 'mc' or 'linear', got {method!r}")
-    method_used = method
-    todo = []
-    for role in EVAL_ROLES:
-        for rec in records(role):
-            todo.append((role, rec))
-    # a record with several roles (e.g. lags and verify) is simulated once; each further role reuses
-    # that prediction (same start rule: novelty roles start from measured outputs, see evaluate_record)
-    def run_key(role, rec):
-        return rec.name, role in ("healthy", "damaged")
-
-    done = {}
-    if runner is not None:  # the free runs as tasks on the cluster, then reported in the same order
-        done = _evaluate_remote(runner, model, todo, run_key, n_paths, conf, method, progress, log)
-    bar = _Progress(progress and runner is None, sum(r.n for _, r in {run_key(*t): t for t in todo}.values()),
-                    "free-run")
-    evals = []
-    for k, (role, rec) in enumerate(todo):
-        key = run_key(role, rec)
-        if key in done:
-            ev = {**done[key], "role": role}
-        else:
-            ev = evaluate_record(model, rec, role, n_paths, seed=k, confidence=conf, method=method,
-                                 progress=bar.callback(rec.n))
-            bar.advance(rec.n)
-            done[key] = ev
-        ev["metrics"] = basic_metrics(ev)
-        evals.append(ev)
-        log(f"  {role:8s} {rec.name}: " + ", ".join(f"{k}={v:.4g}" for k, v in ev["metrics"].items()))
-    bar.close()
-    if baselines is None:
-        fitted = fit_baselines(train_recs, model.ny, model.nu, log=log)
-        baselines = score_baselines(fitted, [rec for _, rec in todo])
-    novelty = None
-    healthy = [ev for ev in evals if ev["role"] == "healthy"]
-    if len(healthy) >= 2:
-        far = float(cfg.novelty.get("false_alarm_rate", 0.01))
-        method = cfg.novelty.get("method", RMS_METHOD)
-        scored = [ev for ev in evals if ev["role"] in ("healthy", "damaged")]
-        for ev, score in zip(scored, score_records(scored, method)):
-            ev["metrics"]["novelty_score"] = score
-        novelty = calibrate_threshold([ev["metrics"]["novelty_score"] for ev in healthy], far)
-        novelty["method"] = method
-        novelty["mc_paths"] = n_paths
-        novelty["envelope"] = record_envelope([(ev["u"], ev["y"]) for ev in healthy])
-        # the probe contract: the excitation (and start rule) the threshold holds for (model.probe)
-        novelty["probe"] = probe_contract([ev["u"] for ev in healthy], cfg.fs, start="measured")
-        for ev in scored:
-            # the records the probe contract is derived from: judged on score and envelope only
-            ev["metrics"]["verdict"] = judge(novelty, ev["metrics"]["novelty_score"], ev["u"], ev["y"], cfg.fs,
-                                             check_probe=False)["verdict"]
-    training_metrics = {
-        "fit_seconds": model.fit_seconds_, "n_train": model.n_train_, "n_rows": model.n_rows_,
-        "nlml": model.nlml_, "train_records": [r.name for r in train_recs],
-        "records": {ev["name"]: {"role": ev["role"], **{k: v for k, v in ev["metrics"].items()}} for ev in evals},
-        "mc_paths": n_paths, "method": method_used, "confidence": conf, "wall_seconds": None,
-        "baselines": baselines,
-    }
-    physics = dict(cfg.physics)
-    physics.setdefault("output", cfg.system.get("output", "displacement"))
-    with tempfile.TemporaryDirectory() as tmp:
-        report_dir = None
-        if report:
-            # the report module imports matplotlib and selects its Agg backend: imported only when a
-            # report is written, so importing the pipeline leaves a caller's plotting set-up alone
-            from gpnarx.training.report import write_report
-
-            report_dir = Path(tmp) / "report"
-            full = write_report(report_dir, f"GP-NARX {cfg.name}", {
-                "config": str(cfg.path), "ny": model.ny, "nu": model.nu, "mode": model.mode,
-                "kernel": repr(model.kernel_), "noise_var": model.noise_var_,
-                "noise_calibration": model.noise_calibration_, "n_train": model.n_train_,
-                "fit_seconds": model.fit_seconds_, "mc_paths": n_paths, "method": method_used,
-                "novelty": novelty,
-            }, evals + list(extra_evals or []), physics=physics, lag_surface=lag_surface, baselines=baselines,
-                paper=paper, runner=runner)
-            # the report's richer per-record metrics (PSD peaks, loop areas) go into the manifest too
-            rj = json.loads((report_dir / "report.json").read_text())
-            for rm in rj.get("records", []):
-                nm = rm.get("name")
-                if nm in training_metrics["records"]:
-                    training_metrics["records"][nm].update({k: v for k, v in rm.get("metrics", {}).items()
-                                                            if not isinstance(v, (list, dict)) or k.startswith("psd")})
-            del full
-        training_metrics["wall_seconds"] = time.perf_counter() - t0
-        path = save_bundle(model, registry, name or cfg.name, version, fs=cfg.fs, units=cfg.units,
-                           physics=physics, novelty=novelty, training=to_json_safe(training_metrics),
-                           attach_dir=report_dir,
-                           # the answers' default propagation (Bundle.default_method): the config's, not
-                           # a lighter report's override
-                           extra={"predict": {"method": cfg.predict.get("method", "mc"),
-                                              "mc_paths": int(cfg.predict.get("mc_paths", 1024))}})
-    log(f"bundle written to {path}")
-    return {"name": name or cfg.name, "version": path.name, "path": str(path),
-            "metrics": to_json_safe(training_metrics), "evals": evals, "model": model,
-            "novelty": to_json_safe(novelty)}

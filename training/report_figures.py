@@ -249,7 +249,7 @@ FIGURE_LOCK = threading.Lock()  # pyplot's state is per process: one figure at a
 
 def receptance_figure(runs: list[dict], path: Path, f_range=(5.0, 40.0)) -> Path:
     """The receptance FRFs of several sweeps on one log axis (the paper's Fig. 12(a)): ``runs`` as
-    ``training.frf_check.sweep_receptances`` returns them (freq [Hz], receptance [m/V], name, peak_freq)."""
+    ``studies.frf_check.sweep_receptances`` returns them (freq [Hz], receptance [m/V], name, peak_freq)."""
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     for r in runs:
         sel = (r["freq"] >= f_range[0]) & (r["freq"] <= f_range[1])

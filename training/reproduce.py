@@ -8,11 +8,12 @@
   then the bolt-loosening study on a monitoring bundle (``configs/bert-standin-monitor.toml``:
   9 Hz sine probe; novelty ROC: 5 N m healthy vs 7 and 9 N m and a partly loosened joint at 4 N m).
 * ``bert-real``: the shipped real-rig model (UNESP BERT, 5 N m) on every excitation class, scored on
-  every real record by class next to two ARX baselines (``training.real_table``).
+  every real record by class next to two ARX baselines (``studies.real_table``: needs a checkout).
 * ``bert-real-paper`` (section 4 on the real rig): train on the real 0.05 V and 0.20 V sweeps with ML-II
   rows around the resonance, lag surface on the 0.10 V sweep, verification on the three sweeps (time
   response, PSD, loops) and validation on records the protocol never saw, 4096 paths; plus the
-  receptance FRFs of the three sweeps from their LMS exports (Fig. 12(a)).
+  receptance FRFs of the three sweeps from their LMS exports (Fig. 12(a); ``studies.frf_check``: needs a
+  checkout).
 
 The lag surface uses a documented coarse grid covering the paper's range (below) and a reduced
 training-point cap per cell; the chosen lags then train the final model with the config's
@@ -30,12 +31,11 @@ from gpnarx.model.metrics import fit_percent
 from gpnarx.model.novelty import RMS_METHOD, calibrate_threshold, novelty_score, novelty_start
 from gpnarx.storage.bundle import load_bundle
 from gpnarx.storage.jsonsafe import to_json_safe
+from gpnarx.training.checkout import load_study
 from gpnarx.training.config import bert_data_dir, load_config, simulate_record
 from gpnarx.training.defaults import shipped_config
-from gpnarx.training.frf_check import markdown as frf_markdown
 from gpnarx.training.lags import edge_message, lag_surface, write_surface
 from gpnarx.training.pipeline import train
-from gpnarx.training.real_table import markdown, real_table, table_checks
 from gpnarx.training.results_pages import PAGES
 from gpnarx.training.simulators.bert_standin import BertStandin
 
@@ -114,6 +114,7 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
     summary = {
         "system": system, "quick": quick, "chosen_lags": {"ny": ch["ny"], "nu": ch["nu"], "fit": ch["fit"]},
         "paper_lags": PAPER[system]["lags"], "lag_grid_edge": surface["edge"], "mc_paths": n_paths,
+        "config_lags": {"ny": cfg.model.get("ny"), "nu": cfg.model.get("nu")},
         "bundle": res["path"],
         "records": {k: v for k, v in res["metrics"]["records"].items()},
         "baselines": res["metrics"].get("baselines"), "units": dict(cfg.units),
@@ -137,9 +138,10 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
             f"linearised and {n_paths if table_mc is None else table_mc}-path Monte Carlo (0: linearised only), next "
             f"to an ARX chosen by the same lag search and an ARX fitted on each record's class")
         table_paths = n_paths if table_mc is None else int(table_mc)
-        table = real_table(res["model"], cfg, bert_data_dir(), mc_paths=table_paths, max_seconds=max_seconds,
+        rt = load_study("real_table")
+        table = rt.real_table(res["model"], cfg, bert_data_dir(), mc_paths=table_paths, max_seconds=max_seconds,
                            jobs=jobs, lag_grid=grid, lag_criterion=LAG_CRITERION[system], log=log)
-        table["checks"] = table_checks(table)
+        table["checks"] = rt.table_checks(table)
         summary["real_table"] = table
         c = table["checks"]
         for key, m in c["methods"].items():
@@ -166,12 +168,11 @@ def _fmt_opt(v, nd=2) -> str:
 
 def receptance_study(data_dir, out: Path) -> dict:
     """Fig. 12(a) on the real rig: the receptance FRFs of the swept sines from their LMS FRF exports
-    (``training.frf_check.sweep_receptances``), drawn to OUT/receptance.png; returns each run's name,
-    RMS drive [V] and receptance peak (frequency [Hz], value [m/V])."""
-    from gpnarx.training.frf_check import sweep_receptances
+    (``studies.frf_check.sweep_receptances``, from a checkout), drawn to OUT/receptance.png; returns each run's
+    name, RMS drive [V] and receptance peak (frequency [Hz], value [m/V])."""
     from gpnarx.training.report_figures import receptance_figure
 
-    runs = sweep_receptances(data_dir)
+    runs = load_study("frf_check").sweep_receptances(data_dir)
     if runs:
         receptance_figure(runs, out / "receptance.png")
     return {"figure": "receptance.png" if runs else None,
@@ -187,7 +188,9 @@ def results_page(summary: dict, surface: dict | None = None) -> str:
 
 
 def real_page(summary: dict, surface: dict | None = None) -> str:
-    """docs/results-bert-real.md from one run's figures only (``summary.json`` and ``lag_surface.json``)."""
+    """docs/results-bert-real.md from one run's figures only (``summary.json`` and ``lag_surface.json``); its
+    tables are rendered by ``studies.real_table`` and ``studies.frf_check`` (a checkout's)."""
+    markdown, frf_markdown = load_study("real_table").markdown, load_study("frf_check").markdown
     ch = summary["chosen_lags"]
     table = summary["real_table"]
     page = (
@@ -225,7 +228,7 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
                  "per volt; the strongest noise run's, the closest in level to the sines). Its first 5 s are training "
                  "data, so this checks that the model's response "
                  "between the recorded sines is the rig's; 17-20 Hz is left out (there the response depends on the "
-                 "amplitude and the noise run's FRF is no reference). `training/frf_check.py`.\n\n"
+                 "amplitude and the noise run's FRF is no reference). `studies/frf_check.py`.\n\n"
                  + frf_markdown(table["frf_check"]))
     if surface:
         names = sorted({k for c in surface["cells"] for k in (c.get("fits") or {})})
@@ -255,9 +258,10 @@ def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=No
     t0 = time.perf_counter()
     bundle = load_bundle(summary["bundle"])
     cfg = load_config(shipped_config("bert-real"))
-    table = real_table(bundle.model, cfg, bert_data_dir(), mc_paths=int(table_mc), max_seconds=None if not
-                       summary.get("quick") else QUICK["max_seconds"], jobs=jobs, log=log)
-    table["checks"] = table_checks(table)
+    rt = load_study("real_table")
+    table = rt.real_table(bundle.model, cfg, bert_data_dir(), mc_paths=int(table_mc), max_seconds=None if not
+                          summary.get("quick") else QUICK["max_seconds"], jobs=jobs, log=log)
+    table["checks"] = rt.table_checks(table)
     table["rescored_seconds"] = time.perf_counter() - t0
     summary["real_table"] = to_json_safe(table)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))

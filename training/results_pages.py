@@ -145,6 +145,31 @@ def loops_table(summary: dict) -> str:
     return s + "\n"
 
 
+def config_lags(system: str, summary: dict) -> tuple[dict, str]:
+    """The lags the system's config sets: the run's own record of them (``config_lags``, written by gpnarx
+    reproduce) or, for a run that predates it, the shipped config's as it is now; with the words for which."""
+    if summary.get("config_lags"):
+        return summary["config_lags"], "set"
+    from gpnarx.training.config import load_config
+    from gpnarx.training.defaults import shipped_config
+
+    model = load_config(shipped_config(system)).model
+    return {"ny": model.get("ny"), "nu": model.get("nu")}, "sets (as it is now; the run predates its record of them)"
+
+
+def model_line(system: str, summary: dict) -> str:
+    """Which model the page's figures come from, and whether the shipped config trains the same lags."""
+    ch = summary["chosen_lags"]
+    lags, when = config_lags(system, summary)
+    s = (f"Model of these figures: ny={ch['ny']}, nu={ch['nu']}, the lags this run chose on its lag surface, with "
+         f"every other setting of `configs/{system}.toml`. ")
+    if (lags.get("ny"), lags.get("nu")) == (ch["ny"], ch["nu"]):
+        return s + f"The shipped `{system}` config {when.split(' ')[0]} the same lags.\n\n"
+    return s + (f"The shipped `{system}` config {when} ny={lags.get('ny')}, nu={lags.get('nu')}: the model "
+                f"`gpnarx train {system}` and the default registry build is not this page's model, and its figures "
+                "differ.\n\n")
+
+
 def _header(title: str, system: str, summary: dict) -> str:
     return (f"# {title}\n\n"
             f"Rendered from one run's own figures (`summary.json`, `lag_surface.json`), kept in `docs/runs/{system}/`; "
@@ -152,7 +177,8 @@ def _header(title: str, system: str, summary: dict) -> str:
             f"`gpnarx reproduce {system} --out RUN --docs docs/results-{system}.md`, then copy `RUN/summary.json` and "
             f"`RUN/lag_surface.json` to `docs/runs/{system}/`; `gpnarx reproduce {system} --out docs/runs/{system} "
             f"--from-run --docs docs/results-{system}.md` re-renders it without computing. The run's bundle report "
-            "(`report.html`) holds the same records with figures.\n\n" + _run_line(summary))
+            "(`report.html`) holds the same records with figures.\n\n" + _run_line(summary)
+            + model_line(system, summary))
 
 
 def bouc_wen_page(summary: dict, surface: dict | None = None) -> str:

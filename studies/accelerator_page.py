@@ -2,17 +2,17 @@
 
 The run folder holds ``run.json`` (device, code, commands), ``bench_gpu.txt`` (the RESULT lines of
 bench/bench_gpu.py), ``steps_xla.txt`` and ``steps_precision.txt`` (per-step timings of the JAX Monte
-Carlo block) and ``rows_study.json`` (training/rows_study.py). Re-render with
-``python -m gpnarx.training.accelerator_page docs/runs/accelerator docs/results-accelerator.md``.
+Carlo block) and ``rows_study.json`` (studies/rows_study.py). Re-render with
+``python -m studies.accelerator_page docs/runs/accelerator docs/results-accelerator.md``.
 """
 from __future__ import annotations
 
 import json
 import re
-import sys
 from pathlib import Path
 
-from .results_pages import pct, sig
+from gpnarx.training.results_pages import pct, sig
+from studies.cli_runner import page_main
 
 
 def _result_lines(text: str) -> list[dict]:
@@ -43,7 +43,7 @@ def render(run_dir) -> str:
     prec = _steps((run_dir / "steps_precision.txt").read_text())
     rows = json.loads((run_dir / "rows_study.json").read_text())
     out = ["# Results: the JAX backend on a GPU\n",
-           "Rendered by `python -m gpnarx.training.accelerator_page docs/runs/accelerator docs/results-accelerator.md` "
+           "Rendered by `python -m studies.accelerator_page docs/runs/accelerator docs/results-accelerator.md` "
            "from the stored run in `docs/runs/accelerator/` (its `run.json` holds the commands). How to install and "
            "select the backend: [accelerator.md](accelerator.md).\n",
            f"Device: {meta['device']}; JAX {meta['jax']}; code {meta['code']}; model: {meta['bundle']}.\n",
@@ -84,7 +84,7 @@ def render(run_dir) -> str:
                        "1024 paths take half the time of 4096, not a quarter: the step is bound by the latency of "
                        "its kernels, not by arithmetic, so float32 (which the real rig's variance cannot afford, "
                        "`model/freerun_jax.py`) buys nothing and float64 stays the default.\n")
-    out += ["## Do more training rows improve the real rig's free run? (`training/rows_study.py`)\n",
+    out += ["## Do more training rows improve the real rig's free run? (`studies/rows_study.py`)\n",
             "The shipped `bert-real` settings in exact mode at N training rows (the config's stride selection, "
             "ML-II and the solves on the GPU, the config's noise calibration), the linearised free run of every "
             "held-out record, whole and from rest; fit (eq. 14, %). `fit s`: ML-II, solves and calibration on "
@@ -117,12 +117,7 @@ def render(run_dir) -> str:
 
 
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 2:
-        print("usage: python -m gpnarx.training.accelerator_page RUN_DIR OUT.md", file=sys.stderr)
-        return 2
-    Path(argv[1]).write_text(render(argv[0]))
-    return 0
+    return page_main(render, "studies.accelerator_page", argv)
 
 
 if __name__ == "__main__":

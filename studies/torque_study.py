@@ -1,7 +1,7 @@
 """Energy per cycle against the residual score as bolt-loosening indicators on the BERT stand-in
 (a study script; stand-in numbers, never the rig's).
 
-    python -m gpnarx.training.torque_study --registry R [--model bert-standin-monitor]
+    python -m studies.torque_study --registry R [--model bert-standin-monitor]
         [--torques 4,5,7,9] [--records 20] [--mc 256] [--out FILE.json]
 
 For each torque T [N m] and each of ``--records`` stand-in realizations (``gpnarx simulate
@@ -26,7 +26,6 @@ value leaves [1st, 99th] of the fitted healthy distribution (each tail at 0.5 %)
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import tempfile
@@ -37,7 +36,7 @@ import numpy as np
 from gpnarx.model.cycles import cycles
 from gpnarx.model.novelty import calibrate_threshold, method_of, novelty_score, novelty_start
 from gpnarx.storage.registry import Registry
-from gpnarx.training.cli_runner import run_cli
+from studies.cli_runner import emit, run_cli
 
 
 def _simulate(torque: float, seed: int, out: Path) -> Path:
@@ -122,7 +121,7 @@ def study(registry, model: str = "bert-standin-monitor", torques=(4.0, 5.0, 7.0,
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m gpnarx.training.torque_study", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m studies.torque_study", description=__doc__.splitlines()[0])
     p.add_argument("--registry", required=True)
     p.add_argument("--model", default="bert-standin-monitor")
     p.add_argument("--torques", default="4,5,7,9")
@@ -132,11 +131,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     torques = tuple(float(t) for t in a.torques.split(","))
     res = study(a.registry, a.model, torques, a.records, a.mc, log=lambda m: print(m, file=sys.stderr, flush=True))
-    text = json.dumps(res, indent=1)
-    if a.out:
-        Path(a.out).write_text(text + "\n")
-    print(json.dumps({k: v for k, v in res.items() if k != "records"}, indent=1))
-    return 0
+    return emit(res, a.out, shown={k: v for k, v in res.items() if k != "records"})
 
 
 if __name__ == "__main__":  # pragma: no cover

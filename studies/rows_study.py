@@ -8,7 +8,7 @@ records, then the linearised free run of every 'validate' record, whole and from
 e.g. the shipped sparse one loaded from its bundle) is scored the same way. The free-run band here is
 eq. 8-9's alone (no discrepancy term), so the coverages compare the posteriors themselves.
 
-    python -m gpnarx.training.rows_study CONFIG --sizes 1500,6000,16000 --out DIR [--reference BUNDLE]
+    python -m studies.rows_study CONFIG --sizes 1500,6000,16000 --out DIR [--reference BUNDLE]
         [--fit-backend jax] [--sim-backend jax]
 
 Writes DIR/rows_study.json after every size (a run cut short keeps what it measured).
@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import load_config
-from .prepare import model_from_config
-from .split_study import score  # a record's linearised run: fit, coverage, sharpness
+from gpnarx.training.config import load_config
+from gpnarx.training.prepare import model_from_config
+from studies.split_study import score  # a record's linearised run: fit, coverage, sharpness
 
 
 def run_rows_study(config, sizes, out: Path, reference=None, fit_backend: str = "jax",

@@ -2,13 +2,13 @@
 
 ``bert-real`` trained in exact mode (``gpnarx train bert-real --mode exact --name bert-real-exact``: the full GP
 on the config's 1,500 ML-II rows instead of the shipped sparse posterior) and scored by the same every-record
-class table as docs/results-bert-real.md (``training.real_table``, linearised whole records, the same ARX lag
+class table as docs/results-bert-real.md (``studies.real_table``, linearised whole records, the same ARX lag
 search), next to the shipped model's figures from its stored run.
 
-    python -m gpnarx.training.exact_study run BUNDLE_DIR docs/runs/bert-real-exact
-    python -m gpnarx.training.exact_study render docs/runs/bert-real-exact docs/results-bert-real-exact.md
+    python -m studies.exact_study run BUNDLE_DIR docs/runs/bert-real-exact
+    python -m studies.exact_study render docs/runs/bert-real-exact docs/results-bert-real-exact.md
 
-When the run folder also holds ``split_study.json`` (``training.split_study``: how much of the noise run to
+When the run folder also holds ``split_study.json`` (``studies.split_study``: how much of the noise run to
 train on, exact against sparse), the page adds its table.
 """
 from __future__ import annotations
@@ -18,16 +18,16 @@ import sys
 import time
 from pathlib import Path
 
-from .real_table import markdown
+from studies.real_table import markdown
 
 ARX_GRID = ([8, 16, 24, 32], [10, 20, 30])  # the shipped run's lag surface (docs/runs/bert-real)
 
 
 def run(bundle_dir, out_dir, log=print) -> dict:
-    from ..model.bundle import load_bundle
-    from .config import bert_data_dir, load_config
-    from .defaults import shipped_config
-    from .real_table import real_table, table_checks
+    from gpnarx.model.bundle import load_bundle
+    from gpnarx.training.config import bert_data_dir, load_config
+    from gpnarx.training.defaults import shipped_config
+    from studies.real_table import real_table, table_checks
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -52,7 +52,7 @@ def render(summary: dict, shipped: dict, split: dict | None = None) -> str:
     table, checks = summary["real_table"], summary["checks"]
     mine, theirs = _heldout_fits(table), _heldout_fits(shipped["real_table"])
     lines = ["# Results: the exact real-rig model on every real record\n",
-             "Rendered by `python -m gpnarx.training.exact_study render docs/runs/bert-real-exact "
+             "Rendered by `python -m studies.exact_study render docs/runs/bert-real-exact "
              "docs/results-bert-real-exact.md` from the stored run (`run` writes it). The model: "
              f"`{summary['command']}` ({summary['mode']} posterior on {summary['n_train']} rows; everything else is "
              "the shipped `bert-real` config). The table is the one of [results-bert-real.md](results-bert-real.md), "
@@ -71,7 +71,7 @@ def render(summary: dict, shipped: dict, split: dict | None = None) -> str:
 
 def _split_section(split: dict, table: dict) -> str:
     """The split study: the noise run's split between training and 'lags', exact against sparse."""
-    from .split_study import markdown as split_markdown
+    from studies.split_study import markdown as split_markdown
 
     arx = {}
     for name, r in table["records"].items():
@@ -84,7 +84,7 @@ def _split_section(split: dict, table: dict) -> str:
     return "\n".join([
         "## How much of the noise run to train on, exact against sparse\n",
         "The 0.25 V noise run's drive stops at about 8 s; the shipped config trains on its first 5 s and keeps "
-        "the rest among its 'lags' records. `python -m gpnarx.training.split_study` moves that split and "
+        "the rest among its 'lags' records. `python -m studies.split_study` moves that split and "
         "trains each cell on the accelerator backend "
         f"({split.get('device', split['fit_backend'])}), then runs every 'lags' and held-out record "
         "linearised and whole. Each held-out cell is fit % (coverage of eq. 8-9's band alone, no discrepancy "

@@ -8,7 +8,7 @@ linearised free run of every 'lags' record (the choice is made by the worst of t
 record (reported, never used to choose): fit (eq. 14, %), the coverage of eq. 8-9's band (no discrepancy
 term) and its mean half-width over the record's standard deviation.
 
-    python -m gpnarx.training.split_study CONFIG --out DIR [--plan 7:exact:1500:0,7:sparse:1500:256]
+    python -m studies.split_study CONFIG --out DIR [--plan 7:exact:1500:0,7:sparse:1500:256]
         [--fit-backend jax] [--sim-backend jax]
 
 Writes DIR/split_study.json after every cell (a run cut short keeps what it measured).
@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.metrics import fit_percent
-from .config import load_config
-from .prepare import model_from_config
+from gpnarx.model.metrics import fit_percent
+from gpnarx.training.config import load_config
+from gpnarx.training.prepare import model_from_config
 
 SHIPPED_SPLIT = 5.0  # s: the shipped config's noise-run split (train 0-5 s, 'lags' 5-16 s)
 DEFAULT_PLAN = "5:sparse:1500:512,7:exact:1500:0,7:sparse:1500:256,7:exact:3000:0,11:exact:1500:0,11:sparse:1500:256"

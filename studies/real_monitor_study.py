@@ -1,7 +1,7 @@
 """A real-rig novelty monitor with an honest split: calibrated on some recordings, its false alarms
 measured on other recordings it never saw (a study script).
 
-    python -m gpnarx.training.real_monitor_study --registry R [--model bert-real] [--data DIR]
+    python -m studies.real_monitor_study --registry R [--model bert-real] [--data DIR]
         [--mc 256] [--window 2] [--out FILE.json]
 
 The real BERT subset holds one 64 s steady-sine recording per drive frequency, all at 5 N m (no
@@ -26,7 +26,6 @@ quoted with its split and its counts.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -34,9 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from gpnarx.storage.record_files import read_record
-from gpnarx.training.cli_runner import run_cli
 from gpnarx.training.config import bert_data_dir
 from gpnarx.training.real_monitor import CALIBRATION, OFF_PROBE, TEST
+from studies.cli_runner import emit, run_cli
 
 
 def _cli(argv: list[str]) -> dict:
@@ -92,7 +91,7 @@ def study(registry, model: str = "bert-real", data=None, mc: int = 256, width: f
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m gpnarx.training.real_monitor_study",
+    p = argparse.ArgumentParser(prog="python -m studies.real_monitor_study",
                                 description=__doc__.splitlines()[0])
     p.add_argument("--registry", required=True)
     p.add_argument("--model", default="bert-real")
@@ -103,11 +102,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None)
     a = p.parse_args(argv)
     res = study(a.registry, a.model, a.data, a.mc, a.window, a.far)
-    text = json.dumps(res, indent=1)
-    if a.out:
-        Path(a.out).write_text(text + "\n")
-    print(text)
-    return 0
+    return emit(res, a.out)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,6 +1,6 @@
 """Per-cycle energy on an independent Bouc-Wen sine, next to the simulator's own (a study script).
 
-    python -m gpnarx.training.cycle_study --registry R [--model bouc-wen] [--amplitude 50]
+    python -m studies.cycle_study --registry R [--model bouc-wen] [--amplitude 50]
         [--freq 35.59] [--mc 1024] [--start measured|rest] [--method mc|linear] [--out FILE.json]
 
 1. writes the record with the product's command, ``gpnarx simulate bouc-wen --excitation sine
@@ -19,7 +19,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -27,9 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from gpnarx.model.cycles import energy_weights, secant_stiffness
-from gpnarx.training.cli_runner import run_cli
 from gpnarx.training.simulation_specs import DEFAULTS, padded_sine, sine_padding
 from gpnarx.training.simulators.boucwen import BoucWen
+from studies.cli_runner import emit, run_cli
 
 
 def _cli(argv: list[str]) -> dict:
@@ -100,7 +99,7 @@ def study(registry, model: str = "bouc-wen", amplitude: float = 50.0, freq: floa
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m gpnarx.training.cycle_study", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m studies.cycle_study", description=__doc__.splitlines()[0])
     p.add_argument("--registry", required=True)
     p.add_argument("--model", default="bouc-wen")
     p.add_argument("--amplitude", type=float, default=50.0)
@@ -112,11 +111,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="also write the JSON here")
     a = p.parse_args(argv)
     res = study(a.registry, a.model, a.amplitude, a.freq, a.mc, a.seed, a.start, a.method)
-    text = json.dumps(res, indent=1)
-    if a.out:
-        Path(a.out).write_text(text + "\n")
-    print(text)
-    return 0
+    return emit(res, a.out)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -22,7 +22,7 @@ out of every choice, ``unseen`` when the config does not name it):
   errors on the record (2.576 x its RMS error): a band wider than a linear model's honest one tells a
   monitor little;
 * between the recorded frequencies, the model's steady sine response against the rig's own FRF
-  (``training.frf_check``), when a noise run's LMS ``FRF.mat`` is in the data folder.
+  (``studies.frf_check``), when a noise run's LMS ``FRF.mat`` is in the data folder.
 
 Units: u [V], y [m/s], times [s]. The numbers come from the run that writes them.
 """
@@ -39,7 +39,7 @@ from gpnarx.model.probe import drive_of
 from gpnarx.model.record import Record
 from gpnarx.storage.record_files import read_record
 from gpnarx.training.baselines import LinearARX, arx_lag_search
-from gpnarx.training.frf_check import RESONANCE_BAND, frf_check
+from studies.frf_check import RESONANCE_BAND, frf_check
 
 CLASSES = ("sine near resonance", "sine away from resonance", "sweep", "noise")
 CLASS_ARX_LAGS = (16, 16)  # the class ARX's order (ny, nu): the order a user fits a noise run with first

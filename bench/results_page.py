@@ -1,0 +1,178 @@
+"""docs/benchmarks.md from the stored RESULT lines of the bench scripts (docs/runs/bench/*.txt and the GPU run in
+docs/runs/accelerator/bench_gpu.txt): every figure on the page is a field of a stored line, so the page cannot
+drift from its runs (tests/test_results_pages.py re-renders it).
+
+A run file holds RESULT lines as a bench script prints them; a ``# run: TEXT`` line says what the file's
+runs are (machine, load, settings) and a ``# `` line right before a RESULT line names its command.
+
+Usage (from the repository root): ``python bench/results_page.py [docs/benchmarks.md]``; to publish a new
+run, put its RESULT lines (with their ``#`` command line) in a file under docs/runs/bench/ and re-render.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RUNS = ROOT / "docs" / "runs"
+# the stored run files, in page order: (path under docs/runs, heading, command of lines that name none)
+SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
+           ("bench/full.txt", "Full-size runs", None),
+           ("accelerator/bench_gpu.txt", "GPU run (results: [results-accelerator.md](results-accelerator.md))",
+            "bench/bench_gpu.py (commands: docs/runs/accelerator/run.json)"))
+# fields shown in their own columns; the rest of each line is listed after the table
+COLUMNS = ("ratio", "baseline", "baseline_what", "user_ratio", "user_baseline")
+
+METHOD = """\
+# Benchmarks
+
+Rendered by `python bench/results_page.py` from the stored RESULT lines in `docs/runs/bench/` (and the GPU run in
+`docs/runs/accelerator/bench_gpu.txt`); do not edit by hand: `tests/test_results_pages.py` re-renders the page
+and fails when it differs. The history of earlier runs (before/after tables, commit hashes, load) is in
+[CHANGELOG.md](../CHANGELOG.md#history-of-published-figures).
+
+## Method
+
+Regenerate a figure with `python bench/<script>.py` from the repository root (each script's options:
+`--help`). Each script prints one line that starts with `RESULT ` followed by `key=value` pairs: the
+product's figure, the baseline's (`baseline=`, said in words by `baseline_what=`) and `ratio=`. `--quick` is
+what the test suite runs (`tests/test_bench_smoke.py` checks that every line has `ratio=`, `baseline=` and
+`baseline_what=`). `--threads N` limits BLAS to N threads for both sides.
+
+**`ratio=` compares equal work**: the same model size (training rows or inducing points), precision,
+BLAS thread count and process tuning on both sides; repetitions interleaved (A, B, A, B, ...) so that load
+from other processes hits both; the median of the per-repetition ratios. Where scikit-learn has no
+equivalent (sparse GP, linearised propagation, service overhead), the baseline is the product's own previous
+or alternative code path or a plain numpy/scipy implementation of the same equations, and `baseline_what=`
+says which. A comparison with what a user would otherwise run (scikit-learn exact at the protocol's size,
+library defaults) is not equal work: it is reported in separate fields, `user_ratio...=`, labelled by
+`user_baseline=`. The in-process benches whose baseline evaluates eqs. 8-9 at every path (`bench_freerun`,
+`bench_modes`, `bench_scaling`, `bench_memory`, `bench_bert_scale`) pass `local=False` to `simulate_mc` /
+`GPNARX.simulate`, so their `ratio=` compares the same algorithm; `bench_mc_speed.py` compares the default
+(the checked local model) with the previous code path, and `bench_predict_e2e.py` times the `gpnarx predict`
+process against a process evaluating every path, so its ratio includes that change of algorithm.
+
+"""
+
+
+# what each script compares: (script, product, equal-work baseline of ratio=)
+METHOD_ROWS = (
+    ('`bench_freerun.py`',
+     'exact Monte Carlo free run (`simulate_mc`)',
+     'scikit-learn `GaussianProcessRegressor.predict(return_std=True)` loop, same rows, kernel, hyperparameters '
+     'and seed'),
+    ('`bench_modes.py`',
+     'exact, sparse and linearised free runs',
+     'exact: scikit-learn at the same size; sparse: `_common.NumpySparse`, numpy/scipy on the same posterior; '
+     "linearised: the product's own Monte Carlo on the same model"),
+    ('`bench_fit.py`',
+     'ML-II',
+     "one NLML + gradient evaluation against scikit-learn's `log_marginal_likelihood(eval_gradient=True)` at the "
+     'same size; `fit_ratio_plain=`: whole fits with the same L-BFGS-B settings and start'),
+    ('`bench_scaling.py`',
+     'log-log slopes of fit, step, paths and record length',
+     'scikit-learn `predict` per step at the largest size, same block'),
+    ('`bench_memory.py`',
+     'peak memory of a Monte Carlo free run',
+     'scikit-learn loop, same size and paths'),
+    ('`bench_bert_scale.py`',
+     "the BERT stand-in run at the paper's scale, sparse",
+     '`NumpySparse` on the same posterior, same first steps'),
+    ('`bench_predict_e2e.py`',
+     '`gpnarx predict` as a process (tuned: one BLAS thread, malloc threshold)',
+     'a process doing the same job on the same bundle with the same tuning (`NumpySparse`)'),
+    ('`bench_gpu.py`',
+     'Monte Carlo free run on the JAX backend',
+     'the numpy backend on the same bundle, paths and seed, on the CPU cores beside it'),
+    ('`bench_linear_band.py`',
+     'linearised 99 % band',
+     "the product's Monte Carlo band on the same model; ratio of mean widths (accuracy)"),
+    ('`bench_sparse_accuracy.py`',
+     'sparse, all rows, linearised',
+     "the product's exact posterior on fewer rows, same hyperparameters; ratio of the lowest coverages (accuracy)"),
+    ('`bench_sparse_variance.py`',
+     'factored sparse variance \\|G k\\|^2',
+     'single-matrix k^T A k on the same posterior; ratio of times (lower is better)'),
+    ('`bench_service.py`',
+     'predict over loopback HTTP',
+     'the same prediction in-process, same tuning, alternating'),
+    ('`bench_wire.py`',
+     'a predict call with an NPZ body and answer',
+     'the same call with JSON (and gzip) bodies, interleaved; ratio = JSON / NPZ wire time'),
+    ('`bench_load.py`',
+     'concurrent clients against `gpnarx serve`',
+     'one sequential client, same calls, same server, alternating'),
+    ('`bench_mc_speed.py`',
+     'Monte Carlo free run with the checked local model',
+     '`freerun_reference.simulate_mc_reference` (eqs. 8-9 at every path), same posterior, paths and seed, interleaved'),
+    ('`bench_realtime.py`',
+     'the whole `gpnarx predict --method linear` process: real-time factor',
+     'the same process with the reference linearised loop, alternating'),
+    ('`bench_stream.py`',
+     'a record predicted in chunks with state tokens',
+     'the same record whole'),
+    ('`bench_first_start.py`',
+     '`gpnarx serve` on an empty registry',
+     'the previous start path (build, then serve)'),
+)
+
+
+def parse(text: str) -> tuple[str | None, list[tuple[str | None, dict]]]:
+    """A run file: its ``# run:`` description and its RESULT lines as (command, {key: value})."""
+    about, rows, command = None, [], None
+    for line in text.splitlines():
+        if line.startswith("# run:"):
+            about = line[len("# run:"):].strip()
+        elif line.startswith("# "):
+            command = line[2:].strip()
+        elif line.startswith("RESULT "):
+            rows.append((command, dict(tok.split("=", 1) for tok in line[len("RESULT "):].split() if "=" in tok)))
+            command = None
+    return about, rows
+
+
+def _cell(v) -> str:
+    """A field as the table prints it: a number as it is, a label in code font, '-' where the line has none."""
+    if v is None:
+        return "-"
+    try:
+        float(v)
+        return v
+    except ValueError:
+        return f"`{v}`"
+
+
+def section(path: Path, heading: str, default_command: str | None = None) -> str:
+    about, rows = parse(path.read_text())
+    rel = path.relative_to(RUNS.parent.parent).as_posix()
+    out = [f"## {heading}\n", f"Stored run: `{rel}`." + (f" {about}" if about else "") + "\n"]
+    out.append("| command | " + " | ".join(f"`{c}=`" for c in COLUMNS) + " |")
+    out.append("|---|" + "---|" * len(COLUMNS))
+    for command, kv in rows:
+        out.append(f"| `{command or default_command}` | " + " | ".join(_cell(kv.get(c)) for c in COLUMNS) + " |")
+    out.append("\nThe other fields of each line:\n")
+    for command, kv in rows:
+        rest = " ".join(f"{k}={v}" for k, v in kv.items() if k not in COLUMNS)
+        out.append(f"- `{command or default_command}`: `{rest}`")
+    return "\n".join(out) + "\n"
+
+
+def render(runs: Path = RUNS) -> str:
+    table = "\n".join(["| script | product | `ratio=`: equal-work baseline |", "|---|---|---|"]
+                      + [f"| {s} | {p} | {b} |" for s, p, b in METHOD_ROWS])
+    parts = [METHOD + table + "\n"]
+    for rel, heading, command in SOURCES:
+        if (runs / rel).is_file():
+            parts.append(section(runs / rel, heading, command))
+    return "\n".join(parts)
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    out = Path(argv[0]) if argv else ROOT / "docs" / "benchmarks.md"
+    out.write_text(render())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,258 @@
+"""docs/results-monitoring.md from the stored runs of three studies (docs/runs/monitoring/): the per-cycle
+energy of ``studies.cycle_study`` (``cycles-*.json``), the torque study of ``studies.torque_study``
+(``torque.json``) and the real-rig false-alarm study of ``studies.real_monitor_study`` (``real_monitor.json``),
+with the facts of the bundles they ran on (``bundles.json``, from the bundles' manifests). Every figure on the
+page is a value of those files or computed from them here, so the page cannot drift from its runs
+(tests/test_results_pages.py re-renders it).
+
+    python -m studies.monitoring_page docs/runs/monitoring docs/results-monitoring.md
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from studies.cli_runner import page_main
+
+# the cycle study's stored runs: (file, label)
+CYCLE_RUNS = (("cycles-mc-measured.json", "Monte Carlo, start `measured`"),
+              ("cycles-mc-rest.json", "Monte Carlo, start `rest`"),
+              ("cycles-linear-measured.json", "linearised, start `measured`"))
+
+
+def _load(run_dir: Path, name: str):
+    p = run_dir / name
+    return json.loads(p.read_text()) if p.is_file() else None
+
+
+def _g(v, digits: int = 4) -> str:
+    return "n/a" if v is None else f"{float(v):.{digits}g}"
+
+
+def _pct(v, digits: int = 1) -> str:
+    return "n/a" if v is None else f"{float(v):.{digits}f}"
+
+
+def _n(v) -> str:
+    """A large number with thin grouping (132 914)."""
+    return f"{round(float(v)):,}".replace(",", " ")
+
+
+def _bundle_line(bundles: dict, ref: str, record: str | None = None) -> str:
+    b = (bundles or {}).get(ref)
+    if not b:
+        return ""
+    s = (f"The bundle, `{ref}`, is the one `gpnarx train {b['name']}` writes: ny = {b['lags']['ny']}, "
+         f"nu = {b['lags']['nu']}, {b['mode']}" + (f" M = {b['n_inducing']}" if b.get("n_inducing") else "")
+         + f", {b['n_train']} training rows")
+    if record and (b.get("fits") or {}).get(record) is not None:
+        s += f"; fit {_pct(b['fits'][record])} % on its `{record}` record"
+    return s + ".\n\n"
+
+
+def cycles_section(run_dir: Path, bundles: dict) -> str:
+    runs = [(label, _load(run_dir, f)) for f, label in CYCLE_RUNS]
+    runs = [(label, r) for label, r in runs if r]
+    if not runs:
+        return ""
+    first = runs[0][1]
+    sim = first["simulate"]
+    out = ("## Per-cycle energy on an independent Bouc-Wen sine\n\n```bash\ngpnarx train bouc-wen --registry R\n"
+           f"gpnarx reproduce cycle-study -- --registry R --model bouc-wen --amplitude {sim['amplitude']:g} "
+           f"--mc {first['mc_paths']} \\\n    [--start measured|rest] [--method mc|linear] --out RUN.json\n```\n\n"
+           f"The study writes the record with `gpnarx simulate bouc-wen --excitation sine --amplitude "
+           f"{sim['amplitude']:g}` ({sim['freq']:g} Hz, {sim['n'] / sim['fs']:g} s, steady, noise fraction "
+           f"{sim['noise_fraction']:g}), asks `gpnarx loops` for the per-cycle energies ({first['mc_paths']} paths, "
+           f"{_pct(100 * first['confidence'], 0)} % intervals), and integrates the same input again with the "
+           "simulator (`training/simulators/boucwen.py`) for its own loop: the true restoring force R = c v + k y "
+           "+ z against the true displacement, over the answer's cycles. "
+           + _bundle_line(bundles, first["model"], f"sine-{sim['amplitude']:g}N"))
+    out += ("| run | cycles (steady / whole) | intervals covering the measured energy | ... the simulator's own | "
+            "predicted mean energy | simulator's own | median half-width of the interval |\n"
+            "|---|---|---|---|---|---|---|\n")
+    for label, r in runs:
+        whole, skip = r["cycle_basis"]["n_cycles"], r["cycle_basis"].get("steady_from", 0)
+        n = r["n_cycles"]
+        steady = f"{n} / {whole}" + (f" ({skip} start-up cycles left out)" if skip else "")
+        cov_m = round(r["coverage_measured"] * n / 100)
+        cov_s = round(r["coverage_simulator"] * n / 100)
+        out += (f"| {label} | {steady} | {cov_m} ({_pct(r['coverage_measured'], 0)} %) | {cov_s} "
+                f"({_pct(r['coverage_simulator'], 0)} %) | {_g(r['energy_mean'])} J | "
+                f"{_g(r['simulator_energy_mean'])} J | {_pct(100 * r['interval_halfwidth_rel_median'])} % |\n")
+    cyc = first["cycles"]
+    picks = sorted({0, 1, len(cyc) // 2, len(cyc) - 1} & set(range(len(cyc))))
+    out += (f"\nSelected cycles ({runs[0][0]}; energies in J, stiffness in N/m):\n\n"
+            "| cycle | start-end [s] | energy [interval] | measured | simulator's own | drive work | secant stiffness "
+            "(path interval) | measured | simulator's own |\n|---|---|---|---|---|---|---|---|---|\n")
+    for i in picks:
+        c = cyc[i]
+        stiff = _n(c["stiffness"]) + (f" ({_n(c['stiffness_lower'])}-{_n(c['stiffness_upper'])})" if i == 0 else "")
+        out += (f"| {i} | {c['start']:.4f}-{c['end']:.4f} | {_g(c['energy'])} [{_g(c['energy_lower'])}, "
+                f"{_g(c['energy_upper'])}] | {_g(c['measured_energy'])} | {_g(c['simulator_energy'])} | "
+                f"{_g(c['drive_work'])} | {stiff} | {_n(c['measured_stiffness'])} | "
+                f"{_n(c['simulator_stiffness']) if i == 0 else ''} |\n")
+    rel = 100 * (first["energy_mean"] / first["simulator_energy_mean"] - 1)
+    stiff_rel = 100 * (first["stiffness_mean"] / first["simulator_stiffness_mean"] - 1)
+    out += (f"\n- The predicted energy per cycle is {_pct(abs(rel))} % {'below' if rel < 0 else 'above'} the "
+            f"simulator's own ({_g(first['energy_mean'])} against {_g(first['simulator_energy_mean'])} J); the "
+            f"simulator's energy lies inside {_pct(first['coverage_simulator'], 0)} % of the cycles' intervals, "
+            f"whose median half-width, {_pct(100 * first['interval_halfwidth_rel_median'])} %, is the spread of the "
+            "Monte Carlo paths' loops. The energy measured from the record's y (the product's `measured_energy`) "
+            f"agrees with the simulator's own loop area to {_g(first['max_rel_measured_vs_simulator'], 2)} "
+            "(relative, worst cycle).\n")
+    for label, r in runs[1:]:
+        if r["cycle_basis"].get("steady_from"):
+            out += (f"- {label}: the first {r['cycle_basis']['steady_from']} cycles' drive work still includes "
+                    "the kinetic energy being built up, so they are left out of `cycles` (`steady_from`).\n")
+        if r["method"] == "linear":
+            ratio = r["interval_halfwidth_rel_median"] / first["interval_halfwidth_rel_median"]
+            out += (f"- {label}: the intervals (energy linear in the output, variance from the output covariance "
+                    "the linearised free run propagates over a cycle) have "
+                    f"{_pct(100 * ratio, 0)} % of the Monte Carlo ones' median width.\n")
+    c0 = cyc[0]
+    out += (f"- The secant stiffness of the mean loop is {_pct(abs(stiff_rel))} % "
+            f"{'below' if stiff_rel < 0 else 'above'} the simulator's ({_n(first['stiffness_mean'])} against "
+            f"{_n(first['simulator_stiffness_mean'])} N/m on average); its interval across paths is wide (cycle 0: "
+            f"{_n(c0['stiffness_lower'])}-{_n(c0['stiffness_upper'])} N/m), because R = g u - m x'' holds the "
+            "second derivative of each path's noise. The energy is the indicator to trend; the stiffness interval "
+            "says how little one path's stiffness means.\n\n")
+    return out
+
+
+def _no_run(title: str, study: str, file: str) -> str:
+    """A section whose study has no stored run: its name, how to run it, and where its earlier figures went."""
+    return (f"## {title}\n\nNo stored run: `gpnarx reproduce {study} -- --help` runs the study; store its `--out` "
+            f"JSON as `docs/runs/monitoring/{file}` and re-render this page. The figures published here before came "
+            "from no stored run; they are history, in [CHANGELOG.md](../CHANGELOG.md#history-of-published-figures)."
+            "\n\n")
+
+
+def torque_section(t: dict | None, bundles: dict) -> str:
+    if not t:
+        return _no_run("Energy per cycle against the residual score: torque on the stand-in", "torque-study",
+                       "torque.json")
+    torques = list(t["per_torque"])
+    healthy = f"{t['healthy_torque']:g}"
+    out = ("## Energy per cycle against the residual score: torque on the stand-in\n\n```bash\n"
+           f"gpnarx train {t['model'].split(':')[0]} --registry R\n"
+           f"gpnarx reproduce torque-study -- --registry R --model {t['model'].split(':')[0]} "
+           f"--torques {','.join(torques)} --records {t['n_records']} --mc {t['mc_paths']} --out torque.json\n```\n\n"
+           f"These are stand-in numbers, never the rig's. The records are {t['n_records']} stand-in realizations "
+           "per tightening torque, driven by the monitor's probe (seeds not used by the monitor). Each gets one "
+           f"{t['mc_paths']}-path free run of the monitor from its measured outputs. "
+           + _bundle_line(bundles, t["model"])
+           + "Three indicators are compared: the novelty score; the median measured energy per steady cycle; the "
+           f"median ratio of measured to predicted energy per cycle. Each indicator's "
+           f"{_pct(100 * t['false_alarm_rate_target'], 0)} % threshold is fitted on "
+           f"{len(t['thresholds']['calibrated_on_seeds'])} of the {healthy} N m records; the false-alarm rate is "
+           f"counted on the other {len(t['thresholds']['false_alarms_on_seeds'])}, and the detection rate on all "
+           "records of each other torque. The energy indicators are two-sided.\n\n"
+           "| torque [N m] | records | flagged by the score | by the energy | by the energy ratio | score (median) "
+           "| energy per cycle, mean +/- sd [J] | energy ratio (median) | measured energy inside the predicted "
+           "interval (median % of cycles) |\n|---|---|---|---|---|---|---|---|---|\n")
+    for k in torques:
+        r = t["per_torque"][k]
+        label = f"{k} (healthy, held-out half)" if k == healthy else k
+        out += (f"| {label} | {r['n']} | {_pct(r['flagged_score'], 0)} % | {_pct(r['flagged_energy'], 0)} % | "
+                f"{_pct(r['flagged_energy_ratio'], 0)} % | {_g(r['score_median'], 3)} | {_g(r['energy_mean'], 3)} "
+                f"+/- {_g(r['energy_sd'], 2)} | {_g(r['energy_ratio_median'], 3)} | "
+                f"{_pct(r['energy_coverage_median'], 0)} |\n")
+    h = t["per_torque"][healthy]
+    others = [k for k in torques if k != healthy]
+    lo, hi = min(torques, key=float), max(torques, key=float)
+    out += (f"\n- Energy per cycle, {lo} N m to {hi} N m: {_g(t['per_torque'][lo]['energy_mean'], 3)} J to "
+            f"{_g(t['per_torque'][hi]['energy_mean'], 3)} J (the stand-in models loosening as lower torque: more "
+            "slip).\n"
+            f"- Realization scatter of the energy at {healthy} N m: {_pct(100 * h['energy_sd'] / h['energy_mean'])} % "
+            "of its mean; the shift to each other torque: "
+            + ", ".join(f"{k} N m {_pct(100 * (t['per_torque'][k]['energy_mean'] / h['energy_mean'] - 1))} %"
+                        for k in others) + ".\n"
+            f"- Held-out healthy records flagged: score {_pct(h['flagged_score'], 0)} %, energy "
+            f"{_pct(h['flagged_energy'], 0)} %, energy ratio {_pct(h['flagged_energy_ratio'], 0)} % (target "
+            f"{_pct(100 * t['false_alarm_rate_target'], 0)} %, on {h['n']} records: too few to place a tail).\n"
+            "- The score says that something changed; the energy, a physical quantity, says which way the joint "
+            "changed (loosening raises the dissipation, tightening lowers it).\n\n")
+    return out
+
+
+def real_monitor_section(m: dict | None, bundles: dict) -> str:
+    if not m:
+        return _no_run("A real-rig monitor: false alarms on recordings it never saw", "real-monitor-study",
+                       "real_monitor.json")
+    n, fa = m["n_test"], m["false_alarms"]
+    # one-sided 95 % upper bound of a rate with fa events in n trials (exact for fa = 0)
+    bound = 1 - 0.05 ** (1 / n) if fa == 0 and n else None
+    split = m["split"]
+
+    def spans(d):
+        return ", ".join(f"{k} {v[0]:g}-{v[1]:g} s" for k, v in d.items())
+
+    cal_scores = m["calibration_scores"]
+    test = [w for w in m["windows"] if any(w["window"].startswith(k) for k in split["test"])]
+    off = [w for w in m["windows"] if any(w["window"].startswith(k) for k in split["off_probe"])]
+    tscores = sorted(w["score"] for w in test)
+    probe = m.get("probe") or {}
+    out = ("## A real-rig monitor: false alarms on recordings it never saw\n\n```bash\n"
+           "gpnarx train bert-real --registry R        # the shipped real-rig model (configs/bert-real.toml)\n"
+           f"gpnarx reproduce real-monitor-study -- --registry R --model bert-real --mc {m['mc_paths']} "
+           f"--window {m['window_s']:g} --out real_monitor.json\n```\n\n"
+           "The default registry holds this monitor as `bert-real-monitor` (built after `bert-real` when the lab "
+           "records are present): the same GP, calibrated on the same windows by the same code "
+           "(`training/real_monitor.py`, which both the default build and the study use). The real BERT subset "
+           "holds one steady-sine recording per drive frequency, all at the same torque, so on the rig only the "
+           "false-alarm rate can be measured. The study recalibrates the model with `gpnarx calibrate` (no refit; "
+           f"the spike-robust `segment_median_rms` score, {m['mc_paths']} paths, free runs from the measured "
+           "outputs) and scores windows the calibration never saw with `gpnarx novelty`. "
+           + _bundle_line(bundles, f"bert-real:{m['source_version']}")
+           + "| split | recordings | windows | scores | verdicts |\n|---|---|---|---|---|\n"
+           f"| calibration | {spans(split['calibration'])} | {m['n_calibration']} | {_g(min(cal_scores), 2)}-"
+           f"{_g(max(cal_scores), 2)} | threshold {_g(m['threshold'], 3)} at a "
+           f"{_pct(100 * m['false_alarm_rate_target'], 0)} % target |\n"
+           f"| false alarms | {spans(split['test'])} | {n} | {_g(tscores[0], 2)}-{_g(tscores[-1], 2)} (median "
+           f"{_g(tscores[len(tscores) // 2], 2)}) | **{fa} novel of {n} ({_pct(100 * fa / n, 0)} %)**, "
+           f"{m['test_probe_match']} with `probe_match` true |\n"
+           f"| off the probe | {spans(split['off_probe'])} | {m['n_off_probe']} | "
+           f"{_g(min(w['score'] for w in off), 2)}-{_g(max(w['score'] for w in off), 2)} | "
+           f"{m['off_probe_flagged']} of {m['n_off_probe']} flagged `\"probe\"` in `out_of_range` |\n\n")
+    if probe:
+        out += f"- **Probe contract it states:** `{json.dumps(probe, sort_keys=True)}`.\n"
+    if bound is not None:
+        out += (f"- **Confidence of the rate:** 0 of {n} is a false-alarm rate of at most {_pct(100 * bound)} % at "
+                f"95 % confidence (one-sided, {n} trials): the split is too small to confirm a "
+                f"{_pct(100 * m['false_alarm_rate_target'], 0)} % target, and windows of one recording are not "
+                "independent realizations (same mounting, same day).\n")
+    out += "- **Detection:** how well it detects loosening on the rig cannot be measured with these records.\n"
+    return out
+
+
+def render(run_dir) -> str:
+    run_dir = Path(run_dir)
+    bundles = _load(run_dir, "bundles.json") or {}
+    return ("# Monitoring indicators: per-cycle energy, probe contract, recalibration\n\n"
+            "Rendered by `python -m studies.monitoring_page docs/runs/monitoring docs/results-monitoring.md` from "
+            "the stored runs in `docs/runs/monitoring/` (the studies' JSON and `bundles.json`, the facts of the "
+            "bundles they ran on); do not edit by hand (a test re-renders this page). Each section names the "
+            "command that regenerates its run. Definitions: [per-cycle loops](api.md#per-cycle-loops), [probe "
+            "contract](api.md#probe-contract), [gpnarx calibrate](cli.md#calibrate).\n\n"
+            + cycles_section(run_dir, bundles) + torque_section(_load(run_dir, "torque.json"), bundles)
+            + real_monitor_section(_load(run_dir, "real_monitor.json"), bundles))
+
+
+def bundle_facts(bundle_dir) -> dict:
+    """What the page says of a bundle, from its manifest: {"NAME:VERSION": lags, mode, rows, fits, ...}."""
+    m = json.loads((Path(bundle_dir) / "manifest.json").read_text())
+    est = m.get("estimator") or {}
+    return {f"{m['name']}:{m['version']}": {
+        "name": m["name"], "version": m["version"], "created": m.get("created"), "lags": m["lags"],
+        "mode": m["mode"], "n_inducing": est.get("n_inducing") if m["mode"] == "sparse" else None,
+        "n_train": m["n_train"], "nlml": m.get("nlml"),
+        "fits": {k: v.get("fit") for k, v in m["training"]["records"].items()}}}
+
+
+def main(argv=None) -> int:
+    return page_main(render, "studies.monitoring_page", argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
