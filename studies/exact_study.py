@@ -24,7 +24,7 @@ ARX_GRID = ([8, 16, 24, 32], [10, 20, 30])  # the shipped run's lag surface (doc
 
 
 def run(bundle_dir, out_dir, log=print) -> dict:
-    from gpnarx.model.bundle import load_bundle
+    from gpnarx.storage.bundle import load_bundle
     from gpnarx.training.config import bert_data_dir, load_config
     from gpnarx.training.defaults import shipped_config
     from studies.real_table import real_table, table_checks

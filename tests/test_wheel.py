@@ -145,3 +145,18 @@ def test_train_takes_a_shipped_config_by_name_from_any_folder(tmp_path, monkeypa
     assert resolve_config("my.toml") == Path("my.toml")  # a path is left to the config reader
     with pytest.raises(CLIError, match="shipped: .*bouc-wen"):
         resolve_config("no-such-config")
+
+
+def test_wheel_ships_storage_apart_from_the_method(wheel):
+    """gpnarx.storage holds the files and objects (bundles, registry, fsspec, atomic writes, record files);
+    gpnarx.model ships the method only, and gpnarx.runtime (process tuning) sits at the package root."""
+    names = set(zipfile.ZipFile(wheel).namelist())
+    assert "storage" not in {n.split("/")[0] for n in names}
+    for mod in ("__init__", "bundle", "registry", "remote", "atomicio", "record_formats", "record_formats_lab",
+                "record_files", "jsonsafe"):
+        assert f"gpnarx/storage/{mod}.py" in names, mod
+    assert "gpnarx/runtime.py" in names and "gpnarx/model/record.py" in names
+    in_model = {Path(n).stem for n in names if n.startswith("gpnarx/model/") and n.endswith(".py")}
+    storage_modules = {"bundle", "registry", "storage", "remote", "atomicio", "record_formats", "record_formats_lab",
+                       "records", "record_files", "jsonsafe", "runtime"}
+    assert not in_model & storage_modules, sorted(in_model & storage_modules)
