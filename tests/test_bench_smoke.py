@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py",
            "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
            "bench_sparse_accuracy.py", "bench_sparse_variance.py", "bench_mc_speed.py", "bench_realtime.py",
-           "bench_gpu.py", "bench_wire.py", "bench_stream.py"]
+           "bench_gpu.py", "bench_gpu_steps.py", "bench_wire.py", "bench_stream.py"]
 # fields of some RESULT lines that must be finite positive numbers (besides ratio and baseline)
 FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_extrapolated", "user_ratio"),
           "bench_predict_e2e.py": ("wall_s", "baseline_wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s",
@@ -28,6 +28,7 @@ FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_e
           "bench_mc_speed.py": ("path_steps_per_s", "max_edge_diff_se"),
           "bench_realtime.py": ("rt_factor", "rt_factor_cpu", "wall_s", "cpu_s"),
           "bench_gpu.py": ("pss", "realtime", "pss_segment", "band_median_se", "numpy_seeds_band_median_se"),
+          "bench_gpu_steps.py": ("product_us", "split_us_p64", "joint_us_p64", "product_us_p64"),
           "bench_wire.py": ("json_bytes", "gzip_bytes", "npz_bytes", "json_ms", "gzip_ms", "npz_ms"),
           "bench_stream.py": ("linear_token_bytes", "mc_token_bytes", "mc_token_ms", "ratio")}
 # the baselines' numerics agree with the product's (same model on both sides of ratio=)
