@@ -10,8 +10,7 @@ import sys
 
 import numpy as np
 
-from gpnarx.cli.errors import CLIError, UsageError
-from gpnarx.model.envelope import assess
+from gpnarx.cli.errors import CLIError, UsageError, operation_error
 from gpnarx.storage.atomicio import atomic_file
 
 
@@ -222,7 +221,7 @@ def run_predict(args):
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
     try:
         out = predict_answer(bundle, rec, mc=mc, seed=args.seed, confidence=args.confidence, method=args.method,
-                             start=args.start, progress=cb, backend=args.backend)
+                             start=args.start, progress=cb, backend=args.backend, record=args.record)
     finally:
         if bar is not None:
             bar.close()
@@ -233,32 +232,48 @@ def run_predict(args):
     return out
 
 
+def operate(operation: str, bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0.99,
+            method: str | None = None, start: str | None = None, progress=None, backend: str | None = None,
+            record: str | None = None):
+    """``model.operations`` on a record (``model.operations.Answer``), its refusals as CLI errors
+    (``cli.errors.operation_error``; ``record``: the record's name in their messages)."""
+    from gpnarx.model import operations
+    from gpnarx.model.backend import default_backend
+
+    req = operations.Request(u=rec.u, fs=rec.fs, y=rec.y, mc_paths=mc, seed=seed, confidence=confidence,
+                             method=method, backend=backend, start=start)
+    try:
+        plan = operations.plan(operation, req, bundle, operations.Limits(backend=default_backend()))
+        return operations.compute(plan, req, progress=progress)
+    except operations.OperationError as exc:
+        raise operation_error(exc, record) from None
+
+
+#: the members of ``gpnarx predict --json``, in order (``model.operations``' predict answer, ``n`` its n_samples)
+PREDICT_FIELDS = ("model", "version", "n", "start", "mc_paths", "method", "backend", "confidence", "seconds",
+                  "diverged_paths", "out_of_range", "mean", "lower", "upper", "std")
+#: the members of ``gpnarx novelty --json``, in order (a subset of the HTTP novelty answer)
+NOVELTY_FIELDS = ("model", "version", "score", "nlpd", "threshold", "verdict", "false_alarm_rate", "out_of_range",
+                  "diverged_paths", "start", "score_method", "probe_match", "probe_reasons", "drive")
+#: the members of ``gpnarx loops --json`` before its loops, in order
+LOOPS_FIELDS = ("model", "version", "n", "start", "mc_paths", "method", "confidence", "diverged_paths",
+                "out_of_range", "physics", "units")
+
+
 def predict_answer(bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0.99, method: str = "mc",
-                   start: str = "rest", progress=None, backend: str | None = None) -> dict:
+                   start: str = "rest", progress=None, backend: str | None = None, record: str | None = None) -> dict:
     """The answer of ``gpnarx predict --json`` for one record (``_run``: the free run itself, for --out).
 
-    ``bundle``: anything with ``name``, ``version``, ``model`` and ``manifest`` (a loaded Bundle, or the
-    light copy ``gpnarx predict-many`` sends to Dask workers).
+    ``bundle``: anything with ``name``, ``version``, ``fs``, ``model`` and ``manifest`` (a loaded Bundle, or
+    the light copy ``gpnarx predict-many`` sends to Dask workers).
     """
-    from gpnarx.model.metrics import summary
-
-    y0 = None
-    if start == "measured":  # the novelty rule's start, so novelty_score below matches gpnarx novelty
-        from gpnarx.model.novelty import novelty_start
-
-        y0 = None if rec.y is None else novelty_start(rec.y, bundle.model.ny)
-        if y0 is None:
-            raise CLIError(f"--start measured needs the record's measured output y, longer than ny={bundle.model.ny} "
-                           "samples")
-    run = bundle.model.simulate(rec.u, n_paths=mc, seed=seed, confidence=confidence, method=method,
-                                progress=progress, y0=y0, backend=backend)
-    out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "start": start, "mc_paths": run.n_paths,
-           "method": run.method, "backend": run.backend, "confidence": run.confidence, "seconds": run.seconds,
-           **assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y),
-           "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std}
-    if rec.y is not None:
-        m = summary(rec.y, run.mean, run.lower, run.upper)
-        out.update({"fit": m["fit"], "rmse": m["rmse"], "coverage": m["coverage"], "band_width": m["band_width"]})
+    a = operate("predict", bundle, rec, mc=mc, seed=seed, confidence=confidence, method=method, start=start,
+                progress=progress, backend=backend, record=record)
+    run = a.run
+    body = {**a.body, "n": a.body["n_samples"], "seconds": run.seconds}
+    out = {k: body[k] for k in PREDICT_FIELDS}
+    if a.metrics is not None:
+        out.update({k: body[k] for k in ("fit", "rmse", "coverage")}, band_width=a.metrics["band_width"])
         if start == "measured":
             from gpnarx.model.novelty import method_of, novelty_score
 
@@ -283,69 +298,32 @@ def _write_prediction(path, rec, run):
 
 
 def run_novelty(args):
-    from gpnarx.model.novelty import assess_novelty, novelty_start
-
     bundle, rec, mc = load(args)
-    if rec.y is None:
-        raise CLIError(f"{args.record}: novelty needs the measured output y")
-    nov = bundle.manifest.get("novelty")
-    if not nov:
-        raise CLIError(f"model {bundle.name}:{bundle.version} has no novelty calibration "
-                       "(train it with 'healthy' records; "
-                       "the default bert-standin-monitor bundle has one)")
     args.method = args.method or bundle.default_method("novelty")
-    run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, method=args.method,
-                                y0=novelty_start(rec.y, bundle.model.ny), backend=args.backend)
-    flags = assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y)
-    a = assess_novelty(nov, rec.u, rec.y, rec.fs, run, start="measured", flags=flags)
-    return {"model": bundle.name, "version": bundle.version, "score": a["score"], "nlpd": a["nlpd"],
-            "threshold": a["threshold"], "verdict": a["verdict"], "false_alarm_rate": a["false_alarm_rate"],
-            "out_of_range": a["out_of_range"], "diverged_paths": flags["diverged_paths"], "start": "measured",
-            "score_method": a["score_method"], **{k: a[k] for k in ("probe_match", "probe_reasons", "drive")}}
+    a = operate("novelty", bundle, rec, mc=mc, seed=args.seed, method=args.method, backend=args.backend,
+                record=args.record)
+    return {k: a.body[k] for k in NOVELTY_FIELDS}
 
 
 def run_loops(args):
     """Loops of the predicted mean (and band edges, and the measured record), and per-cycle energy and
-    stiffness with intervals across the Monte Carlo paths (``model.cycles``): the HTTP loops answer."""
-    from gpnarx.model.cycles import cov_window_for, cycles
-    from gpnarx.model.novelty import novelty_start
-    from gpnarx.model.restoring import loop_area, loop_units, restoring_force
-
+    stiffness with intervals across the Monte Carlo paths (``model.cycles``): the HTTP loops answer, each
+    loop's x and force arrays only with ``--arrays``."""
     bundle, rec, mc = load(args)
-    phys = dict(bundle.manifest.get("physics") or {})
-    try:
-        mass = float(phys["mass"])
-    except (KeyError, TypeError, ValueError):
-        raise CLIError(f"model {bundle.name}:{bundle.version} has no physical constants (mass) for the restoring "
-                       "force; loops are not available for it") from None
-    phys.update(mass=mass, input_gain=float(phys.get("input_gain", 1.0)), output=phys.get("output", "displacement"))
     args.method = args.method or bundle.default_method("loops")
-    y0 = None
-    if args.start == "measured":
-        y0 = None if rec.y is None else novelty_start(rec.y, bundle.model.ny)
-        if y0 is None:
-            raise CLIError(f"--start measured needs the record's measured output y, longer than ny={bundle.model.ny} "
-                           "samples")
-    extra = {"keep_paths": True} if args.method == "mc" else {"cov_window": cov_window_for(rec.u, rec.fs,
-                                                                                           bundle.model.ny)}
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
-    run = bundle.model.simulate(rec.u, n_paths=mc, seed=args.seed, confidence=args.confidence, method=args.method,
-                                progress=cb, y0=y0, backend=args.backend, **extra)
-    if bar is not None:
-        bar.close()
-    kw = dict(fs=rec.fs, mass=phys["mass"], input_gain=phys["input_gain"], output=phys["output"])
-    out = {"model": bundle.name, "version": bundle.version, "n": rec.n, "start": args.start,
-           "mc_paths": run.n_paths, "method": run.method, "confidence": run.confidence,
-           **assess(getattr(bundle.model, "envelope_", None), run, rec.u, rec.y),
-           "physics": phys, "units": loop_units(bundle.manifest.get("units"), phys)}
-    loops = {"predicted": run.mean, "lower": run.lower, "upper": run.upper}
-    if rec.y is not None:
-        loops["measured"] = rec.y
-    for key, y in loops.items():
-        x, r = restoring_force(rec.u, y, **kw)
-        out[key] = {"area": loop_area(x, r), **({"x": x, "force": r} if args.arrays else {})}
-    cyc = cycles(rec.u, rec.fs, phys, run.mean, paths=run.paths, cov_band=run.cov_band, y=rec.y,
-                 confidence=run.confidence)
-    out["cycle_basis"] = {k: cyc[k] for k in ("basis", "frequency", "n_cycles", "steady_from")}
-    out["cycles"] = cyc["cycles"]
+    try:
+        a = operate("loops", bundle, rec, mc=mc, seed=args.seed, confidence=args.confidence, method=args.method,
+                    start=args.start, progress=cb, backend=args.backend, record=args.record)
+    finally:
+        if bar is not None:
+            bar.close()
+    body = {**a.body, "n": a.body["n_samples"]}
+    out = {k: body[k] for k in LOOPS_FIELDS}
+    for key in ("predicted", "lower", "upper", "measured"):
+        if key in body:
+            loop = body[key]
+            out[key] = {"area": loop["area"], **({"x": loop["x"], "force": loop["force"]} if args.arrays else {})}
+    out["cycle_basis"] = body["cycle_basis"]
+    out["cycles"] = body["cycles"]
     return out

@@ -69,6 +69,7 @@ class ModelCopy:
     version: str
     model: object
     manifest: dict
+    fs: float  # [Hz]
 
 
 def predict_record(bundle: ModelCopy, rec, options: dict) -> dict:
@@ -183,7 +184,7 @@ def _run(args, runner, mc: int) -> dict:
 
         bar = progress_bar(total=len(args.records), desc="predict-many", unit="record")
     t0 = time.perf_counter()
-    shared = runner.share(ModelCopy(bundle.name, bundle.version, bundle.model, bundle.manifest))
+    shared = runner.share(ModelCopy(bundle.name, bundle.version, bundle.model, bundle.manifest, bundle.fs))
 
     def calls():
         for path in args.records:

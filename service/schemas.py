@@ -320,6 +320,8 @@ class NoveltyResponse(_Knowledge):
                                               "(null if the calibration does not say).")
     nlpd: float = Field(..., description="Mean negative log predictive density.")
     n_samples: int = Field(..., description="Samples that entered the score.")
+    confidence: float = Field(..., description="Band level of the free run the score was computed from (the "
+                              "request's `confidence`).")
     mc_paths: int
     method: Literal["mc", "linear"]
     backend: Literal["numpy", "jax"] = Field("numpy", description="The array backend that ran the free run.")

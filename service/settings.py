@@ -1,7 +1,8 @@
 """Service settings and request bounds.
 
 ``Settings`` is a pydantic-settings model: each field is read from the environment variable
-``GPNARX_<FIELD>`` by ``Settings.from_env`` (``Settings(...)`` alone reads no environment), and its
+``GPNARX_<FIELD>`` by pydantic-settings' environment source (arguments win; ``Settings.from_env(environ)``
+reads a given mapping instead, ``{}`` for the defaults alone), and its
 metadata (description, what exceeding it answers) is the one list of the service's bounds: the
 OpenAPI description (``DEFAULT_BOUNDS``) and the table in docs/api.md are generated from it. The
 defaults are what the committed OpenAPI document describes.
@@ -56,7 +57,8 @@ from typing import Any, Literal
 
 from pydantic import Field, ValidationError, model_validator
 from pydantic.fields import FieldInfo
-from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
+from pydantic_settings.sources.utils import parse_env_vars
 
 from gpnarx.runtime import DEFAULT_BLAS_THREADS, DEFAULT_MMAP_THRESHOLD, env_int
 
@@ -86,48 +88,47 @@ _SHARE = "a number from 0 to 1"
 _BOOL = "true or false"
 _TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
-#: the mapping ``Settings.from_env`` reads (None: ``Settings(...)`` reads no environment)
+#: the mapping ``Settings.from_env`` was given (None: ``os.environ``)
 _ENVIRON: ContextVar[Any] = ContextVar("gpnarx_settings_environ", default=None)
 
 
-class _EnvironSource(PydanticBaseSettingsSource):
-    """``GPNARX_<FIELD>`` variables of the mapping ``from_env`` was given, parsed to the field's type."""
+def _parse_env(var: str, kind: str | None, raw: str) -> Any:
+    """The value of variable ``var`` for a field of ``kind`` (text as it is); ``ValueError`` naming the variable."""
+    if kind is None:  # text: api_key, registry, the Literal choices (the field checks them)
+        return raw
+    if kind == _BOOL:
+        if raw.strip().lower() not in _TRUE + _FALSE:
+            raise ValueError(f"environment variable {var} must be {kind}, got {raw!r}")
+        return raw.strip().lower() in _TRUE
+    if kind in (_SECONDS, _SHARE):
+        try:
+            return float(raw)
+        except ValueError:
+            raise ValueError(f"environment variable {var} must be {kind}, got {raw!r}") from None
+    return env_int(var, None, {var: raw}, minimum=None)  # the package's integer parser; the field checks the range
 
-    def get_field_value(self, field: FieldInfo, field_name: str) -> tuple[Any, str, bool]:  # pragma: no cover
-        raise NotImplementedError  # __call__ reads every field at once
 
-    def __call__(self) -> dict[str, Any]:
+class _EnvSource(EnvSettingsSource):
+    """pydantic-settings' environment source (``GPNARX_<FIELD>``, ``model_config``'s prefix; a blank value is
+    unset) over ``os.environ``, or the mapping ``Settings.from_env`` was given; each value is parsed to its
+    field's kind, so a strict field takes ``"7"`` as 7 and a bad value names its variable."""
+
+    def _load_env_vars(self):
         env = _ENVIRON.get()
-        if env is None:
-            return {}
-        out: dict[str, Any] = {}
-        for name, field in self.settings_cls.model_fields.items():
-            var = env_var(name)
-            raw = env.get(var)
-            if name == "sighup_reload" or raw is None or raw == "":
-                continue
-            kind = (field.json_schema_extra or {}).get("kind")
-            if kind is None:  # text: api_key, registry
-                out[name] = raw
-            elif kind == _BOOL:
-                if raw.strip().lower() not in _TRUE + _FALSE:
-                    raise ValueError(f"environment variable {var} must be {kind}, got {raw!r}")
-                out[name] = raw.strip().lower() in _TRUE
-            elif kind in (_SECONDS, _SHARE):
-                try:
-                    out[name] = float(raw)
-                except ValueError:
-                    raise ValueError(f"environment variable {var} must be {kind}, got {raw!r}") from None
-            else:  # the package's one integer-variable parser; the range is the field's to check
-                out[name] = env_int(var, None, env, minimum=None)
-        return out
+        return parse_env_vars(os.environ if env is None else env, self.case_sensitive, self.env_ignore_empty,
+                              self.env_parse_none_str)
+
+    def prepare_field_value(self, field_name: str, field: FieldInfo, value: Any, value_is_complex: bool) -> Any:
+        if value is None or field_name not in ENV:  # sighup_reload is no environment setting
+            return None
+        return _parse_env(env_var(field_name), (field.json_schema_extra or {}).get("kind"), value)
 
 
 class Settings(BaseSettings):
     """Runtime configuration of the HTTP service (``settings_table()`` lists it)."""
 
-    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, frozen=True, strict=True, extra="forbid",
-                                      validate_default=True)
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, env_ignore_empty=True, frozen=True, strict=True,
+                                      extra="forbid", validate_default=True)
 
     max_samples: int = _setting(65536, ge=1, kind=_POSITIVE, bound=True, label="samples per record",
                                 exceeded="413, field `u` (or `y`)")
@@ -226,6 +227,8 @@ class Settings(BaseSettings):
     def __init__(self, **values: Any):
         try:
             super().__init__(**values)
+        except SettingsError as exc:  # a bad environment value: its variable and what it must be
+            raise ValueError(str(exc.__cause__ or exc)) from None
         except ValidationError as exc:  # one plain message naming the setting
             err = exc.errors()[0]
             name = str(err["loc"][0]) if err.get("loc") else ""
@@ -240,7 +243,7 @@ class Settings(BaseSettings):
     @classmethod
     def settings_customise_sources(cls, settings_cls, init_settings, env_settings, dotenv_settings,
                                    file_secret_settings):
-        return (init_settings, _EnvironSource(settings_cls))  # arguments win over the environment
+        return (init_settings, _EnvSource(settings_cls))  # arguments win over the environment; no .env, no secrets
 
     @model_validator(mode="before")
     @classmethod
@@ -260,8 +263,8 @@ class Settings(BaseSettings):
 
     @classmethod
     def from_env(cls, environ=None, **overrides) -> Settings:
-        """Settings from ``GPNARX_*`` environment variables (``environ``, default ``os.environ``);
-        ``overrides`` that are not None win."""
+        """Settings from the ``GPNARX_*`` variables of ``environ`` (default ``os.environ``, as ``Settings()``
+        reads; ``{}``: the defaults alone); ``overrides`` that are not None win."""
         token = _ENVIRON.set(os.environ if environ is None else environ)
         try:
             return cls(**{k: v for k, v in overrides.items() if v is not None})

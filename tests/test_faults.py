@@ -305,7 +305,7 @@ def test_request_cut_at_shutdown_is_a_503_problem_with_retry_after(monkeypatch):
             time.sleep(0.05)
             if token is not None and token.cancelled:
                 break
-        return {"model": plan.bundle.name, "version": plan.bundle.version}, 0
+        return ops.Answer({"model": plan.bundle.name, "version": plan.bundle.version}, 0, None)
 
     monkeypatch.setattr(ops, "compute", slow)
     app = create_app(built_registry().root, _settings(retry_after=4))

@@ -191,7 +191,7 @@ def test_queued_request_past_time_limit_is_503(monkeypatch):
         time.sleep(2.0)
         if token is not None:
             token.check()
-        return {"model": plan.bundle.name, "version": plan.bundle.version}, 0
+        return ops.Answer({"model": plan.bundle.name, "version": plan.bundle.version}, 0, None)
 
     monkeypatch.setattr(ops, "compute", stubborn)
     app = create_app(built_registry().root, Settings(workers=1, queue_size=4, request_timeout=0.5, retry_after=7))

@@ -28,14 +28,20 @@ def test_every_setting_has_its_variable_and_the_bounds_are_the_defaults():
                               "max_mc_work": 2**24, "max_body_bytes": 32 * 1024 * 1024}
 
 
-def test_settings_read_no_environment_unless_from_env(monkeypatch):
+def test_settings_read_the_environment_through_pydantic_settings(monkeypatch):
     monkeypatch.setenv("GPNARX_MAX_BATCH", "7")
     monkeypatch.setenv("GPNARX_REGISTRY_POLL", "0.5")
-    assert Settings().max_batch == 64
-    s = Settings.from_env()
-    assert s.max_batch == 7 and s.registry_poll == 0.5
-    assert Settings.from_env(max_batch=9).max_batch == 9  # arguments win
+    monkeypatch.setenv("GPNARX_MAX_SAMPLES", "")  # blank: unset
+    monkeypatch.setenv("GPNARX_SIGHUP_RELOAD", "true")  # no environment setting
+    s = Settings()
+    assert s.max_batch == 7 and s.registry_poll == 0.5 and s.max_samples == 65536 and s.sighup_reload is False
+    assert Settings.from_env().max_batch == 7
+    assert Settings(max_batch=9).max_batch == 9 and Settings.from_env(max_batch=9).max_batch == 9  # arguments win
     assert Settings.from_env(max_batch=None).max_batch == 7  # None: not given
+    assert Settings.from_env({}).max_batch == 64  # a given mapping instead of os.environ
+    monkeypatch.setenv("GPNARX_MAX_BATCH", "seven")
+    with pytest.raises(ValueError, match="environment variable GPNARX_MAX_BATCH must be an integer"):
+        Settings()
 
 
 @pytest.mark.parametrize("kw, match", [({"workers": 0}, "workers must be a positive integer"),

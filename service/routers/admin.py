@@ -3,10 +3,10 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 
+from ..answers import answer
 from ..deps import RECORD_PROBLEMS, V1, StateDep
-from ..responses import JSONBytesResponse
 from ..schemas import ReloadResponse
 
 router = APIRouter(prefix="/v1", tags=["admin"], dependencies=V1)
@@ -17,7 +17,7 @@ router = APIRouter(prefix="/v1", tags=["admin"], dependencies=V1)
                      "versions is held unless accept_removal",
              responses={401: {"description": RECORD_PROBLEMS[401]},
                         409: {"description": "No registry folder configured"}})
-async def reload(state: StateDep, accept_removal: Annotated[bool, Query(
+async def reload(request: Request, state: StateDep, accept_removal: Annotated[bool, Query(
         description="Serve the scan even if it drops every version or more than GPNARX_REGISTRY_DROP_SHARE of "
                     "them (a deliberate removal); otherwise such a scan is held (`held`)")] = False):
-    return JSONBytesResponse(await state.reload(accept_removal=accept_removal))
+    return answer(request, await state.reload(accept_removal=accept_removal))

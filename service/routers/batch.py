@@ -9,9 +9,10 @@ from fastapi import APIRouter, Request
 from pydantic import ValidationError
 
 from .. import ops
+from ..answers import answer
 from ..deps import RECORD_PROBLEMS, V1, StateDep
 from ..problems import ProblemError, validation_problem
-from ..responses import JSONBytesResponse, parse_json
+from ..responses import parse_json
 from ..schemas import BatchItem, BatchResponse
 from ..worker import Cancelled, CancelToken
 
@@ -27,11 +28,22 @@ router = APIRouter(prefix="/v1", tags=["predict"], dependencies=V1)
              openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
                  "schema": {"$ref": "#/components/schemas/BatchRequest"}}}}})
 async def batch(request: Request, state: StateDep):
-    settings = state.settings
-    ctype = request.headers.get("content-type", "")
+    items = read_items(await request.body(), request.headers.get("content-type", ""), state.settings.max_batch)
+    results, todo = await plan_items(state, items)
+    if todo:
+        token = CancelToken()
+        done, steps = await state.run(run_items, state, request, todo, token, request=request, token=token,
+                                      work=sum(plan.work for _, plan, _ in todo))
+        state.metrics.path_steps.inc(steps)
+        for i, out in done:
+            results[i] = out
+    return answer(request, {"results": results})
+
+
+def read_items(raw: bytes, ctype: str, max_batch: int) -> list:
+    """The records of a batch body (each still unvalidated); a ProblemError for the body as a whole."""
     if ctype and "json" not in ctype.split(";")[0].lower():
         raise ProblemError(415, f"the body must be application/json, got {ctype[:100]!r}", "body")
-    raw = await request.body()
     try:
         data = parse_json(raw)
     except ValueError as exc:
@@ -46,12 +58,18 @@ async def batch(request: Request, state: StateDep):
         raise ProblemError(422, "requests must be a list of records", "requests")
     if len(items) == 0:
         raise ProblemError(422, "requests must hold at least one record", "requests")
-    if len(items) > settings.max_batch:
-        raise ProblemError(413, f"requests holds {len(items)} records; the limit is {settings.max_batch} per "
-                                f"batch", "requests", limit=settings.max_batch)
+    if len(items) > max_batch:
+        raise ProblemError(413, f"requests holds {len(items)} records; the limit is {max_batch} per batch",
+                           "requests", limit=max_batch)
+    return items
+
+
+async def plan_items(state, items: list) -> tuple[list, list]:
+    """(results with each refused record's problem in its slot, [(slot, plan, request)] to compute); the
+    records share one Monte Carlo work budget."""
     results: list = [None] * len(items)
     todo = []
-    budget = settings.max_mc_work
+    budget = state.settings.max_mc_work
     for i, item in enumerate(items):
         prefix = f"requests.{i}"
         try:
@@ -61,7 +79,7 @@ async def batch(request: Request, state: StateDep):
             continue
         try:
             bundle = await state.alookup(req.model, req.version)
-            plan = ops.plan(req.operation, req, bundle, settings, budget=budget)
+            plan = ops.plan(req.operation, req, bundle, state.settings, budget=budget)
         except ProblemError as exc:
             if exc.field in ("name", "version"):
                 exc.field = "model" if exc.field == "name" else "version"
@@ -69,34 +87,28 @@ async def batch(request: Request, state: StateDep):
             continue
         budget -= plan.work if plan.method == "mc" else 0
         todo.append((i, plan, req))
+    return results, todo
 
-    def run_all(token):
-        done, steps = [], 0
-        for i, plan, req in todo:
-            token.check()  # deadline passed or client gone: stop between records
-            try:
-                t0 = time.perf_counter()
-                out, s = ops.compute(plan, req, token)
-                steps += s
-                done.append((i, out))
-                state.metrics.answered(plan.operation, out)
-                state.telemetry.answered(request, plan.operation, out, req, time.perf_counter() - t0, slot=i)
-            except Cancelled:
-                raise
-            except ProblemError as exc:
-                done.append((i, exc.to_dict(f"requests.{i}")))
-            except Exception:  # one bad record never loses the others
-                incident = uuid.uuid4().hex[:12]
-                log.exception("batch record %d failed (incident %s)", i, incident)
-                done.append((i, ProblemError(500, f"internal error on this record (incident {incident})",
-                                             incident=incident).to_dict(f"requests.{i}")))
-        return done, steps
 
-    if todo:
-        token = CancelToken()
-        done, steps = await state.run(run_all, token, request=request, token=token,
-                                      work=sum(plan.work for _, plan, _ in todo))
-        state.metrics.path_steps.inc(steps)
-        for i, out in done:
-            results[i] = out
-    return JSONBytesResponse({"results": results})
+def run_items(state, request, todo: list, token) -> tuple[list, int]:
+    """Compute the planned records in order on a worker: ([(slot, answer or problem)], path-steps)."""
+    done, steps = [], 0
+    for i, plan, req in todo:
+        token.check()  # deadline passed or client gone: stop between records
+        try:
+            t0 = time.perf_counter()
+            out = ops.compute(plan, req, token)
+            steps += out.path_steps
+            done.append((i, out.body))
+            state.metrics.answered(plan.operation, out.body)
+            state.telemetry.answered(request, plan.operation, out.body, req, time.perf_counter() - t0, slot=i)
+        except Cancelled:
+            raise
+        except ProblemError as exc:
+            done.append((i, exc.to_dict(f"requests.{i}")))
+        except Exception:  # one bad record never loses the others
+            incident = uuid.uuid4().hex[:12]
+            log.exception("batch record %d failed (incident %s)", i, incident)
+            done.append((i, ProblemError(500, f"internal error on this record (incident {incident})",
+                                         incident=incident).to_dict(f"requests.{i}")))
+    return done, steps

@@ -1,27 +1,27 @@
 """Liveness, readiness and Prometheus metrics: open even when an API key is set."""
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 from starlette.responses import Response
 
+from ..answers import answer
 from ..deps import StateDep
 from ..problems import ProblemError
-from ..responses import JSONBytesResponse
 from ..schemas import Live, Ready
 
 router = APIRouter(tags=["health"])
 
 
 @router.get("/health/live", response_model=Live, operation_id="health_live", summary="Liveness: the process answers")
-async def health_live():
-    return JSONBytesResponse({"status": "alive"})
+async def health_live(request: Request):
+    return answer(request, {"status": "alive"})
 
 
 @router.get("/health/ready", response_model=Ready, operation_id="health_ready",
             summary="Readiness: at least one bundle is loaded (lists refused bundles and start-up builds)",
             responses={503: {"description": "No bundle loaded (refused bundles listed in `refused`, bundles "
                                             "still being built at start-up in `startup`)"}})
-async def health_ready(state: StateDep):
+async def health_ready(request: Request, state: StateDep):
     n = state.n_bundles()
     startup = state.startup()
     extra = {} if startup is None else {"startup": startup}
@@ -35,7 +35,7 @@ async def health_ready(state: StateDep):
             f"; building {', '.join(building)} (see `startup`)" if building else "") + (
             f"; the registry could not be read: {state.registry_error}" if state.registry_error else ""),
             bundles=0, refused=state.refused(), headers={"Retry-After": str(state.settings.retry_after)}, **extra)
-    return JSONBytesResponse({"status": "ready", "bundles": n, "models": state.models(),
+    return answer(request, {"status": "ready", "bundles": n, "models": state.models(),
                               "refused": state.refused(), **extra})
 
 

@@ -3,8 +3,9 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request
 
+from ..answers import answer, checked
 from ..deps import RECORD_PROBLEMS, V1, NameP, StateDep, VersionP
-from ..responses import JSONBytesResponse, conditional, render_json
+from ..responses import conditional, render_json
 from ..schemas import ModelDetail, ModelList
 from ..state import ServiceState
 from ..wire import REVALIDATE
@@ -40,16 +41,16 @@ def detail_of(state: ServiceState, b) -> dict:
 
 @router.get("/models", response_model=ModelList, operation_id="list_models", summary="List the loaded models",
             responses={401: {"description": RECORD_PROBLEMS[401]}})
-async def list_models(state: StateDep):
+async def list_models(request: Request, state: StateDep):
     reg = state.registry
-    return JSONBytesResponse({"models": [summary_of(reg, n) for n in reg.names()]})
+    return answer(request, {"models": [summary_of(reg, n) for n in reg.names()]})
 
 
 @router.get("/models/{name}", response_model=ModelDetail, operation_id="get_model",
             summary="Metadata of a model's latest version (lags, fs, units, kernel, training metrics, novelty)",
             responses={k: {"description": RECORD_PROBLEMS[k]} for k in (401, 404)})
-async def get_model(state: StateDep, name: NameP):
-    return JSONBytesResponse(detail_of(state, state.lookup(name, None, build=False)))
+async def get_model(request: Request, state: StateDep, name: NameP):
+    return answer(request, detail_of(state, state.lookup(name, None, build=False)))
 
 
 CONDITIONAL_GET = {
@@ -68,5 +69,5 @@ ETAG_HEADERS = {
             responses={200: {"headers": ETAG_HEADERS}, **CONDITIONAL_GET,
                        **{k: {"description": RECORD_PROBLEMS[k]} for k in (401, 404)}})
 async def get_model_version(request: Request, state: StateDep, name: NameP, version: VersionP):
-    body = render_json(detail_of(state, state.lookup(name, version, build=False)))
+    body = render_json(checked(request, detail_of(state, state.lookup(name, version, build=False))))
     return conditional(request, body, "application/json", REVALIDATE)

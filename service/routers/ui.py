@@ -16,9 +16,10 @@ from starlette.responses import HTMLResponse
 
 from gpnarx.storage.record_formats import FORMATS, RecordFileError
 
+from ..answers import answer
 from ..deps import V1, SettingsDep, StateDep
 from ..problems import ProblemError
-from ..responses import JSONBytesResponse, conditional
+from ..responses import conditional
 from ..state import ServiceState
 from ..ui import (
     _FS_PROBLEMS,
@@ -177,10 +178,10 @@ async def parse_record_file(request: Request, settings: SettingsDep):
         raise ProblemError(413, f"the record holds {rec.n} samples; the limit is {settings.max_samples} "
                                 f"(GPNARX_MAX_SAMPLES): send a shorter part of it", "files",
                            limit=settings.max_samples)
-    return JSONBytesResponse({"name": rec.name, "format": fmt, "files": [n for n, _, _ in files],
-                              "fs": rec.fs, "n_samples": rec.n,
-                              "units": {"u": rec.units.get("u", ""), "y": rec.units.get("y", "")},
-                              "u": rec.u, "y": rec.y,
-                              "meta": {k: v for k, v in rec.meta.items() if isinstance(v, (str, int, float))}})
+    return answer(request, {"name": rec.name, "format": fmt, "files": [n for n, _, _ in files],
+                            "fs": rec.fs, "n_samples": rec.n,
+                            "units": {"u": rec.units.get("u", ""), "y": rec.units.get("y", "")},
+                            "u": rec.u, "y": rec.y,
+                            "meta": {k: v for k, v in rec.meta.items() if isinstance(v, (str, int, float))}})
 
 

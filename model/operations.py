@@ -1,0 +1,399 @@
+"""The three operations on a loaded bundle: predict, loops and novelty, written once.
+
+The HTTP service (``service.ops``, the routes and the batch) and the CLI (``gpnarx predict|loops|novelty``)
+both run them through this module, framework-free:
+
+- ``plan(operation, req, bundle, limits)``: cheap checks of a request against the bundle and the bounds
+  (fs, lengths, y0, start, Monte Carlo paths and work, backend, stream state), before any work is queued.
+- ``compute(plan, req)``: the free run and what is derived from it; returns an ``Answer`` whose ``body``
+  is the operation's answer (a dict of numpy arrays, floats, strings and lists, the HTTP JSON answer).
+
+``req`` is anything with the record fields of the HTTP body (``Request`` here, or the service's pydantic
+``RecordRequest``): ``u`` [input units], ``fs`` [Hz], ``y`` [output units] or None, ``y0`` or None,
+``mc_paths``, ``seed``, ``confidence``, ``method``, ``backend``, ``start``, ``state`` and ``return_state``.
+
+Every refusal is an ``OperationError`` naming the field, the reason and a ``kind``: ``invalid`` (the request
+does not fit the model or the bounds' rules: HTTP 422, CLI exit code 1), ``too_large`` (a size bound: 413)
+or ``conflict`` (the model cannot do it, or a stream state belongs to another model: 409). The service turns
+it into a problem detail (``service.problems``), the CLI into one line on stderr (``cli.errors``).
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from .backend import jax_available
+from .cycles import cov_window_for, cycles
+from .envelope import assess
+from .freerun_core import FreeRunState, check_state
+from .metrics import summary
+from .novelty import UnusableProbeContract, assess_novelty, novelty_start
+from .restoring import loop_area, loop_units, restoring_force
+from .stream_token import StateMismatch, StateTokenError, decode_state, encode_state
+
+OPERATIONS = ("predict", "loops", "novelty")
+
+INVALID, TOO_LARGE, CONFLICT = "invalid", "too_large", "conflict"
+
+
+class OperationError(ValueError):
+    """A request the operation refuses: ``detail`` (one line), ``field`` (the request field to blame, or None),
+    ``kind`` (``invalid``, ``too_large`` or ``conflict``), ``limit`` (the bound exceeded, or None) and
+    ``extra`` (more members for the problem detail, e.g. ``model_fs``)."""
+
+    def __init__(self, detail: str, field: str | None = None, *, kind: str = INVALID, limit: Any = None,
+                 **extra: Any):
+        super().__init__(detail)
+        self.detail = detail
+        self.field = field
+        self.kind = kind
+        self.limit = limit
+        self.extra = extra
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The bounds a plan is checked against (None: unbounded). The service's come from its settings
+    (``GPNARX_MAX_SAMPLES`` ...), the CLI's leave sizes unbounded.
+
+    max_samples: samples per record; mc_paths_default: Monte Carlo paths when the request names none;
+    mc_paths_max: Monte Carlo paths per record; max_mc_work: Monte Carlo path-steps (paths x samples) per
+    request; backend: array backend when the request names none; stream_key: the secret that signs stream
+    state tokens (None: a checksum only).
+    """
+
+    max_samples: int | None = None
+    mc_paths_default: int = 1024
+    mc_paths_max: int | None = None
+    max_mc_work: int | None = None
+    backend: str = "numpy"
+    stream_key: str | None = None
+
+
+@dataclass(frozen=True)
+class Request:
+    """A record request (the HTTP body's fields): u [input units], fs [Hz], y [output units] or None,
+    y0 (initial outputs) or None."""
+
+    u: Any
+    fs: float
+    y: Any = None
+    y0: Any = None
+    mc_paths: int | None = None
+    seed: int = 0
+    confidence: float = 0.99
+    method: str | None = None
+    backend: str | None = None
+    start: str | None = None
+    state: str | None = None
+    return_state: bool = False
+
+
+@dataclass(frozen=True)
+class Plan:
+    operation: str
+    bundle: Any
+    method: str
+    mc_paths: int  # 0 for linear
+    work: int  # Monte Carlo path-steps (samples for linear)
+    backend: str = "numpy"  # array backend of the free run (model.backend)
+    state: FreeRunState | None = None  # the stream state the free run continues (request's `state`)
+    stream_key: str | None = None  # signs the answer's state token
+
+
+@dataclass
+class Answer:
+    """An operation's outcome: ``body`` (the answer), ``path_steps`` (Monte Carlo path-steps done, 0 for a
+    linearised run), ``run`` (the free run itself, ``model.freerun.FreeRun``) and ``metrics`` (``metrics.summary``
+    of the measured y against the band, or None without y)."""
+
+    body: dict
+    path_steps: int
+    run: Any
+    metrics: dict | None = field(default=None)
+
+
+def _given(a) -> bool:
+    return a is not None and len(a) > 0
+
+
+def _fs_matches(a: float, b: float) -> bool:
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+
+
+def plan(operation: str, req, bundle, limits: Limits, budget: int | None = None) -> Plan:
+    """Check ``req`` against ``bundle`` (a loaded Bundle: name, version, fs [Hz], model, manifest) and
+    ``limits``; ``budget``: Monte Carlo path-steps left to this request (a batch's shared budget)."""
+    if operation not in OPERATIONS:
+        raise OperationError(f"operation must be one of {OPERATIONS}", "operation")
+    n = len(req.u)
+    if limits.max_samples is not None and n > limits.max_samples:
+        raise OperationError(f"u has {n} samples; the limit is {limits.max_samples} samples per record", "u",
+                             kind=TOO_LARGE, limit=limits.max_samples)
+    if not _fs_matches(float(req.fs), bundle.fs):
+        raise OperationError(f"fs {req.fs:g} Hz does not match the model's fs {bundle.fs:g} Hz "
+                             f"({bundle.name}:{bundle.version}); resample the record to {bundle.fs:g} Hz", "fs",
+                             model_fs=bundle.fs)
+    if req.y is not None and len(req.y) != n:
+        raise OperationError(f"y has {len(req.y)} samples but u has {n}; they must have the same length", "y")
+    if operation == "novelty" and req.y is None:
+        raise OperationError("y is required for novelty: the measured output record to score", "y")
+    ny = bundle.model.ny
+    if _given(req.y0):
+        if len(req.y0) < ny:
+            raise OperationError(f"y0 must hold at least ny={ny} initial outputs for this model, got "
+                                 f"{len(req.y0)}", "y0")
+        if n <= ny:
+            raise OperationError(f"u must be longer than ny={ny} samples when y0 is given, got {n}", "u")
+    if start_of(operation, req) == "measured" and req.y is None and not _given(req.y0):
+        raise OperationError(f"start 'measured' needs the record's measured output: send y (its first ny={ny} "
+                             f"samples start the free run) or y0", "start")
+    if operation == "loops":
+        physics_of(bundle)
+    if operation == "novelty":
+        novelty_of(bundle)
+    method = req.method or bundle.default_method(operation)
+    if method == "mc":
+        paths, work = _mc_work(req, n, limits, budget)
+    else:
+        paths, work = 0, n
+    backend = req.backend or limits.backend
+    if backend == "jax" and not jax_available():
+        raise OperationError("backend 'jax' is not installed here (pip install 'gpnarx[jax]'); use backend "
+                             "'numpy'", "backend")
+    state = _stream_state(req, bundle, limits, method, paths, backend)
+    return Plan(operation, bundle, method, paths, work, backend, state, limits.stream_key)
+
+
+def _mc_work(req, n: int, limits: Limits, budget: int | None) -> tuple[int, int]:
+    """(Monte Carlo paths, path-steps) of a request, checked against the bounds."""
+    paths = limits.mc_paths_default if req.mc_paths is None else int(req.mc_paths)
+    if limits.mc_paths_max is not None and paths > limits.mc_paths_max:
+        raise OperationError(f"mc_paths {paths} exceeds the limit of {limits.mc_paths_max} Monte Carlo paths",
+                             "mc_paths", limit=limits.mc_paths_max)
+    work = paths * n
+    limit = limits.max_mc_work if budget is None else budget
+    if limit is not None and work > limit:
+        what = ("the Monte Carlo work limit" if budget is None
+                else "the Monte Carlo work left in this batch's budget")
+        raise OperationError(f"mc_paths x samples = {paths} x {n} = {work} path-steps exceeds {what} "
+                             f"({limit}; at most {limits.max_mc_work} per request); send fewer paths or "
+                             f"a shorter record", "mc_paths", kind=TOO_LARGE, limit=limit)
+    return paths, work
+
+
+def _stream_state(req, bundle, limits: Limits, method: str, paths: int, backend: str):
+    """The request's stream state, decoded and checked against this call (None without one)."""
+    token = getattr(req, "state", None)
+    if getattr(req, "return_state", False) and backend != "numpy":
+        raise OperationError(f"backend '{backend}' cannot return a stream state; send backend 'numpy'",
+                             "return_state")
+    if token is None:
+        return None
+    try:
+        state = decode_state(token, bundle.name, bundle.version, limits.stream_key)
+    except StateMismatch as exc:
+        raise OperationError(str(exc), "state", kind=CONFLICT) from None
+    except StateTokenError as exc:
+        raise OperationError(str(exc), "state") from None
+    try:  # the model's own rule (method, paths, lags), checked here before the call queues
+        check_state(state, method, bundle.model.ny, bundle.model.nu, None, paths)
+    except ValueError as exc:
+        raise OperationError(str(exc), "state") from None
+    if backend != "numpy":
+        raise OperationError("a stream (state) continues on the numpy backend only; send backend 'numpy'",
+                             "backend")
+    if _given(req.y0) or getattr(req, "start", None) is not None:
+        raise OperationError("state continues a free run: y0 and start do not apply (leave them out)", "state")
+    return state
+
+
+def start_of(operation: str, req) -> str:
+    """The request's start rule: 'state' when it continues a stream, its ``start`` field, else 'measured' for
+    novelty and 'rest' otherwise."""
+    if getattr(req, "state", None) is not None:
+        return "state"
+    start = getattr(req, "start", None)
+    return start if start is not None else ("measured" if operation == "novelty" else "rest")
+
+
+def physics_of(bundle) -> dict:
+    """The bundle's physical constants for the restoring force: ``mass`` [kg, > 0], ``input_gain`` (force per
+    input unit, default 1) and ``output`` ('displacement' or 'velocity'), with its other scalar entries."""
+    phys = bundle.manifest.get("physics") or {}
+    try:
+        mass = float(phys["mass"])
+    except (KeyError, TypeError, ValueError):
+        raise OperationError(f"model {bundle.name}:{bundle.version} has no physical constants (mass) for the "
+                             f"restoring force; loops are not available for it", kind=CONFLICT) from None
+    gain = phys.get("input_gain", 1.0)
+    output = phys.get("output", "displacement")
+    if not (mass > 0 and math.isfinite(mass)) or output not in ("displacement", "velocity"):
+        raise OperationError(f"model {bundle.name}:{bundle.version} has unusable physical constants "
+                             f"(mass={mass!r}, output={output!r})", kind=CONFLICT)
+    try:
+        gain = float(gain)
+    except (TypeError, ValueError):
+        raise OperationError(f"model {bundle.name}:{bundle.version} has an unusable input_gain",
+                             kind=CONFLICT) from None
+    return {**{k: v for k, v in phys.items() if isinstance(v, (int, float, str, bool))},
+            "mass": mass, "input_gain": gain, "output": output}
+
+
+def novelty_of(bundle) -> dict:
+    """The bundle's novelty calibration (a dict with a numeric ``threshold``)."""
+    nov = bundle.manifest.get("novelty")
+    if not isinstance(nov, dict) or not isinstance(nov.get("threshold"), (int, float)):
+        raise OperationError(f"model {bundle.name}:{bundle.version} has no novelty calibration; train it with "
+                             f"'healthy' records to get a threshold (the default bert-standin-monitor bundle has "
+                             f"one)", kind=CONFLICT)
+    return nov
+
+
+_FIELD_RE = re.compile(r"^(u|y0|y|fs|confidence|n_paths|mc_paths|method|seed)\b")
+
+
+def _field_from_message(msg: str) -> str | None:
+    m = _FIELD_RE.match(msg)
+    if not m:
+        return None
+    return {"n_paths": "mc_paths"}.get(m.group(1), m.group(1))
+
+
+def _initial_outputs(plan: Plan, req):
+    """y0 of the free run: the record's measured start, a request's y0, or None (rest, or a stream's state)."""
+    if start_of(plan.operation, req) == "measured":
+        return novelty_start(req.y if req.y is not None else [], plan.bundle.model.ny, req.y0)
+    if plan.state is not None:
+        return None
+    return req.y0 if _given(req.y0) else None
+
+
+def _simulate(plan: Plan, req, u: np.ndarray, progress: Callable | None):
+    model = plan.bundle.model
+    try:
+        with np.errstate(all="ignore"):
+            stream = {"state": plan.state, "open_end": bool(getattr(req, "return_state", False))}
+            extra = {}
+            if plan.operation == "loops":  # per-cycle energy intervals need every path / the covariance band
+                extra = ({"keep_paths": True} if plan.method == "mc"
+                         else {"cov_window": cov_window_for(u, plan.bundle.fs, model.ny)})
+            run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=_initial_outputs(plan, req),
+                                 confidence=float(req.confidence), method=plan.method, backend=plan.backend,
+                                 progress=progress, **extra, **stream)
+    except ValueError as exc:
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
+        raise OperationError(msg, _field_from_message(msg)) from None
+    if not (np.all(np.isfinite(run.mean)) and np.all(np.isfinite(run.lower)) and np.all(np.isfinite(run.upper))
+            and np.all(np.isfinite(run.std))):
+        raise OperationError(f"the free-run prediction of {plan.bundle.name}:{plan.bundle.version} diverged for "
+                             f"this input (non-finite outputs): u is probably far outside the amplitude or "
+                             f"frequency range the model was trained on", "u")
+    return run
+
+
+def _stream_fields(plan: Plan, req, run) -> dict:
+    """The answer's stream members: the end state's token when asked for, and the stream position."""
+    if plan.state is None and not getattr(req, "return_state", False):
+        return {}
+    out = {"stream_position": int(run.state.position)}  # plan: streams run on numpy, which returns a state
+    if getattr(req, "return_state", False):
+        out["state"] = encode_state(run.state, plan.bundle.name, plan.bundle.version, plan.stream_key)
+    return out
+
+
+def _num(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def compute(plan: Plan, req, *, progress: Callable | None = None,
+            checkpoint: Callable[[], None] | None = None) -> Answer:
+    """Run the planned operation on ``req``.
+
+    progress: ``progress(done, total)`` from the free run (samples); checkpoint: called between the stages
+    (a cancellation point: whatever it raises ends the operation).
+    """
+    if checkpoint is not None:
+        checkpoint()
+    b = plan.bundle
+    u = np.asarray(req.u, dtype=float)
+    run = _simulate(plan, req, u, progress)
+    flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
+    common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
+              "backend": run.backend, "seed": int(req.seed), "start": start_of(plan.operation, req), **flags,
+              **_stream_fields(plan, req, run)}
+    steps = int(run.path_steps) if run.method == "mc" else 0
+    y = None if req.y is None else np.asarray(req.y, float)
+    if plan.operation == "predict":
+        body, metrics = _predict(plan, u, y, run, common)
+    elif plan.operation == "loops":
+        body, metrics = _loops(plan, u, y, run, common, checkpoint), None
+    else:
+        body, metrics = _novelty(plan, req, u, run, common, flags), None
+    return Answer(body, steps, run, metrics)
+
+
+def _head(b) -> dict:
+    return {"model": b.name, "version": b.version}
+
+
+def _predict(plan: Plan, u, y, run, common) -> tuple[dict, dict | None]:
+    b = plan.bundle
+    out = {**_head(b), "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std, **common,
+           "n_samples": int(u.size), "units": dict(b.manifest.get("units") or {})}
+    if y is None:
+        return out, None
+    s = summary(y, run.mean, run.lower, run.upper)
+    out.update(fit=_num(s["fit"]), rmse=_num(s["rmse"]), coverage=_num(s["coverage"]))
+    return out, s
+
+
+def _loops(plan: Plan, u, y, run, common, checkpoint) -> dict:
+    b = plan.bundle
+    phys = physics_of(b)
+    kw = dict(fs=b.fs, mass=phys["mass"], input_gain=phys["input_gain"], output=phys["output"])
+
+    def loop(yy):
+        x, r = restoring_force(u, yy, **kw)
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
+            raise OperationError("the restoring force is not finite for this record", "u")
+        return {"x": x, "force": r, "area": loop_area(x, r)}
+
+    out = {**_head(b), **common, "n_samples": int(u.size), "physics": phys,
+           "units": loop_units(b.manifest.get("units"), phys),
+           "predicted": loop(run.mean), "lower": loop(run.lower), "upper": loop(run.upper)}
+    if y is not None:
+        out["measured"] = loop(y)
+    if checkpoint is not None:
+        checkpoint()
+    cyc = cycles(u, b.fs, phys, run.mean, paths=run.paths, cov_band=run.cov_band, y=y,
+                 confidence=float(run.confidence))
+    out["cycles"] = [{k: (_num(v) if isinstance(v, float) else v) for k, v in c.items()} for c in cyc["cycles"]]
+    out["cycle_basis"] = {k: cyc[k] for k in ("basis", "frequency", "n_cycles", "steady_from")}
+    return out
+
+
+def _novelty(plan: Plan, req, u, run, common, flags) -> dict:
+    b = plan.bundle
+    nov = novelty_of(b)
+    try:
+        # a stream's later chunk continues a run begun by the probe's rule: no new start-up to judge
+        rule = "measured" if plan.state is not None else start_of(plan.operation, req)
+        a = assess_novelty(nov, u, req.y, b.fs, run, start=rule, flags=flags)
+    except UnusableProbeContract as exc:  # a malformed contract in the manifest: say so rather than guess
+        raise OperationError(f"model {b.name}:{b.version} has an unusable probe contract: {exc}",
+                             kind=CONFLICT) from None
+    except ValueError as exc:
+        raise OperationError(f"cannot score this record: {exc}", "y") from None
+    probe = {k: a.pop(k) for k in ("probe_match", "probe_reasons", "drive")}
+    flagged = a.pop("out_of_range")
+    return {**_head(b), **a, **common, "out_of_range": flagged, **probe}
+
+
+__all__ = ["CONFLICT", "INVALID", "OPERATIONS", "TOO_LARGE", "Answer", "Limits", "OperationError", "Plan",
+           "Request", "compute", "novelty_of", "physics_of", "plan", "start_of"]
