@@ -18,8 +18,12 @@ RUNS = ROOT / "docs" / "runs"
 # the stored run files, in page order: (path under docs/runs, heading, command of lines that name none)
 SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/full.txt", "Full-size runs", None),
-           ("accelerator/bench_gpu.txt", "GPU run (results: [results-accelerator.md](results-accelerator.md))",
-            "bench/bench_gpu.py (commands: docs/runs/accelerator/run.json)"))
+           ("accelerator/bench_gpu.txt", "GPU run, H100 (results: [results-accelerator.md](results-accelerator.md))",
+            "bench/bench_gpu.py (commands: docs/runs/accelerator/run.json)"),
+           ("accelerator/h200/bench_gpu.txt", "GPU run, H200",
+            "bench/bench_gpu.py (commands: docs/runs/accelerator/h200/run.json)"),
+           ("accelerator/h200/bench_gpu_steps.txt", "GPU time per step by variant, H200",
+            "bench/bench_gpu_steps.py (commands: docs/runs/accelerator/h200/run.json)"))
 # fields shown in their own columns; the rest of each line is listed after the table
 COLUMNS = ("ratio", "baseline", "baseline_what", "user_ratio", "user_baseline")
 
@@ -84,6 +88,9 @@ METHOD_ROWS = (
     ('`bench_gpu.py`',
      'Monte Carlo free run on the JAX backend',
      'the numpy backend on the same bundle, paths and seed, on the CPU cores beside it'),
+    ('`bench_gpu_steps.py`',
+     'time per step of the JAX Monte Carlo block, variant by variant, and `GPNARX.simulate` itself',
+     'the previous joint product K [F^T | w] of the same arrays, steps and paths'),
     ('`bench_linear_band.py`',
      'linearised 99 % band',
      "the product's Monte Carlo band on the same model; ratio of mean widths (accuracy)"),
