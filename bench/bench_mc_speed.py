@@ -1,10 +1,12 @@
 """Monte Carlo free-run throughput on the real-BERT model: path-steps per second at 1024 paths,
-``simulate_mc`` (checked local model per step) against the previous code path, and the bands'
+``simulate_mc`` (checked local model per step) against the previous product code, and the bands'
 agreement.
 
-Each record class on its own (``pss_sine=``, ``pss_sweep=``, ``pss_noise=``, their ``ratio_*`` and
-``realtime_*``: record seconds per wall second at 1024 paths): on spread paths (start-ups, sweeps, noise)
-the local model falls back to exact evaluation, so the speed depends on the record.
+Each record class on its own (``pss_sine=``, ``pss_sweep=``, ``pss_noise=``, their ``ratio_*``,
+``realtime_*``: record seconds per wall second at 1024 paths, and ``cpu_ms_step_*`` /
+``cpu_ms_step_prev_*``: process CPU time per step of the product and of the baseline, the figure that
+depends least on the machine's load): on spread paths (start-ups, sweeps, noise) the local model falls
+back to exact evaluation, so the speed depends on the record.
 
 Model: the ``bert-real`` bundle (sparse, M=256 inducing points), on three
 segments of 1024 steps of a 64 s real record (default the 20 Hz sine, the held-out record nearest
@@ -12,24 +14,29 @@ the first resonance): from rest at 0 s (the start-up towards resonance), from th
 at 20 s (steady state) and at 51 s (the drive stops and the structure decays: the latent variance
 falls below the noise there while the paths are still spread, the hardest case for the local model);
 then (unless ``--sine-only``) the held-out 0.10 V sweep from rest at 0 s and from measured outputs at
-3 s (crossing the resonance), and the 0.10 V noise run at 0 s and 5 s.
+3 s (crossing the resonance), and the 0.10 V noise run at 0 s and 5 s. ``--whole``: instead, the whole
+0.10 V sweep and the 0.10 V and 0.25 V noise runs from rest (16 s each).
 
 Product: ``model.freerun.simulate_mc`` (default ``local=True``): each step a second-order model of
-eq. 8-9 around the paths' mean regressor in the 16 output-lag coordinates, checked against eq. 8-9
-at 12 paths (the farthest and random ones), with exact evaluation of the farthest 1/16 or 1/4 or of
-all paths when the check fails. Baseline, equal work (``ratio=``): ``freerun_reference.simulate_mc_reference``, the code
-path before this change (eq. 8-9 at every path, every step: one (P x M) kernel block and one
-(P x M x M) product), same posterior, paths, seed, segments, BLAS threads, in this process.
-Repetitions interleave product and baseline; ratio = median over repetitions of (baseline seconds /
-product seconds), all segments together.
+eq. 8-9 around the paths' mean regressor in the output-lag coordinates (``gp.LocalModel``), checked
+against eq. 8-9 at 12 paths (the farthest and random ones), with exact evaluation of the farthest 1/16
+or 1/4 or of all paths when the check fails. Baseline (``ratio=``): the previous product code, kept
+verbatim in ``bench/mc_baseline.py`` (the same algorithm and checks; one call per kernel part for k, J
+and each Hessian, a (P x ny) lag shift per step), same posterior, paths, seed, segments, BLAS threads,
+in this process. Repetitions interleave product and baseline; ratio = median over repetitions of
+(baseline seconds / product seconds), all segments together; ``ratio_exact=`` is the same against
+``freerun_reference.simulate_mc_reference`` (eq. 8-9 at every path), timed once.
 
 Accuracy, same seed and paths (the draws are the same random numbers, so paths differ only by the
-local model's error): the largest difference of the mean and of the 0.5 % / 99.5 % band edges,
-in units of the band's Monte Carlo standard error, estimated as the median difference between the
-baseline's bands at seeds 0 and 1 divided by sqrt(2); and the coverage of the measured output by
-each band (points).
+local model's error): the largest difference of the mean and of the 0.5 % / 99.5 % band edges against
+the exact reference, in units of the band's Monte Carlo standard error, estimated as the median
+difference between the reference's bands at seeds 0 and 1 divided by sqrt(2); the coverage of the
+measured output by each band (points); and ``prev_max_diff_se=``, the largest difference of mean and
+band edges against the previous code (round-off), in the same units. ``--whole`` leaves the exact
+reference out (about 10 minutes a record) and takes the standard error from the previous code at
+seeds 0 and 1.
 
-    python bench/bench_mc_speed.py [--quick] [--registry R] [--record PATH] [--reps N] [--threads N]
+    python bench/bench_mc_speed.py [--quick] [--whole] [--registry R] [--record PATH] [--reps N] [--threads N]
 
 Without --registry a bundle is trained from configs/bert-real.toml into a cache (about 10 minutes;
 bench_realtime.py shares the cache). --quick: a small Bouc-Wen sparse model (M=64, fixed
@@ -37,9 +44,11 @@ hyperparameters), 256 paths, 60 steps; for the smoke test only.
 """
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
+from mc_baseline import simulate_mc_baseline
 
 import _common as C
 from gpnarx.model.freerun import simulate_mc
@@ -55,7 +64,10 @@ def quick_model():
     return m, [seg], "quick", 750.0
 
 
-def bert_model(registry, record, classes=True):
+WHOLE = (("Chirp/Chirp0to40Hz/Chirp0p10", "sweep"), ("Rand/Rand0p10", "noise"), ("Rand/Rand0p25", "noise"))
+
+
+def bert_model(registry, record, classes=True, whole=False):
     import bench_realtime as R
 
     from gpnarx.storage.record_files import read_record
@@ -63,10 +75,16 @@ def bert_model(registry, record, classes=True):
 
     reg, note = R.bert_registry(registry)
     b = Registry(reg).scan().get("bert-real")
+    ny = b.model.ny
+    if whole:  # whole records from rest
+        segs = []
+        for sub, cls in WHOLE:
+            rec = read_record(str(R.bert_data() / sub), fs_default=b.fs)
+            segs.append((f"{Path(sub).name} whole from rest", rec.u, rec.y, None, cls))
+        return b.model, segs, f"{note}; {b.name}:{b.version}", rec.fs
     path = Path(record) if record else R.bert_data() / "Sine" / "Sine_20Hz"
     rec = read_record(str(path), fs_default=b.fs)
     fs = rec.fs
-    ny = b.model.ny
     segs = segments(rec, path.name, "sine", (20.0, 51.0), ny)
     if classes:  # a sweep through the resonance and a noise run too: the speed a user sees depends on the record
         data = R.bert_data()
@@ -98,56 +116,80 @@ def main():
         ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; 2 with --quick)")
         ap.add_argument("--sine-only", action="store_true",
                         help="only the sine record's segments (default: also a sweep and a noise run)")
+        ap.add_argument("--whole", action="store_true",
+                        help="the whole 0.10 V sweep and 0.10 / 0.25 V noise runs instead of segments")
 
     args = C.parse_args(__doc__, extra)
     q = args.quick
     P = 256 if q else 1024
     reps = args.reps or (2 if q else 3)
-    model, segs, note, fs = quick_model() if q else bert_model(args.registry, args.record, not args.sine_only)
+    model, segs, note, fs = quick_model() if q else bert_model(args.registry, args.record, not args.sine_only,
+                                                                args.whole)
     post = model.posterior_
 
     def run(fn, seg, seed=0):
         _, u, _, y0 = seg[:4]
-        return fn(post, model.x_scaler_, model.y_scaler_, model.ny, model.nu, u, n_paths=P, seed=seed, y0=y0,
-                  include_noise=model.include_noise)
+        c0 = time.process_time()
+        r = fn(post, model.x_scaler_, model.y_scaler_, model.ny, model.nu, u, n_paths=P, seed=seed, y0=y0,
+               include_noise=model.include_noise)
+        r.cpu = time.process_time() - c0
+        return r
 
     for seg in segs:  # warm-up
-        run(simulate_mc, (seg[0], seg[1][:40], None, seg[3], seg[4]))
-        run(simulate_mc_reference, (seg[0], seg[1][:40], None, seg[3], seg[4]))
+        short = (seg[0], seg[1][:40], None, seg[3], seg[4])
+        run(simulate_mc, short)
+        run(simulate_mc_baseline, short)
+        if not args.whole:
+            run(simulate_mc_reference, short)
     load0 = C.load()
     t_new = [[0.0] * len(segs) for _ in range(reps)]
-    t_ref = [[0.0] * len(segs) for _ in range(reps)]
-    last_new, last_ref, local = {}, {}, {}
+    t_old = [[0.0] * len(segs) for _ in range(reps)]
+    c_new = [[0.0] * len(segs) for _ in range(reps)]
+    c_old = [[0.0] * len(segs) for _ in range(reps)]
+    loads = []
+    last_new, last_old, local = {}, {}, {}
     steps = [0] * len(segs)
     for r in range(reps):
         for j, seg in enumerate(segs):
             a = run(simulate_mc, seg)
-            b = run(simulate_mc_reference, seg)
-            t_new[r][j], t_ref[r][j] = a.seconds, b.seconds
-            last_new[j], last_ref[j] = a, b
+            b = run(simulate_mc_baseline, seg)
+            t_new[r][j], t_old[r][j] = a.seconds, b.seconds
+            c_new[r][j], c_old[r][j] = a.cpu, b.cpu
+            last_new[j], last_old[j] = a, b
             local[j] = a.local_steps
             steps[j] = a.path_steps // P
+            loads.append(C.load())
     load1 = C.load()
-    ratios = [sum(t_ref[r]) / sum(t_new[r]) for r in range(reps)]
+    ratios = [sum(t_old[r]) / sum(t_new[r]) for r in range(reps)]
     ps_new = P * sum(steps) / C.median([sum(t) for t in t_new])
-    ps_ref = P * sum(steps) / C.median([sum(t) for t in t_ref])
+    ps_old = P * sum(steps) / C.median([sum(t) for t in t_old])
 
-    print(f"bench_mc_speed: {note}; {P} paths; {reps} interleaved reps; load {load0:.1f} -> {load1:.1f}; "
-          f"BLAS threads {C.blas_threads()}")
-    print(f"  {'segment':<34} {'steps':>5} {'local':>5} {'new ps/s':>10} {'ref ps/s':>10} {'ratio':>6}")
+    print(f"bench_mc_speed: {note}; {P} paths; {reps} interleaved reps; load {load0:.1f} -> {load1:.1f} "
+          f"(median {C.median(loads):.1f}); BLAS threads {C.blas_threads()}")
+    print(f"  {'segment':<34} {'steps':>5} {'local':>5} {'new ps/s':>10} {'prev ps/s':>10} {'ratio':>6} "
+          f"{'new cpu ms/step':>15} {'prev cpu ms/step':>16}")
     for j, seg in enumerate(segs):
         tn = C.median([t[j] for t in t_new])
-        tr = C.median([t[j] for t in t_ref])
-        print(f"  {seg[0]:<34} {steps[j]:>5} {local[j]:>5} {P * steps[j] / tn:>10,.0f} {P * steps[j] / tr:>10,.0f} "
-              f"{C.median_ratio([t[j] for t in t_ref], [t[j] for t in t_new]):>6.2f}")
+        to = C.median([t[j] for t in t_old])
+        print(f"  {seg[0]:<34} {steps[j]:>5} {local[j]:>5} {P * steps[j] / tn:>10,.0f} {P * steps[j] / to:>10,.0f} "
+              f"{C.median_ratio([t[j] for t in t_old], [t[j] for t in t_new]):>6.2f} "
+              f"{1e3 * C.median([c[j] for c in c_new]) / steps[j]:>15.3f} "
+              f"{1e3 * C.median([c[j] for c in c_old]) / steps[j]:>16.3f}")
 
-    # accuracy: same seed (same draws) product vs baseline; MC error from the baseline at seeds 0 and 1
-    worst = {"mean": 0.0, "edge": 0.0}
+    # accuracy: same seed (same draws); MC error from the exact reference (or, --whole, the previous code)
+    # at seeds 0 and 1
+    worst = {"mean": 0.0, "edge": 0.0, "prev": 0.0}
     cov_gap = 0.0
     rows = []
+    t_ref = 0.0
     for j, seg in enumerate(segs):
-        a, b = last_new[j], last_ref[j]
-        b1 = run(simulate_mc_reference, seg, seed=1)
+        a, o = last_new[j], last_old[j]
+        if args.whole:
+            b, b1 = o, run(simulate_mc_baseline, seg, seed=1)
+        else:
+            b = run(simulate_mc_reference, seg)
+            t_ref += b.seconds
+            b1 = run(simulate_mc_reference, seg, seed=1)
         k0 = 0 if seg[3] is None else model.ny
         sl = slice(k0 + 1, None)
         se = np.median(np.concatenate([np.abs(b.lower[sl] - b1.lower[sl]), np.abs(b.upper[sl] - b1.upper[sl])])) \
@@ -155,29 +197,38 @@ def main():
         se_mean = np.median(np.abs(b.mean[sl] - b1.mean[sl])) / np.sqrt(2.0)
         d_edge = max(np.max(np.abs(a.lower[sl] - b.lower[sl])), np.max(np.abs(a.upper[sl] - b.upper[sl]))) / se
         d_mean = np.max(np.abs(a.mean[sl] - b.mean[sl])) / se_mean
+        d_prev = max(np.max(np.abs(a.mean[sl] - o.mean[sl])) / se_mean,
+                     np.max(np.abs(a.lower[sl] - o.lower[sl])) / se, np.max(np.abs(a.upper[sl] - o.upper[sl])) / se)
         worst["edge"] = max(worst["edge"], d_edge)
         worst["mean"] = max(worst["mean"], d_mean)
+        worst["prev"] = max(worst["prev"], d_prev)
         y = seg[2]
-        c_new, c_ref, c_ref1 = coverage(y, a), coverage(y, b), coverage(y, b1)
-        cov_gap = max(cov_gap, abs(c_new - c_ref))
-        rows.append((seg[0], d_mean, d_edge, c_new, c_ref, c_ref1))
-    print("  same seed, product vs baseline (MC standard error from the baseline at seeds 0 and 1):")
-    for name, dm, de, cn, cr, cr1 in rows:
+        c_a, c_b, c_b1 = coverage(y, a), coverage(y, b), coverage(y, b1)
+        cov_gap = max(cov_gap, abs(c_a - c_b))
+        rows.append((seg[0], d_mean, d_edge, d_prev, c_a, c_b, c_b1))
+    what = "previous code" if args.whole else "exact reference"
+    print(f"  same seed, product vs {what} (MC standard error from the {what} at seeds 0 and 1):")
+    for name, dm, de, dp, ca, cb, cb1 in rows:
         print(f"    {name:<34} max |mean diff| {dm:.2g} MC s.e.; max |band-edge diff| {de:.2g} MC s.e.; "
-              f"coverage of measured y: product {cn:.2f} %, baseline {cr:.2f} % (seed 1: {cr1:.2f} %)")
+              f"vs previous code {dp:.2g} MC s.e.; coverage of measured y: product {ca:.2f} %, {what} {cb:.2f} % "
+              f"(seed 1: {cb1:.2f} %)")
     per_class = {}
     for cls in dict.fromkeys(seg[4] for seg in segs):  # each record class on its own: its segments' total
         js = [j for j, seg in enumerate(segs) if seg[4] == cls]
         tn = C.median([sum(t[j] for j in js) for t in t_new])
-        tr = C.median([sum(t[j] for j in js) for t in t_ref])
-        n_cls = P * sum(steps[j] for j in js)
-        per_class[f"pss_{cls}"] = n_cls / tn
-        per_class[f"ratio_{cls}"] = tr / tn
-        per_class[f"realtime_{cls}"] = sum(steps[j] for j in js) / fs / tn
-    C.result(path_steps_per_s=ps_new, baseline=ps_ref, baseline_what="simulate_mc_reference-same-posterior-paths-seed",
+        to = C.median([sum(t[j] for j in js) for t in t_old])
+        n_cls = sum(steps[j] for j in js)
+        per_class[f"pss_{cls}"] = P * n_cls / tn
+        per_class[f"ratio_{cls}"] = to / tn
+        per_class[f"realtime_{cls}"] = n_cls / fs / tn
+        per_class[f"cpu_ms_step_{cls}"] = 1e3 * C.median([sum(c[j] for j in js) for c in c_new]) / n_cls
+        per_class[f"cpu_ms_step_prev_{cls}"] = 1e3 * C.median([sum(c[j] for j in js) for c in c_old]) / n_cls
+    extra = {} if args.whole else {"ratio_exact": t_ref / C.median([sum(t) for t in t_new])}
+    C.result(path_steps_per_s=ps_new, baseline=ps_old,
+             baseline_what="previous-simulate_mc-bench/mc_baseline.py-same-posterior-paths-seed",
              ratio=C.median(ratios), paths=P, steps=sum(steps), local_steps=sum(local.values()),
-             max_mean_diff_se=worst["mean"], max_edge_diff_se=worst["edge"], cov_gap_points=cov_gap,
-             load=C.load(), blas_threads=C.blas_threads(), **per_class)
+             max_mean_diff_se=worst["mean"], max_edge_diff_se=worst["edge"], prev_max_diff_se=worst["prev"],
+             cov_gap_points=cov_gap, load=C.median(loads), blas_threads=C.blas_threads(), **extra, **per_class)
 
 
 if __name__ == "__main__":

@@ -43,7 +43,7 @@ from .freerun_core import (
     start_index,
 )
 from .freerun_reference import simulate_linear_reference
-from .gp import has_local_model, local_model
+from .gp import LocalModel, has_local_model
 from .kernels import LinearisableKernel, require
 from .posterior import Posterior
 
@@ -91,9 +91,10 @@ def simulate_mc(
     the input lags, and their output lags lie close together (their spread is the band, a small
     fraction of the kernel's lengthscale), so with ``local`` (the default) each step uses a second-order
     model of the mean and of the variance around the paths' mean regressor in the ny output-lag
-    coordinates (``gp.local_model``: analytic gradient and Hessian, O(M^2 ny) per step instead of
-    O(P M^2)), and checks it against eq. 8-9 evaluated exactly at ``LOCAL_CHECKS`` paths (the
-    farthest from the mean regressor, where the model's error is largest, and random ones). When the
+    coordinates (``gp.LocalModel``, ``gp.local_model``'s numbers: analytic gradient and Hessian, O(M^2 ny)
+    per step instead of O(P M^2); every path's mean and variance from one (P x (ny + 1)) product), and
+    checks it against eq. 8-9 evaluated exactly at ``LOCAL_CHECKS`` paths (the farthest from the mean
+    regressor, where the model's error is largest, and random ones). When the
     check fails (mean error above ``LOCAL_TOL_MEAN`` predictive std or latent-variance error above
     ``LOCAL_TOL_VAR`` of the predictive variance), the farthest 1/16 of the paths, then the farthest
     quarter, is evaluated exactly and the model, checked again on the others, serves the rest;
@@ -111,8 +112,8 @@ def simulate_mc(
     """
     st = McPaths(posterior, x_scaler, y_scaler, ny, nu, u, n_paths, seed, y0, confidence, include_noise,
                  keep_paths, latent, state)
-    P, n, i0, y0v, noise = st.P, st.n, st.i0, st.y0v, st.noise
-    xm, xs, Xs, Ulag, ylag_raw = st.xm, st.xs, st.Xs, st.Ulag, st.ylag_raw
+    P, n, i0, y0v = st.P, st.n, st.i0, st.y0v
+    xm, xs, Xs, Ulag, ylag_raw = st.xm, st.xs, st.Xs, st.Ulag, st.ylag_raw  # ylag_raw: as it starts
     use_local = (bool(local) and P >= LOCAL_MIN_PATHS
                  and has_local_model(posterior))
     n_check = min(LOCAL_CHECKS, P)
@@ -135,27 +136,26 @@ def simulate_mc(
                 clip_until = max(clip_until, ny - 1 - k)
     mu = np.empty(P)
     var = np.empty(P)
-    tmp = np.empty((P, 2 * ny))
+    step = _LocalStep(posterior, st, n_check, check_rng) if use_local else None
     for i in range(i0, n):
-        Y = Xs[:, :ny]
-        np.subtract(ylag_raw, xm[:ny], out=Y)
-        Y /= xs[:ny]
-        Xs[:, ny:] = Ulag[i]
         clipped = i <= clip_until
-        if clipped:
-            np.clip(Y, -LAG_CLIP, LAG_CLIP, out=Y)  # a diverging path cannot overflow
         done = False
         if use_local and not clipped:
             start = floor if i < retry_at else 0
             for level in range(start, len(LOCAL_EXACT_SHARE)):
                 share = LOCAL_EXACT_SHARE[level]
-                done = _local_step(posterior, Xs, ny, noise, n_check, check_rng, mu, var, tmp,
-                                   P // share if share else 0)
+                done = step(i, mu, var, P // share if share else 0)
                 if done:
                     break
                 floor, retry_at = level + 1, i + LOCAL_BACKOFF
             local_steps += done
         if not done:
+            Y = Xs[:, :ny]
+            np.subtract(st.ylag_raw, xm[:ny], out=Y)
+            Y /= xs[:ny]
+            Xs[:, ny:] = Ulag[i]
+            if clipped:
+                np.clip(Y, -LAG_CLIP, LAG_CLIP, out=Y)  # a diverging path cannot overflow
             mu[:], var[:] = posterior.predict(Xs, float32=float32)
         ysamp = st.draw(i, mu, var)
         if not (lo < float(ysamp.min()) and float(ysamp.max()) < hi):  # also for non-finite samples
@@ -166,44 +166,73 @@ def simulate_mc(
     return st.result(diverge_limit, local_steps=local_steps, state=end)
 
 
-def _local_step(posterior, Xs, ny, noise, n_check, rng, mu, var, tmp, n_exact: int = 0) -> bool:
-    """Mean and latent variance of every path from ``gp.local_model`` around the paths' mean
-    regressor, into mu and var; False (mu, var undefined) when the check against eq. 8-9 fails.
-
-    n_exact: the n_exact paths farthest from the mean regressor are evaluated exactly (eq. 8-9) and
-    the model serves the others, checked at the farthest of those and at random ones.
+class _LocalStep:
+    """One step of every path from ``gp.LocalModel`` around the paths' mean regressor, checked against
+    eq. 8-9 (``simulate_mc``). The regressor deviations d of the paths (P x ny, standardised) come from
+    the raw lags and their means over the paths (``McPaths.lag_means``), in a (P x (ny + 1)) buffer
+    whose last column is 1, so that the mean and the latent variance of every path are one product
+    with the model's augmented matrices and two row sums.
     """
-    P = Xs.shape[0]
-    xbar = Xs.mean(axis=0)
-    d = Xs[:, :ny] - xbar[:ny]
-    half = n_check // 2
-    r2 = np.einsum("ij,ij->i", d, d)
-    order = np.argpartition(r2, [P - n_exact - half, P - n_exact] if n_exact else P - half)
-    ex = order[P - n_exact:] if n_exact else order[:0]
-    far = order[P - n_exact - half: P - n_exact]
-    rand = order[rng.integers(0, P - n_exact, n_check - half)]
-    idx = np.concatenate([ex, far, rand])
-    m0, gm, Hm, v0, gv, Hv, m_ex, v_ex = local_model(posterior, xbar, ny, Xs[idx])
-    np.dot(d, np.hstack([Hm, Hv]), out=tmp)
-    np.einsum("ij,ij->i", tmp[:, :ny], d, out=mu)
-    np.einsum("ij,ij->i", tmp[:, ny:], d, out=var)
-    mu *= 0.5
-    var *= 0.5
-    g = d @ np.column_stack([gm, gv])
-    mu += g[:, 0]
-    var += g[:, 1]
-    mu += m0
-    var += v0
-    c = slice(n_exact, None)  # the checked paths among idx
-    pv = v_ex[c] + noise  # predictive variance: what the draws use
-    if not (np.all(np.abs(mu[idx[c]] - m_ex[c]) <= LOCAL_TOL_MEAN * np.sqrt(pv))
-            and np.all(np.abs(var[idx[c]] - v_ex[c]) <= LOCAL_TOL_VAR * pv)):
-        return False
-    np.maximum(var, 1e-300, out=var)
-    if n_exact:
-        mu[ex] = m_ex[:n_exact]
-        var[ex] = v_ex[:n_exact]
-    return True
+
+    def __init__(self, posterior, st, n_check, rng):
+        ny, P = st.ny, st.P
+        self.st, self.ny, self.n_check, self.rng = st, ny, n_check, rng
+        self.model = LocalModel(posterior, ny)
+        self.noise = st.noise
+        self.xm, self.xs = st.xm[:ny], st.xs[:ny]
+        self.inv_xs = (1.0 / self.xs)[:, None]
+        self.d_t = np.empty((ny, P))  # d by rows: the elementwise work on contiguous rows of P
+        self.daug = np.ones((P, ny + 1))  # [d, 1]: the product's operand
+        self.T = np.empty((P, 2 * (ny + 1)))
+        self.r2 = np.empty(P)
+        self.x = np.empty(st.Xs.shape[1])
+
+    def __call__(self, i: int, mu: np.ndarray, var: np.ndarray, n_exact: int = 0) -> bool:
+        """Mean and latent variance of every path into mu and var; False (mu, var undefined) when the
+        check against eq. 8-9 fails. n_exact: the n_exact paths farthest from the mean regressor are
+        evaluated exactly (eq. 8-9) and the model serves the others, checked at the farthest of those
+        and at random ones.
+        """
+        st, ny, n_check = self.st, self.ny, self.n_check
+        P = st.P
+        Wt, ybar, u = st.lags_t, st.lag_means, st.Ulag[i]
+        x = self.x
+        np.subtract(ybar, self.xm, out=x[:ny])
+        x[:ny] /= self.xs
+        x[ny:] = u
+        d_t = np.subtract(Wt, ybar[:, None], out=self.d_t)
+        d_t *= self.inv_xs
+        r2 = np.einsum("ji,ji->i", d_t, d_t, out=self.r2)
+        half = n_check // 2
+        order = np.argpartition(r2, [P - n_exact - half, P - n_exact] if n_exact else P - half)
+        ex = order[P - n_exact:] if n_exact else order[:0]
+        far = order[P - n_exact - half: P - n_exact]
+        rand = order[self.rng.integers(0, P - n_exact, n_check - half)]
+        idx = np.concatenate([ex, far, rand])
+        Xc = np.empty((idx.size, x.size))
+        np.subtract(Wt[:, idx].T, self.xm, out=Xc[:, :ny])
+        Xc[:, :ny] /= self.xs
+        Xc[:, ny:] = u
+        H, m_ex, v_ex = self.model(x, Xc)
+        a = ny + 1
+        # the check first, at the checked paths only
+        dc = np.ones((idx.size - n_exact, a))
+        dc[:, :ny] = d_t[:, idx[n_exact:]].T
+        Tc = dc @ H
+        pv = v_ex[n_exact:] + self.noise  # predictive variance: what the draws use
+        if not (np.all(np.abs(np.einsum("ij,ij->i", Tc[:, :a], dc) - m_ex[n_exact:]) <= LOCAL_TOL_MEAN * np.sqrt(pv))
+                and np.all(np.abs(np.einsum("ij,ij->i", Tc[:, a:], dc) - v_ex[n_exact:]) <= LOCAL_TOL_VAR * pv)):
+            return False
+        daug = self.daug
+        daug[:, :ny] = d_t.T
+        T = np.dot(daug, H, out=self.T)
+        np.einsum("ij,ij->i", T[:, :a], daug, out=mu)
+        np.einsum("ij,ij->i", T[:, a:], daug, out=var)
+        np.maximum(var, 1e-300, out=var)
+        if n_exact:
+            mu[ex] = m_ex[:n_exact]
+            var[ex] = v_ex[:n_exact]
+        return True
 
 
 def simulate_linear(

@@ -175,12 +175,20 @@ class McPaths:
         self.xm, self.xs = x_scaler.mean_, x_scaler.scale_
         self.ym, self.ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
         self.Ulag = (inputs_with_tail(u, nu, state) - self.xm[ny:]) / self.xs[ny:]  # standardised, shared
-        # lagged outputs of every path in output units; at rest = 0
-        self.ylag_raw = np.zeros((P, ny))
+        # lagged outputs of every path in output units (at rest = 0), one row per lag: the window
+        # ``lags_t`` (ny, P) of a taller buffer that moves one row up per step, so feeding a sample back
+        # writes one contiguous row instead of shifting P x ny values (rebased every ``slack`` steps);
+        # with each lag's mean over the paths (``lag_means``)
+        self.slack = max(64, ny)
+        self._lags = np.zeros((ny + self.slack, P))
+        self._lag_means = np.zeros(ny + self.slack)
+        self._o = self.slack
         if i0:
             self.ylag_raw[:] = y0v[::-1][None, :]  # [y_{i0-1}, ..., y_{i0-ny}]
         elif state is not None:
             self.ylag_raw[:] = state.paths
+        for k in range(ny):  # as draw() takes a new sample's mean
+            self._lag_means[self._o + k] = np.mean(self._lags[self._o + k])
         self.Xs = np.empty((P, ny + nu))
         self.noise = posterior.noise_var if include_noise else 0.0
         # samples of a block of steps; band statistics are computed per block (one vectorised
@@ -194,6 +202,22 @@ class McPaths:
         self.lat_hi = self.upper.copy() if self.lat else None
         self.path_peak = np.zeros(P) if state is None else np.array(state.path_peak, dtype=float)  # output units
         self.b0 = i0
+
+    @property
+    def lags_t(self) -> np.ndarray:
+        """Every path's last ny outputs as rows (ny, P), newest first (output units): a contiguous view,
+        valid until the next draw."""
+        return self._lags[self._o: self._o + self.ny]
+
+    @property
+    def ylag_raw(self) -> np.ndarray:
+        """Every path's last ny outputs (P, ny), newest first (output units): ``lags_t`` transposed."""
+        return self.lags_t.T
+
+    @property
+    def lag_means(self) -> np.ndarray:
+        """The mean over the paths of each column of ``ylag_raw`` (ny,): a view, valid until the next draw."""
+        return self._lag_means[self._o: self._o + self.ny]
 
     def draw(self, i: int, mu: np.ndarray, var: np.ndarray) -> np.ndarray:
         """Sample step i of every path, feed it back and return the samples (output units)."""
@@ -210,8 +234,16 @@ class McPaths:
         self.mean[i] = float(np.mean(mu)) * self.ys + self.ym
         if self.paths is not None:
             self.paths[i] = ysamp
-        self.ylag_raw[:, 1:] = self.ylag_raw[:, :-1]
-        self.ylag_raw[:, 0] = ysamp
+        o = self._o
+        if o == 0:  # rebase: the window's newest ny - 1 rows move to the bottom
+            S, ny = self.slack, self.ny
+            self._lags[S + 1:] = self._lags[: ny - 1]
+            self._lag_means[S + 1:] = self._lag_means[: ny - 1]
+            o = S + 1
+        o -= 1
+        self._lags[o] = ysamp
+        self._lag_means[o] = np.mean(ysamp)
+        self._o = o
         if i - self.b0 + 1 == self.block or i == self.n - 1:
             self._statistics(i)
         return ysamp

@@ -11,6 +11,7 @@ import numpy as np
 from scipy import linalg
 
 from .kernels import Kernel, LocalKernel
+from .kernels.base import _r2_from_gram
 from .linalg import chol_inverse, cholesky_jitter
 from .posterior import Posterior
 
@@ -212,6 +213,120 @@ def local_model(post: Posterior, x: np.ndarray, ny: int, Xc: np.ndarray | None =
         FK = FB[:, 1 + ny:]
         var_c = np.maximum(post.kernel.diag(Xc) - np.einsum("ij,ij->j", FK, FK), 1e-300)
     return m0, gm, Hm, v0, gv, Hv, mean_c, var_c
+
+
+class LocalModel:
+    """``local_model`` for the many steps of one Monte Carlo run, as one augmented quadratic form per quantity.
+
+    ``model(x, Xc)`` returns (H, mean_c, var_c): H (ny + 1, 2 (ny + 1)) holds [Hm_aug | Hv_aug] with
+    Hm_aug = [[Hm / 2, gm / 2], [gm^T / 2, m0]] (likewise for the variance), so that with
+    d_aug = [d, 1] the model's mean at x + d is d_aug^T Hm_aug d_aug and its latent variance
+    d_aug^T Hv_aug d_aug: every path's pair from one (P x (ny + 1)) product and two row sums. mean_c and
+    var_c are eq. 8-9 at the rows of Xc, as ``local_model``. The numbers are ``local_model``'s to
+    round-off; the per-run constants ([F; w^T], the output-lag columns of the points) are kept, and a
+    kernel with a ``LocalProfile`` (``LocalKernel.local_profile``) gives k, J and both Hessians (mean
+    weights w and F^T F k) with a few products on its coefficient vectors: one [F; w^T] [k | J | Kc]
+    product, one Gram of F [k | J], one F^T (F k) and one Hessian product per coefficient kind.
+    Other kernels take ``local_model`` itself.
+    """
+
+    def __init__(self, post: Posterior, ny: int):
+        F = post.variance_factor
+        if F is None:
+            raise NotImplementedError("legacy sparse bundle (no variance factor G)")
+        self.post, self.kernel, self.ny = post, post.kernel, int(ny)
+        self.Z = np.ascontiguousarray(post.points, dtype=float)
+        self.Zy = np.ascontiguousarray(self.Z[:, :ny])
+        self.sqZ = np.einsum("ij,ij->i", self.Z, self.Z)
+        w = np.asarray(post.mean_weights, dtype=float)
+        self.FW = np.vstack([F, w[None, :]])  # one product gives F B and w^T B
+        self.FT = self.FW[:-1].T
+        self.shift = float(post.mean_shift)
+        M, D = self.Z.shape
+        self.D = np.empty((M, D))
+        self.beta = np.empty((M, 2))  # the two Hessians' weights: w (mean) and F^T F k (variance)
+        self.beta[:, 0] = w
+        self.H = np.zeros((ny + 1, 2 * (ny + 1)))
+        self.diag = np.arange(ny)
+        self.C = np.empty((2 * M, ny))
+        self.C[M:] = self.Zy
+        self.Wt = np.empty((2 * M, 2))
+        self.U = np.empty((2 * M, 2, ny))
+        self.fused = self.kernel.local_profile(np.ones((1, 1)), np.ones((1, 1)), np.ones(1)) is not None
+
+    def __call__(self, x: np.ndarray, Xc: np.ndarray):
+        ny, H = self.ny, self.H
+        if not self.fused:
+            m0, gm, Hm, v0, gv, Hv, mean_c, var_c = local_model(self.post, x, ny, Xc)
+        else:
+            m0, gm, Hm, v0, gv, Hv, mean_c, var_c = self._terms(x, Xc)
+        a = ny + 1
+        np.multiply(Hm, 0.5, out=H[:ny, :ny])
+        np.multiply(Hv, 0.5, out=H[:ny, a: a + ny])
+        H[:ny, ny] = H[ny, :ny] = 0.5 * gm
+        H[:ny, a + ny] = H[ny, a: a + ny] = 0.5 * gv
+        H[ny, ny] = m0
+        H[ny, a + ny] = v0
+        return H, mean_c, var_c
+
+    def _terms(self, x, Xc):
+        ny, Z, Zy, kern = self.ny, self.Z, self.Zy, self.kernel
+        M = Z.shape[0]
+        nc = Xc.shape[0]
+        Xa = np.empty((1 + nc, Z.shape[1]))  # x and the rows of Xc: one Gram product, one profile
+        Xa[0] = x
+        Xa[1:] = Xc
+        G = Xa @ Z.T
+        sqa = np.einsum("ij,ij->i", Xa, Xa)
+        prof = kern.local_profile(_r2_from_gram(G, sqa, self.sqZ), G, sqa)
+        C = self.C  # [x - Z | Z] in the output lags, stacked (2M, ny)
+        Dy = np.subtract(x[:ny], Zy, out=C[:M])
+        B = np.empty((M, 1 + ny + nc))  # [k | J | K(Z, Xc)]
+        B[:, 0] = prof.k[0]
+        J = B[:, 1: 1 + ny]
+        if prof.a is not None:
+            np.multiply(Dy, prof.a[:, None], out=J)
+            if prof.b is not None:
+                J += prof.b[:, None] * Zy
+        elif prof.b is not None:
+            np.multiply(Zy, prof.b[:, None], out=J)
+        else:
+            J[:] = 0.0
+        B[:, 1 + ny:] = prof.k[1:].T
+        FWB = self.FW @ B
+        mw = FWB[M]
+        FB = FWB[:M]
+        FkJ = FB[:, : 1 + ny]
+        Gr = FkJ.T @ FkJ  # [Fk | FJ]^T [Fk | FJ]
+        beta = self.beta
+        beta[:, 1] = self.FT @ FB[:, 0]
+        # [hess(w) | hess(F^T F k)] = C^T diag(weights) C for both weights in one product, + the q terms
+        Wt = self.Wt
+        for half, coef in ((Wt[:M], prof.p), (Wt[M:], prof.t)):
+            if coef is None:
+                half[:] = 0.0
+            else:
+                np.multiply(beta, coef[:, None], out=half)
+        U = np.multiply(C[:, None, :], Wt[:, :, None], out=self.U)
+        Hb = C.T @ U.reshape(2 * M, 2 * ny)
+        di = self.diag
+        if prof.q is not None:
+            bq = prof.q @ beta
+            Hb[di, di] += bq[0]
+            Hb[di, di + ny] += bq[1]
+        xy = x[:ny]
+        m0 = float(mw[0]) + self.shift
+        v0 = float(prof.kd[0]) - float(Gr[0, 0])
+        gv = prof.dg * xy
+        gv -= 2.0 * Gr[1:, 0]
+        Hv = np.multiply.outer(xy, prof.dH * xy)
+        Hv[di, di] += prof.dI
+        Hv -= 2.0 * Gr[1:, 1:]
+        Hv -= 2.0 * Hb[:, ny:]
+        mean_c = mw[1 + ny:] + self.shift
+        FK = FB[:, 1 + ny:]
+        var_c = np.maximum(prof.kd[1:] - np.einsum("ij,ij->j", FK, FK), 1e-300)
+        return m0, mw[1: 1 + ny], Hb[:, :ny], v0, gv, Hv, mean_c, var_c
 
 
 def kmm_cholesky(kernel: Kernel, Z: np.ndarray) -> np.ndarray:

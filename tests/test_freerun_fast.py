@@ -13,6 +13,7 @@ import pytest
 from gpnarx.model import freerun, freerun_reference
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, Sum, White
+from gpnarx.model.kernels.base import _r2_from_gram
 
 THETA = np.log([3.7e-4, 3.6, 7.67e-3, 2.0e-5, 126.4, 3.6e-4])
 
@@ -139,6 +140,65 @@ def test_kernel_batched_gradient_and_local_terms(k):
     dgfd = np.array([(k.diag((x + h * E[j])[None])[0] - k.diag((x - h * E[j])[None])[0]) / (2 * h)
                      for j in range(ny)])
     assert np.allclose(dg, dgfd, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("k", KERNELS, ids=lambda k: type(k).__name__)
+def test_kernel_local_profile_gives_local_terms(k):
+    rng = np.random.default_rng(1)
+    D, ny = 6, 3
+    Z = rng.normal(size=(30, D))
+    Xa = rng.normal(size=(4, D))  # the expansion point and three other rows
+    G = Xa @ Z.T
+    sq = np.einsum("ij,ij->i", Xa, Xa)
+    prof = k.local_profile(_r2_from_gram(G, sq, np.einsum("ij,ij->i", Z, Z)), G, sq)
+    assert np.allclose(prof.k, k.cross(Xa, Z), rtol=1e-12, atol=1e-14)
+    assert np.allclose(prof.kd, k.diag(Xa), rtol=1e-12, atol=1e-14)
+    x = Xa[0]
+    kv, J, hess = k.local_terms(x, Z, ny)
+    Dy, Zy = x[:ny] - Z[:, :ny], Z[:, :ny]
+    zero = np.zeros(Z.shape[0])
+    a, b, p, q, t = (zero if v is None else v for v in (prof.a, prof.b, prof.p, prof.q, prof.t))
+    assert np.allclose(a[:, None] * Dy + b[:, None] * Zy, J, rtol=1e-10, atol=1e-14)
+    w = rng.normal(size=Z.shape[0])
+    H = Dy.T @ ((w * p)[:, None] * Dy) + (w @ q) * np.eye(ny) + Zy.T @ ((w * t)[:, None] * Zy)
+    assert np.allclose(H, hess(w), rtol=1e-10, atol=1e-14)
+    d0, dg, dH = k.diag_local(x, ny)
+    xy = x[:ny]
+    assert prof.kd[0] == pytest.approx(d0, rel=1e-14)
+    assert np.allclose(prof.dg * xy, dg, rtol=1e-12, atol=1e-14)
+    assert np.allclose(prof.dH * np.outer(xy, xy) + prof.dI * np.eye(ny), dH, rtol=1e-12, atol=1e-14)
+
+
+class _NoProfile(Matern32):
+    def local_profile(self, r2, g, sq):
+        return None
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_fused_local_model_matches_local_model(sparse_model, exact_model, fused):
+    from gpnarx.model.gp import LocalModel, local_model
+
+    for m in (sparse_model, exact_model):
+        post = m.posterior_
+        lm = LocalModel(post, m.ny)
+        if not fused:
+            lm.kernel = _NoProfile(1.0, 1.0)
+            lm.fused = False
+        x = post.points[3] + 0.01
+        Xc = post.points[:5] + 0.02
+        H, mc, vc = lm(x, Xc)
+        m0, gm, Hm, v0, gv, Hv, mc0, vc0 = local_model(post, x, m.ny, Xc)
+        ny, a = m.ny, m.ny + 1
+        rng = np.random.default_rng(0)
+        d = np.c_[0.05 * rng.normal(size=(7, ny)), np.ones(7)]
+        mu = np.einsum("ij,jk,ik->i", d, H[:, :a], d)
+        var = np.einsum("ij,jk,ik->i", d, H[:, a:], d)
+        dy = d[:, :ny]
+        mu0 = m0 + dy @ gm + 0.5 * np.einsum("ij,jk,ik->i", dy, Hm, dy)
+        var0 = v0 + dy @ gv + 0.5 * np.einsum("ij,jk,ik->i", dy, Hv, dy)
+        assert np.allclose(mu, mu0, rtol=1e-9, atol=1e-12)
+        assert np.allclose(var, var0, rtol=1e-6, atol=1e-6 * abs(v0))
+        assert np.allclose(mc, mc0, rtol=1e-9, atol=1e-12) and np.allclose(vc, vc0, rtol=1e-6)
 
 
 def test_local_model_matches_posterior_at_its_centre(sparse_model, exact_model):

@@ -26,6 +26,7 @@ from .base import (
     Kernel,
     LinearisableKernel,
     LocalKernel,
+    LocalProfile,
     MeanTerms,
     SparseBoundKernel,
     Sum,
@@ -71,6 +72,6 @@ def make_kernel(spec: str = "matern32+cubic") -> Kernel:
 
 
 __all__ = ["CONTRACTS", "DEFAULT_CONSTANT_CAP", "DEFAULT_LOG_BOUNDS", "KERNEL_TYPES", "RBF", "SQRT3",
-           "CubicPolynomial", "GradientKernel", "Kernel", "LinearisableKernel", "LocalKernel", "Matern32", "MeanTerms",
-           "SparseBoundKernel", "Sum", "White", "WorkspaceKernel", "check_constant_cap", "kernel_from_dict",
-           "make_kernel", "require", "squared_distances"]
+           "CubicPolynomial", "GradientKernel", "Kernel", "LinearisableKernel", "LocalKernel", "LocalProfile",
+           "Matern32", "MeanTerms", "SparseBoundKernel", "Sum", "White", "WorkspaceKernel", "check_constant_cap",
+           "kernel_from_dict", "make_kernel", "require", "squared_distances"]

@@ -291,6 +291,48 @@ class LocalKernel:
         """k(x, x), its gradient and Hessian in x[:ny] (float, (ny,), (ny, ny))."""
         raise NotImplementedError
 
+    def local_profile(self, r2: np.ndarray, g: np.ndarray, sq: np.ndarray) -> LocalProfile | None:
+        """``local_terms`` and ``diag_local`` as coefficients (``LocalProfile``), for ``gp.LocalModel``'s
+        fused step: r2 = |x_j - X_n|^2 and g = x_j . X_n (rows, N), sq = |x_j|^2 (rows,) for points x_j,
+        the first of them the point x of the expansion; k(x_j, X_n) and k(x_j, x_j) at every row (as
+        ``from_gram`` and ``diag`` give them), the derivatives at x. None: not available
+        (``gp.LocalModel`` then calls ``local_terms``)."""
+        return None
+
+
+@dataclass
+class LocalProfile:
+    """The second-order terms of k(x, X_n) (``LocalKernel.local_terms``) and of k(x, x)
+    (``LocalKernel.diag_local``) as coefficients, with d = x - X_n and z = X_n in the output-lag
+    coordinates:
+
+        d k_n / d x = a_n d + b_n z,   d^2 k_n / d x^2 = p_n d d^T + q_n I + t_n z z^T   (vectors (N,)),
+        d k(x, x) / d x = dg x,   d^2 k(x, x) / d x^2 = dH x x^T + dI I                (numbers),
+
+    with k (rows, N) = k(x_j, X_n) and kd (rows,) = k(x_j, x_j) at the rows ``local_profile`` was given
+    (the first is x). A coefficient vector that is zero for every point is None. ``Sum`` adds its
+    parts' profiles.
+    """
+
+    k: np.ndarray
+    kd: np.ndarray
+    a: np.ndarray | None = None
+    b: np.ndarray | None = None
+    p: np.ndarray | None = None
+    q: np.ndarray | None = None
+    t: np.ndarray | None = None
+    dg: float = 0.0
+    dH: float = 0.0
+    dI: float = 0.0
+
+    def __add__(self, other: "LocalProfile") -> "LocalProfile":
+        def add(u, v):
+            return v if u is None else u if v is None else u + v
+
+        return LocalProfile(self.k + other.k, self.kd + other.kd,
+                            *(add(getattr(self, f), getattr(other, f)) for f in "abpqt"),
+                            self.dg + other.dg, self.dH + other.dH, self.dI + other.dI)
+
 
 CONTRACTS = (GradientKernel, WorkspaceKernel, SparseBoundKernel, LinearisableKernel, LocalKernel)
 
@@ -383,6 +425,15 @@ class Sum(Kernel, GradientKernel, SparseBoundKernel, LinearisableKernel, LocalKe
         k = sum(t[0] for t in terms)
         J = sum(t[1] for t in terms)
         return k, J, lambda beta: sum(t[2](beta) for t in terms)
+
+    def local_profile(self, r2, g, sq):
+        out = None
+        for p in self.parts:
+            prof = p.local_profile(r2, g, sq)
+            if prof is None:
+                return None
+            out = prof if out is None else out + prof
+        return out
 
     def diag_local(self, x, ny):
         terms = [p.diag_local(x, ny) for p in self.parts]

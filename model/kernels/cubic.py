@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import CONTRACTS, Kernel, MeanTerms
+from .base import CONTRACTS, Kernel, LocalProfile, MeanTerms
 
 DEFAULT_CONSTANT_CAP = 1.0  # variance of the standardised output; GPNARX(constant_cap=...) default
 
@@ -124,6 +124,21 @@ class CubicPolynomial(Kernel, *CONTRACTS):  # meets every contract of kernels.ba
 
         return k, J, hess
 
+    def local_profile(self, r2, g, sq):
+        # local_terms' coefficients: h = s g + b, b_n = 3 var s h^2, t_n = 6 var s^2 h; diag_local's
+        # with t = s |x|^2: dg = dI = 6 var s (t + b)^2, dH = 24 var s^2 (t + b)
+        var, s, b = np.exp(self.theta)
+        k = self.from_gram(g, None, None)  # capped as in predictions
+        kd = self._capped(s * sq) if self.constant_cap is not None else var * (s * sq + b) ** 3  # as diag
+        h = g[0] * s
+        h += b
+        bz = h * h
+        bz *= 3.0 * var * s
+        h *= 6.0 * var * s * s
+        tb = float(s * sq[0] + b)
+        f1 = 3.0 * var * tb * tb
+        return LocalProfile(k, kd, b=bz, t=h, dg=2.0 * s * f1, dH=4.0 * s * s * (6.0 * var * tb), dI=2.0 * s * f1)
+
     def mean_terms(self, w):
         # through the moments S_p = sum_m w_m g_m^p, g_m = x.z_m (eq. 11, uncapped as the mean is eq. 8's):
         # sum_m w_m var (s g_m + b)^3 = var (b^3 sum w + 3 b^2 s S1 + 3 b s^2 S2 + s^3 S3)
@@ -134,9 +149,12 @@ class CubicPolynomial(Kernel, *CONTRACTS):  # meets every contract of kernels.ba
     def diag_local(self, x, ny):
         # k(x, x) = var [(t + b)^3 - b^3] + min(var b^3, cap) (or var (t + b)^3), t = s |x|^2:
         # grad = 3 var (t + b)^2 2 s x, Hessian = 6 var (t + b) 4 s^2 x x^T + 3 var (t + b)^2 2 s I
-        var, s, b = np.exp(self.theta)
-        kxx = float(self.diag(x[None, :])[0])
-        t = s * float(x @ x)
+        var, s, b = (float(v) for v in np.exp(self.theta))
+        t = s * float(np.einsum("ij,ij->i", x[None, :], x[None, :])[0])
+        if self.constant_cap is not None:  # diag's arithmetic, on one float
+            kxx = (t * t + (3.0 * b) * t + 3.0 * b * b) * t * var + min(var * b**3, self.constant_cap)
+        else:
+            kxx = var * (t + b) ** 3
         xy = x[:ny]
         f1 = 3.0 * var * (t + b) ** 2
         f2 = 6.0 * var * (t + b)

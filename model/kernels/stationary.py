@@ -3,7 +3,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import CONTRACTS, SQRT3, Kernel, MeanTerms, _gram_parts, _r2_from_gram, squared_distances
+from .base import (
+    CONTRACTS,
+    SQRT3,
+    Kernel,
+    LocalProfile,
+    MeanTerms,
+    _gram_parts,
+    _r2_from_gram,
+    squared_distances,
+)
 
 
 class Stationary(Kernel, *CONTRACTS):  # meets every contract of kernels.base
@@ -130,6 +139,22 @@ class Matern32(Stationary):
 
         return k, J, hess
 
+    def local_profile(self, r2, g, sq):
+        # local_terms' coefficients: e = exp(-c r); a = q = -var c^2 e, p = var c^3 e / r
+        # (k as from_gram: var (1 + a) exp(-a), a = c r)
+        var, ls = np.exp(self.theta)
+        c = SQRT3 / ls
+        r = np.sqrt(r2)
+        k = r * c
+        e = np.exp(-k)
+        k += 1.0
+        k *= e
+        k *= var
+        a = e[0] * (-var * c * c)
+        p = e[0] * (var * c * c * c)
+        p /= np.where(r[0] > 0.0, r[0], 1.0)
+        return LocalProfile(k, np.full(sq.shape[0], var), a=a, p=p, q=a)
+
     def mean_terms(self, w):
         # (1 + a) exp(-a), a = sqrt(3) r / l (eq. 10), from a = r^2; the variance scales the sum
         var, ls = np.exp(self.theta)
@@ -234,6 +259,15 @@ class RBF(Stationary):
             return H
 
         return k, J, hess
+
+    def local_profile(self, r2, g, sq):
+        # local_terms' coefficients: a = q = -k / l^2, p = k / l^4
+        var, ls = np.exp(self.theta)
+        ls2 = ls * ls
+        k = np.exp(r2 * (-0.5 / ls2))
+        k *= var
+        a = k[0] * (-1.0 / ls2)
+        return LocalProfile(k, np.full(sq.shape[0], var), a=a, p=k[0] * (1.0 / (ls2 * ls2)), q=a)
 
     def mean_terms(self, w):
         # exp(-r^2 / (2 l^2)) from a = r^2; the variance scales the sum

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import CONTRACTS, Kernel, MeanTerms
+from .base import CONTRACTS, Kernel, LocalProfile, MeanTerms
 
 
 class White(Kernel, *CONTRACTS):  # meets every contract of kernels.base
@@ -40,6 +40,9 @@ class White(Kernel, *CONTRACTS):  # meets every contract of kernels.base
 
     def mean_terms(self, w):
         return MeanTerms()  # zero between distinct sets: no share of the mean
+
+    def local_profile(self, r2, g, sq):
+        return LocalProfile(np.zeros_like(r2), np.full(sq.shape[0], np.exp(self.theta[0])))
 
     def diag_local(self, x, ny):
         return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
