@@ -25,8 +25,12 @@ def add_parser(sub):
                         "with the probe excitation the monitor will be used with; at least 2")
     p.add_argument("--false-alarm-rate", type=float, default=0.01, dest="false_alarm_rate",
                    help="target false-alarm rate of the threshold (default 0.01)")
-    p.add_argument("--mc", type=int, default=1024, help="Monte Carlo paths per record (default 1024, as gpnarx "
-                                                        "novelty)")
+    p.add_argument("--mc", type=int, default=None,
+                   help="Monte Carlo paths per record (default: the model's for novelty, as 'gpnarx novelty' and the "
+                        "HTTP service use)")
+    p.add_argument("--fs", type=float, default=None,
+                   help="sampling frequency [Hz] of record files that hold none (a CSV without a time column, an "
+                        "NPY); checked against a file's own fs otherwise")
     p.add_argument("--seed", type=int, default=0, help="seed of the first record's paths (record k: seed + k)")
     p.add_argument("--method", choices=("mc", "linear"), default="mc", help="uncertainty propagation")
     p.add_argument("--score-method", choices=("rms_standardised_residual", "segment_median_rms"), default=None,
@@ -38,16 +42,15 @@ def add_parser(sub):
 
 
 def run(args):
-    from gpnarx.cli.cmd_predict import open_model, parse_window, resolve_registry
+    from gpnarx.cli.cmd_predict import check_mc, open_model, parse_window, read_cli_record, resolve_registry
     from gpnarx.runtime import tune_for_free_run
     from gpnarx.storage.bundle import BundleError
-    from gpnarx.storage.record_files import read_record
     from gpnarx.storage.registry import parse_model_ref
     from gpnarx.training.novelty_calibration import calibrate
 
     if not 0.0 < args.false_alarm_rate < 0.5:
         raise UsageError(f"--false-alarm-rate must be in (0, 0.5), got {args.false_alarm_rate}")
-    if not 1 <= args.mc <= 65536:
+    if args.mc is not None and not 1 <= args.mc <= 65536:
         raise UsageError(f"--mc must be between 1 and 65536, got {args.mc}")
     if len(args.records) < 2:
         raise UsageError(f"at least 2 healthy records are needed, got {len(args.records)}")
@@ -58,10 +61,11 @@ def run(args):
         raise CLIError(str(exc)) from None
     root = resolve_registry(args.registry)  # a folder or an fsspec URL: the new version is written there
     bundle = open_model(root, name, version)
+    n_paths = check_mc(args.mc, bundle, "novelty")
     window = parse_window(args.window) if args.window else None
     recs = []
     for r in args.records:
-        rec = read_record(r, fs_default=bundle.fs)
+        rec = read_cli_record(r, args.fs)
         if window:
             rec = rec.window(*window)
         if rec.y is None:
@@ -73,7 +77,7 @@ def run(args):
     log = (lambda m: None) if args.json else (lambda m: print(m, file=sys.stderr))
     log(f"calibrating {bundle.name}:{bundle.version} on {len(recs)} healthy record(s)")
     res = calibrate(bundle, recs, root, false_alarm_rate=args.false_alarm_rate, score_method=args.score_method,
-                    n_paths=args.mc, seed=args.seed, propagation=args.method, version=args.version)
+                    n_paths=n_paths, seed=args.seed, propagation=args.method, version=args.version)
     nov = res["novelty"]
     log(f"threshold {nov['threshold']:.4g} (false-alarm rate {nov['false_alarm_rate']}); probe {nov['probe']['kind']}"
         + (f" {nov['probe']['frequency']:.4g} Hz" if nov["probe"]["frequency"] else "")

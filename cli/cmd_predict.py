@@ -22,7 +22,11 @@ def _common(p):
                                                   "version when omitted)")
     p.add_argument("record", help="record file (.npz, .npy, .csv, .mat) or LMS Test.Lab folder")
     p.add_argument("--mc", type=int, default=None,
-                   help="Monte Carlo paths (default: the model's config [predict] mc_paths, else 1024)")
+                   help="Monte Carlo paths (default: the model's, as the HTTP service and /ui use: see 'gpnarx "
+                        "models' / GET /v1/models/NAME default_mc_paths)")
+    p.add_argument("--fs", type=float, default=None,
+                   help="sampling frequency [Hz] of a record file that holds none (a CSV without a time column, "
+                        "an NPY); checked against the file's own fs otherwise")
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
     p.add_argument("--method", choices=("mc", "linear"), default=None,
                    help="uncertainty propagation (default: the model's, see 'gpnarx models' / GET /v1/models/NAME "
@@ -99,23 +103,34 @@ def resolve_registry(registry, name: str | None = None):
     return ensure_default_registry(progress=True, names=[n for n in (DERIVED.get(name), name) if n])
 
 
-def load(args):
+def read_cli_record(path, fs=None):
+    """The record file ``path``; ``fs`` [Hz]: ``--fs``, needed when the file holds no sampling frequency
+    (a CSV without a time column, an NPY; a usage error naming --fs otherwise, as POST /v1/records/parse
+    refuses it without its ``fs`` field) and checked against the file's own otherwise."""
     from gpnarx.storage.record_files import read_record
+    from gpnarx.storage.record_formats import NoSamplingFrequency
 
+    if fs is not None and not (np.isfinite(fs) and fs > 0):
+        raise UsageError(f"--fs must be a finite positive sampling frequency in Hz, got {fs:g}")
+    try:
+        return read_record(path, fs=fs)
+    except NoSamplingFrequency:
+        raise UsageError(f"{path}: the file holds no sampling frequency (no time column / fs variable); "
+                         f"pass --fs HZ") from None
+
+
+def load(args, operation: str = "predict"):
     check_mc(args.mc, None)
     if args.window:
         parse_window(args.window)
-    if not args.registry:
-        # the default registry may have to be built first (minutes): a bad record fails now, not after
-        # the build (the model's fs is not known yet: a file without one is read at 1 Hz just to check it)
-        read_record(args.record, fs_default=1.0)
+    # the record first: a bad one (or one without fs and no --fs) fails before a default registry is built
+    rec = read_cli_record(args.record, args.fs)
     bundle = load_model(args)
-    rec = read_record(args.record, fs_default=bundle.fs)  # files without fs take the model's
     if args.window:
         t0, t1 = parse_window(args.window)
         rec = rec.window(t0, t1)  # a RecordError (ValueError) names the record's span
     check_fs(rec, bundle)
-    return bundle, rec, check_mc(args.mc, bundle)
+    return bundle, rec, check_mc(args.mc, bundle, operation)
 
 
 def check_fs(rec, bundle) -> None:
@@ -123,20 +138,13 @@ def check_fs(rec, bundle) -> None:
         raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {bundle.fs} Hz")
 
 
-DEFAULT_MC = 1024  # the config's [predict] mc_paths default (training.config_schema)
+def check_mc(mc, bundle=None, operation: str = "predict") -> int:
+    """``--mc``, checked; when not given, the bundle's default for ``operation``
+    (``model.operations.default_mc_paths``, the rule of every interface)."""
+    from gpnarx.model.operations import DEFAULT_MC_PATHS, default_mc_paths
 
-
-def default_mc(bundle) -> int:
-    """Monte Carlo paths when --mc is not given: the bundle's config ``[predict] mc_paths`` (kept in the
-    manifest's ``predict``), else 1024."""
-    try:
-        return int((bundle.manifest.get("predict") or {}).get("mc_paths") or DEFAULT_MC)
-    except (AttributeError, TypeError, ValueError):
-        return DEFAULT_MC
-
-
-def check_mc(mc, bundle=None) -> int:
-    mc = mc if mc is not None else (default_mc(bundle) if bundle is not None else DEFAULT_MC)
+    if mc is None:
+        mc = default_mc_paths(bundle, operation) if bundle is not None else DEFAULT_MC_PATHS
     if not 1 <= mc <= 65536:
         raise UsageError(f"--mc must be between 1 and 65536, got {mc}")
     return mc
@@ -298,7 +306,7 @@ def _write_prediction(path, rec, run):
 
 
 def run_novelty(args):
-    bundle, rec, mc = load(args)
+    bundle, rec, mc = load(args, "novelty")
     args.method = args.method or bundle.default_method("novelty")
     a = operate("novelty", bundle, rec, mc=mc, seed=args.seed, method=args.method, backend=args.backend,
                 record=args.record)
@@ -309,7 +317,7 @@ def run_loops(args):
     """Loops of the predicted mean (and band edges, and the measured record), and per-cycle energy and
     stiffness with intervals across the Monte Carlo paths (``model.cycles``): the HTTP loops answer, each
     loop's x and force arrays only with ``--arrays``."""
-    bundle, rec, mc = load(args)
+    bundle, rec, mc = load(args, "loops")
     args.method = args.method or bundle.default_method("loops")
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
     try:

@@ -45,7 +45,11 @@ def add_parser(sub):
                         "this machine")
     p.add_argument("--jobs", type=int, default=1, help="local parallel jobs without --scheduler (joblib; -1 = all "
                                                        "cores; default 1: one record after the other)")
-    p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: 1024)")
+    p.add_argument("--mc", type=int, default=None,
+                   help="Monte Carlo paths (default: the model's, as 'gpnarx predict' and the HTTP service)")
+    p.add_argument("--fs", type=float, default=None,
+                   help="sampling frequency [Hz] of record files that hold none (a CSV without a time column, an "
+                        "NPY); checked against a file's own fs otherwise")
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths (the same for every "
                                                        "record, as 'gpnarx predict --seed')")
     p.add_argument("--method", choices=("mc", "linear"), default=None,
@@ -156,22 +160,24 @@ def run(args):
         raise UsageError(f"--jobs must be a positive number of jobs or -1 (all cores), got {args.jobs}")
     if not 0 < args.confidence < 1:
         raise UsageError(f"--confidence must be between 0 and 1 (exclusive), got {args.confidence}")
-    mc = check_mc(args.mc)
+    check_mc(args.mc)  # checked now; None: the model's default, once it is loaded
+    if args.fs is not None and not (args.fs > 0 and args.fs != float("inf")):
+        raise UsageError(f"--fs must be a finite positive sampling frequency in Hz, got {args.fs:g}")
     # the cluster first: an unreachable scheduler fails before any folder is made or model loaded
     with TaskRunner(args.scheduler, jobs=1 if args.scheduler else args.jobs) as runner:
-        return _run(args, runner, mc)
+        return _run(args, runner)
 
 
-def _run(args, runner, mc: int) -> dict:
-    from gpnarx.cli.cmd_predict import check_fs, load_model
+def _run(args, runner) -> dict:
+    from gpnarx.cli.cmd_predict import check_fs, check_mc, load_model, read_cli_record
     from gpnarx.runtime import blas_threads_from_env
     from gpnarx.storage.jsonsafe import to_json_safe
-    from gpnarx.storage.record_files import read_record
     from gpnarx.training.distributed import Failed
 
     out = _Results(args.out)
     bundle = load_model(args)
     args.method = args.method or bundle.default_method("predict")
+    mc = check_mc(args.mc, bundle)
     # load_model has checked GPNARX_BLAS_THREADS; the same limit applies to every free run, on a worker too
     blas = args.blas_threads if args.blas_threads is not None else blas_threads_from_env()
     options = {"mc": mc, "seed": args.seed, "confidence": args.confidence, "method": args.method,
@@ -189,7 +195,7 @@ def _run(args, runner, mc: int) -> dict:
     def calls():
         for path in args.records:
             try:  # read here: a worker gets the arrays, never the path
-                rec = read_record(path, fs_default=bundle.fs)
+                rec = read_cli_record(path, args.fs)
                 check_fs(rec, bundle)
             except (CLIError, ValueError, OSError, KeyError, LookupError) as exc:
                 yield Failed(exc)

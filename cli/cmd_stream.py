@@ -28,7 +28,11 @@ def add_parser(sub):
     p.add_argument("--chunk", type=float, default=1.0, help="chunk length [s] (default 1)")
     p.add_argument("--method", choices=("mc", "linear"), default=None,
                    help="uncertainty propagation (default: the model's default for predict)")
-    p.add_argument("--mc", type=int, default=None, help="Monte Carlo paths (default: the model's config's)")
+    p.add_argument("--mc", type=int, default=None,
+                   help="Monte Carlo paths (default: the model's, as 'gpnarx predict' and the HTTP service)")
+    p.add_argument("--fs", type=float, default=None,
+                   help="sampling frequency [Hz] of a record file that holds none (a CSV without a time column, an "
+                        "NPY); checked against the file's own fs otherwise")
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
     p.add_argument("--window", type=int, default=8,
                    help="chunks in the rolling novelty window (default 8)")
@@ -73,7 +77,7 @@ def _record_chunks(rec, n: int):
 
 
 def run_stream(args):
-    from gpnarx.cli.cmd_predict import check_mc, load_model
+    from gpnarx.cli.cmd_predict import check_mc, load_model, read_cli_record
     from gpnarx.model.metrics import summary
     from gpnarx.model.novelty import assess_novelty, novelty_start
     from gpnarx.storage.jsonsafe import dumps_json
@@ -83,17 +87,19 @@ def run_stream(args):
     if args.window < 1:
         raise UsageError(f"--window must be at least 1 chunk, got {args.window}")
     check_mc(args.mc, None)
+    # a record file first: one without fs and no --fs fails before a default registry is built
+    rec = None if args.record == "-" else read_cli_record(args.record, args.fs)
     bundle = load_model(args)
     model, fs = bundle.model, bundle.fs
     method = args.method or bundle.default_method("predict")
     mc = check_mc(args.mc, bundle)
     n = max(int(round(args.chunk * fs)), model.ny + 1)
     if args.record == "-":
+        if args.fs is not None and abs(args.fs - fs) > 1e-9 * fs:
+            raise CLIError(f"--fs {args.fs:g} Hz does not match model {bundle.name}:{bundle.version} fs {fs:g} Hz; "
+                           f"stdin lines must be at the model's fs")
         chunks = _stdin_chunks(n)
     else:
-        from gpnarx.storage.record_files import read_record
-
-        rec = read_record(args.record, fs_default=fs)
         if abs(rec.fs - fs) > 1e-9 * fs:
             raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {fs} Hz")
         chunks = _record_chunks(rec, n)

@@ -60,18 +60,47 @@ class Limits:
     """The bounds a plan is checked against (None: unbounded). The service's come from its settings
     (``GPNARX_MAX_SAMPLES`` ...), the CLI's leave sizes unbounded.
 
-    max_samples: samples per record; mc_paths_default: Monte Carlo paths when the request names none;
+    max_samples: samples per record; mc_paths_default: Monte Carlo paths when the request names none (None:
+    the model's own, ``default_mc_paths``; the service sets it only from ``GPNARX_MC_PATHS_DEFAULT``);
     mc_paths_max: Monte Carlo paths per record; max_mc_work: Monte Carlo path-steps (paths x samples) per
     request; backend: array backend when the request names none; stream_key: the secret that signs stream
     state tokens (None: a checksum only).
     """
 
     max_samples: int | None = None
-    mc_paths_default: int = 1024
+    mc_paths_default: int | None = None
     mc_paths_max: int | None = None
     max_mc_work: int | None = None
     backend: str = "numpy"
     stream_key: str | None = None
+
+
+#: Monte Carlo paths of a bundle whose manifest states none (training.config_schema's ``[predict] mc_paths``)
+DEFAULT_MC_PATHS = 1024
+
+
+def default_mc_paths(bundle, operation: str = "predict") -> int:
+    """Monte Carlo paths of an answer whose request names none: the one rule of the CLI, the HTTP service
+    (predict, loops, novelty, batch), the /ui page (it sends none) and GET /v1/models/NAME.
+
+    ``bundle``: a loaded bundle (anything with ``manifest``) or a manifest dict. Novelty: the paths its
+    threshold was calibrated with (manifest ``novelty.mc_paths``, when > 0), so a score is compared with
+    scores of its own kind; otherwise, and for predict and loops, the trained config's ``[predict] mc_paths``
+    (manifest ``predict.mc_paths``); ``DEFAULT_MC_PATHS`` for a bundle that states neither.
+    """
+    manifest = bundle if isinstance(bundle, dict) else (getattr(bundle, "manifest", None) or {})
+    keys = (("novelty", "predict") if operation == "novelty" else ("predict",))
+    for key in keys:
+        section = manifest.get(key)
+        if not isinstance(section, dict):
+            continue
+        try:
+            paths = int(section.get("mc_paths") or 0)
+        except (TypeError, ValueError):
+            continue
+        if paths > 0:
+            return paths
+    return DEFAULT_MC_PATHS
 
 
 @dataclass(frozen=True)
@@ -158,7 +187,7 @@ def plan(operation: str, req, bundle, limits: Limits, budget: int | None = None)
         novelty_of(bundle)
     method = req.method or bundle.default_method(operation)
     if method == "mc":
-        paths, work = _mc_work(req, n, limits, budget)
+        paths, work = _mc_work(req, n, limits, budget, default_mc_paths(bundle, operation))
     else:
         paths, work = 0, n
     backend = req.backend or limits.backend
@@ -169,11 +198,16 @@ def plan(operation: str, req, bundle, limits: Limits, budget: int | None = None)
     return Plan(operation, bundle, method, paths, work, backend, state, limits.stream_key)
 
 
-def _mc_work(req, n: int, limits: Limits, budget: int | None) -> tuple[int, int]:
-    """(Monte Carlo paths, path-steps) of a request, checked against the bounds."""
-    paths = limits.mc_paths_default if req.mc_paths is None else int(req.mc_paths)
+def _mc_work(req, n: int, limits: Limits, budget: int | None, model_default: int) -> tuple[int, int]:
+    """(Monte Carlo paths, path-steps) of a request, checked against the bounds; ``model_default``: the
+    bundle's ``default_mc_paths``, used when neither the request nor ``limits`` names the paths."""
+    if req.mc_paths is not None:
+        paths = int(req.mc_paths)
+    else:
+        paths = limits.mc_paths_default if limits.mc_paths_default is not None else model_default
     if limits.mc_paths_max is not None and paths > limits.mc_paths_max:
-        raise OperationError(f"mc_paths {paths} exceeds the limit of {limits.mc_paths_max} Monte Carlo paths",
+        what = "" if req.mc_paths is not None else " (the model's default; send fewer)"
+        raise OperationError(f"mc_paths {paths}{what} exceeds the limit of {limits.mc_paths_max} Monte Carlo paths",
                              "mc_paths", limit=limits.mc_paths_max)
     work = paths * n
     limit = limits.max_mc_work if budget is None else budget
@@ -395,5 +429,5 @@ def _novelty(plan: Plan, req, u, run, common, flags) -> dict:
     return {**_head(b), **a, **common, "out_of_range": flagged, **probe}
 
 
-__all__ = ["CONFLICT", "INVALID", "OPERATIONS", "TOO_LARGE", "Answer", "Limits", "OperationError", "Plan",
-           "Request", "compute", "novelty_of", "physics_of", "plan", "start_of"]
+__all__ = ["CONFLICT", "DEFAULT_MC_PATHS", "INVALID", "OPERATIONS", "TOO_LARGE", "Answer", "Limits", "OperationError",
+           "Plan", "Request", "compute", "default_mc_paths", "novelty_of", "physics_of", "plan", "start_of"]

@@ -37,8 +37,10 @@ _Y_DESC = ("Optional measured output record (output units, e.g. m or m/s), same 
 _Y0_DESC = ("Optional first `ny` measured outputs (ny = the model's output lag). They are taken as known and the "
             "free run starts after them; without `y0` the system starts from rest, except for novelty, which "
             "starts from the first `ny` samples of `y` (the record's own measured start). Extra values are ignored.")
-_MC_DESC = (f"Monte Carlo paths for `method`='mc' (default {B['mc_paths_default']}, at most {B['mc_paths_max']} "
-            f"by default: GPNARX_MC_PATHS_DEFAULT, GPNARX_MC_PATHS_MAX; above the maximum -> 422). "
+_MC_DESC = (f"Monte Carlo paths for `method`='mc' (default: the model's, `default_mc_paths` of GET "
+            f"/v1/models/{{name}}: its trained config's `[predict] mc_paths`, as the CLI uses, unless "
+            f"GPNARX_MC_PATHS_DEFAULT is set; at most {B['mc_paths_max']} by default: GPNARX_MC_PATHS_MAX; "
+            f"above the maximum -> 422). "
             f"mc_paths x samples is capped at {B['max_mc_work']} path-steps per HTTP request "
             f"(GPNARX_MAX_MC_WORK; a batch shares one budget) -> 413. Ignored for 'linear'.")
 _SEED_DESC = "Seed of the Monte Carlo draws; the same request with the same seed gives the same answer."
@@ -377,6 +379,11 @@ class ModelDetail(BaseModel):
     default_method: dict[str, Literal["mc", "linear"]] = Field(
         ..., description="The propagation each operation (predict, loops, novelty) uses when a request names no "
                          "`method`.")
+    default_mc_paths: dict[str, int] = Field(
+        ..., description="The Monte Carlo paths each operation (predict, loops, novelty) uses when a request names "
+                         "no `mc_paths`: the trained config's `[predict] mc_paths` (novelty: the paths its "
+                         "threshold was calibrated with), as the CLI uses; GPNARX_MC_PATHS_DEFAULT overrides it "
+                         "when set.")
     n_train: int | None = None
     training: dict[str, Any] = Field(..., description="Training metrics.")
     novelty: dict[str, Any] | None = Field(None, description="Novelty calibration (threshold, "

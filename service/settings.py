@@ -134,8 +134,9 @@ class Settings(BaseSettings):
                                 exceeded="413, field `u` (or `y`)")
     max_batch: int = _setting(64, ge=1, kind=_POSITIVE, bound=True, label="records per batch",
                               exceeded="413, field `requests`")
-    mc_paths_default: int = _setting(256, ge=1, kind=_POSITIVE, bound=True,
-                                     label="Monte Carlo paths when a request names none")
+    mc_paths_default: int | None = _setting(None, ge=1, kind=_POSITIVE, bound=True, shown="the model's",
+                                            label="Monte Carlo paths when a request names none (unset: the "
+                                                  "model's config `[predict] mc_paths`, as the CLI uses)")
     mc_paths_max: int = _setting(4096, ge=1, kind=_POSITIVE, bound=True, label="Monte Carlo paths per record",
                                  exceeded="422, field `mc_paths`")
     max_mc_work: int = _setting(2**24, ge=1, kind=_POSITIVE, bound=True, shown="2^24",
@@ -256,7 +257,7 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _paths_default_within_max(self) -> Settings:
-        if self.mc_paths_default > self.mc_paths_max:
+        if self.mc_paths_default is not None and self.mc_paths_default > self.mc_paths_max:
             raise ValueError(f"setting mc_paths_default ({self.mc_paths_default}) exceeds mc_paths_max "
                              f"({self.mc_paths_max})")
         return self

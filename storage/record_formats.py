@@ -33,6 +33,7 @@ from .record_formats_lab import LAB_FORMATS
 
 __all__ = [
     "RecordFileError",
+    "NoSamplingFrequency",
     "KNOWN_UNITS",
     "FORMATS",
     "LMS_INPUT",
@@ -112,6 +113,11 @@ def _binary(data):
     if not hasattr(data, "read") or not hasattr(data, "seek"):
         raise TypeError(f"expected bytes or a seekable binary file, got {type(data).__name__}")
     return data
+
+
+class NoSamplingFrequency(RecordFileError):
+    """A record file without a sampling frequency (a CSV without a time column, an NPY) read without ``fs``
+    or ``fs_default``: the caller names its own option (``--fs``, the parse form's ``fs`` field)."""
 
 
 def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, source=None) -> Record:
@@ -220,7 +226,7 @@ def _reconcile_fs(p, file_fs, arg_fs, fs_default=None) -> float:
             return arg_fs
         if fs_default is not None:
             return fs_default
-        raise RecordFileError(p, "the file holds no sampling frequency (no time column / fs variable); pass fs")
+        raise NoSamplingFrequency(p, "the file holds no sampling frequency (no time column / fs variable); pass fs")
     if not math.isfinite(file_fs) or file_fs <= 0:
         raise RecordFileError(p, f"sampling frequency in the file must be finite and positive, got {file_fs!r}")
     if arg_fs is not None and abs(arg_fs - file_fs) > _FS_RTOL * file_fs:

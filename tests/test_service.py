@@ -20,6 +20,7 @@ import pytest
 from fastapi.testclient import TestClient
 from test_service_support import (
     FS,
+    MC_PATHS,
     LiveServer,
     built_registry,
     copy_registry,
@@ -177,7 +178,7 @@ def test_predict_without_y_and_linear(client):
     body.pop("mc_paths")
     body["u"] = body["u"][:20]
     body.pop("y0")
-    assert client.post("/v1/models/boucwen/predict", json=body).json()["mc_paths"] == DEFAULT_BOUNDS["mc_paths_default"]
+    assert client.post("/v1/models/boucwen/predict", json=body).json()["mc_paths"] == MC_PATHS  # the model's
 
 
 def test_determinism_across_runs_and_worker_counts(registry, client):

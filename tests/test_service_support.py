@@ -50,6 +50,10 @@ class Built:
     test_y: np.ndarray
 
 
+#: the fixture bundles' config ``[predict] mc_paths`` (their default Monte Carlo paths in every interface)
+MC_PATHS = 48
+
+
 @functools.lru_cache(maxsize=1)
 def built_registry() -> Built:
     """Train once per session; returns the registry folder (do not modify it: copy it)."""
@@ -84,10 +88,13 @@ def built_registry() -> Built:
     physics = {"mass": 2.0, "input_gain": 1.0, "output": "displacement"}
     units = {"u": "N", "y": "m"}
     training = {"fit": 90.0, "note": "test fixture"}
+    # the trained config's [predict] mc_paths: the paths of every answer whose request names none
+    predict = {"predict": {"method": "mc", "mc_paths": MC_PATHS}}
     for version, nov in (("1", novelty), ("2", with_envelope)):
         save_bundle(model, root, "boucwen", version, fs=FS, units=units, physics=physics, novelty=nov,
-                    training=training)
-    save_bundle(model, root, "plain", "1", fs=FS, units=units, physics=None, novelty=None, training={})
+                    training=training, extra=predict)
+    save_bundle(model, root, "plain", "1", fs=FS, units=units, physics=None, novelty=None, training={},
+                extra=predict)
     test_u = multisine(1024, 3)
     test_y = noisy(simulate(test_u), 400)
     return Built(root, model, test_u, test_y)

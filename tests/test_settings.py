@@ -24,7 +24,7 @@ def test_every_setting_has_its_variable_and_the_bounds_are_the_defaults():
     assert all(var == "GPNARX_" + name.upper() for name, var in ENV.items())
     s = Settings()
     assert s.bounds() == DEFAULT_BOUNDS
-    assert DEFAULT_BOUNDS == {"max_samples": 65536, "max_batch": 64, "mc_paths_default": 256, "mc_paths_max": 4096,
+    assert DEFAULT_BOUNDS == {"max_samples": 65536, "max_batch": 64, "mc_paths_default": None, "mc_paths_max": 4096,
                               "max_mc_work": 2**24, "max_body_bytes": 32 * 1024 * 1024}
 
 

@@ -109,7 +109,7 @@ def shots(tmp_path):
     return d
 
 
-def api_answers(url, files, *, key=None, mc_paths=64, seed=0, confidence=0.99, method="mc", operations=(),
+def api_answers(url, files, *, key=None, mc_paths=None, seed=0, confidence=0.99, method="mc", operations=(),
                 window=None, start=None):
     """What the page asks for (its defaults unless given), sent by a plain HTTP client: the parsed record
     (``window`` = (first sample, count)), then each operation."""
@@ -119,8 +119,9 @@ def api_answers(url, files, *, key=None, mc_paths=64, seed=0, confidence=0.99, m
         rec.raise_for_status()
         rec = rec.json()
         i0, n = window or (0, rec["n_samples"])
-        body = {"u": rec["u"][i0:i0 + n], "fs": rec["fs"], "mc_paths": mc_paths, "seed": seed,
-                "confidence": confidence, "method": method}
+        body = {"u": rec["u"][i0:i0 + n], "fs": rec["fs"], "seed": seed, "confidence": confidence, "method": method}
+        if mc_paths is not None:  # the page sends none unless its paths field is filled: the model's default
+            body["mc_paths"] = mc_paths
         if rec["y"] is not None:
             body["y"] = rec["y"][i0:i0 + n]
         if start:

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request
 
+from gpnarx.model.operations import default_mc_paths
+
 from ..answers import answer, checked
 from ..deps import RECORD_PROBLEMS, V1, NameP, StateDep, VersionP
 from ..responses import conditional, render_json
@@ -33,6 +35,8 @@ def detail_of(state: ServiceState, b) -> dict:
             "hyperparameters": m.get("hyperparameters") or {},
             "noise_calibration": m.get("noise_calibration"), "band_discrepancy": m.get("band_discrepancy"),
             "default_method": {op: b.default_method(op) for op in ("predict", "loops", "novelty")},
+            "default_mc_paths": {op: state.settings.mc_paths_default or default_mc_paths(b, op)
+                                 for op in ("predict", "loops", "novelty")},
             "n_train": m.get("n_train"),
             "training": m.get("training") or {}, "novelty": m.get("novelty"), "physics": m.get("physics") or {},
             "package_versions": m.get("package_versions") or {},

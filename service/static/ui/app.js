@@ -90,6 +90,10 @@ async function loadVersion() {
     const d = await getJSON(versionBase());
     state.detail = d;
     showError(null);
+    const mcDefault = d.default_mc_paths?.predict;
+    $("mc-paths").placeholder = mcDefault ? `${mcDefault}` : "model's";
+    $("mc-paths").title = `Monte Carlo paths; empty: the model's default${mcDefault ? ` (${mcDefault} for predict and loops, `
+      + `${d.default_mc_paths.novelty} for novelty)` : ""}`;
     $("model-detail").hidden = false;
     kvTable($("meta"), d, [["name", "name"], ["version", "version"], ["created", "created"], ["mode", "mode"],
       ["fs", "fs [Hz]"], ["units", "units"], ["lags", "lags"], ["n_train", "training points"], ["physics", "physics"],
@@ -249,8 +253,15 @@ function requestBody() {
   if (i0 >= rec.n_samples) throw new Error(`'from' is past the end of the record (${fmt(rec.n_samples / rec.fs)} s)`);
   const n = Math.max(1, Math.min(Math.round(Number($("count").value) || rec.n_samples), rec.n_samples - i0));
   const body = { u: rec.u.slice(i0, i0 + n), fs: rec.fs, method: $("method").value,
-                 mc_paths: Math.round(Number($("mc-paths").value) || 64), seed: Math.round(Number($("seed").value) || 0),
-                 confidence: Number($("confidence").value) || 0.99 };
+                 seed: Math.round(Number($("seed").value) || 0), confidence: Number($("confidence").value) || 0.99 };
+  // Monte Carlo paths: none sent unless the user names them, so the service applies the model's default
+  // (default_mc_paths of GET /v1/models/NAME, the CLI's too)
+  const paths = $("mc-paths").value.trim();
+  if (paths) {
+    const k = Math.round(Number(paths));
+    if (!(k >= 1)) throw new Error(`paths must be a positive whole number, or empty for the model's default`);
+    body.mc_paths = k;
+  }
   if (rec.y) body.y = rec.y.slice(i0, i0 + n);
   const start = $("start").value;
   if (start === "measured" && !rec.y) throw new Error("start 'measured' needs a record with a measured y");
