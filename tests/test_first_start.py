@@ -80,10 +80,11 @@ def test_light_build_keeps_the_model_and_lightens_only_the_report(monkeypatch, t
         if name not in defaults.DERIVED:  # derived defaults calibrate a built one (test_real_monitor)
             defaults.build_default(name, tmp_path)
     got = {name: kw for name, kw in calls}
-    assert got["bouc-wen"]["method"] == "linear" and got["bert-standin"]["method"] == "linear"
-    assert got["bert-standin-monitor"]["method"] is None  # its novelty threshold is calibrated on MC runs
-    assert got["bert-real"]["method"] is None  # the config's own ([predict] method = "linear")
-    assert all(kw["mc_paths"] == defaults.DEFAULT_MC and set(kw) == {"progress", "mc_paths", "log", "method", "report"}
+    assert got["bouc-wen"]["report_method"] == "linear" and got["bert-standin"]["report_method"] == "linear"
+    assert got["bert-standin-monitor"]["report_method"] is None  # its novelty threshold is calibrated on MC runs
+    assert got["bert-real"]["report_method"] is None  # the config's own ([predict] method = "linear")
+    assert all(kw["mc_paths"] == defaults.DEFAULT_MC
+               and set(kw) == {"progress", "mc_paths", "log", "report_method", "report"}
                for kw in got.values())  # nothing that changes the model (lags, overrides, records)
     assert all(kw["report"] is (importlib.util.find_spec("matplotlib") is not None) for kw in got.values())
     with pytest.raises(ValueError, match="not a default bundle"):
