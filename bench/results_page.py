@@ -18,6 +18,7 @@ RUNS = ROOT / "docs" / "runs"
 # the stored run files, in page order: (path under docs/runs, heading, command of lines that name none)
 SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/full.txt", "Full-size runs", None),
+           ("bench/mc_speed.txt", "Monte Carlo with the checked local model on 2 cores (bench_mc_speed.py)", None),
            ("accelerator/bench_gpu.txt", "GPU run, H100 (results: [results-accelerator.md](results-accelerator.md))",
             "bench/bench_gpu.py (commands: docs/runs/accelerator/run.json)"),
            ("accelerator/h200/bench_gpu.txt", "GPU run, H200",
@@ -53,8 +54,8 @@ library defaults) is not equal work: it is reported in separate fields, `user_ra
 `user_baseline=`. The in-process benches whose baseline evaluates eqs. 8-9 at every path (`bench_freerun`,
 `bench_modes`, `bench_scaling`, `bench_memory`, `bench_bert_scale`) pass `local=False` to `simulate_mc` /
 `GPNARX.simulate`, so their `ratio=` compares the same algorithm; `bench_mc_speed.py` compares the default
-(the checked local model) with the previous code path, and `bench_predict_e2e.py` times the `gpnarx predict`
-process against a process evaluating every path, so its ratio includes that change of algorithm.
+(the checked local model) with the previous code of the same algorithm, and `bench_predict_e2e.py` times the
+`gpnarx predict` process against a process evaluating every path, so its ratio includes that change of algorithm.
 
 """
 
@@ -111,7 +112,8 @@ METHOD_ROWS = (
      'one sequential client, same calls, same server, alternating'),
     ('`bench_mc_speed.py`',
      'Monte Carlo free run with the checked local model',
-     '`freerun_reference.simulate_mc_reference` (eqs. 8-9 at every path), same posterior, paths and seed, interleaved'),
+     'the previous product code of the same algorithm (`bench/mc_baseline.py`), same posterior, paths and seed, '
+     'interleaved; `ratio_exact=`: `freerun_reference.simulate_mc_reference` (eqs. 8-9 at every path), timed once'),
     ('`bench_realtime.py`',
      'the whole `gpnarx predict --method linear` process: real-time factor',
      'the same process with the reference linearised loop, alternating'),
