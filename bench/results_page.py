@@ -19,6 +19,7 @@ RUNS = ROOT / "docs" / "runs"
 SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/full.txt", "Full-size runs", None),
            ("bench/mc_speed.txt", "Monte Carlo with the checked local model on 2 cores (bench_mc_speed.py)", None),
+           ("bench/pinned2.txt", "Two cores of a quiet machine (bench_realtime.py, bench_mc_speed.py --whole)", None),
            ("accelerator/bench_gpu.txt", "GPU run, H100 (results: [results-accelerator.md](results-accelerator.md))",
             "bench/bench_gpu.py (commands: docs/runs/accelerator/run.json)"),
            ("accelerator/h200/bench_gpu.txt", "GPU run, H200",
