@@ -249,7 +249,7 @@ def test_novelty_card_explains_a_probe_mismatch(page, live_monitor, tmp_path, sh
     shown = run_in_page(page)
     with httpx.Client(base_url=live_monitor, timeout=120) as c:
         rec = c.post("/v1/records/parse", files=[("files", (path.name, path.read_bytes()))]).json()
-        body = {"u": rec["u"], "y": rec["y"], "fs": FS, "mc_paths": 64, "seed": 0, "confidence": 0.99, "method": "mc"}
+        body = {"u": rec["u"], "y": rec["y"], "fs": FS, "seed": 0, "confidence": 0.99, "method": "mc"}
         api = c.post("/v1/models/monitor/versions/1/novelty", json=body).json()
     assert api["verdict"] == "unjudged" and api["probe_match"] is False and "probe" in api["out_of_range"]
     assert shown["verdict"] == shown["shown"] == "unjudged"
