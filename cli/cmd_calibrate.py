@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 
+from gpnarx.cli.cmd_predict import add_fs_argument
 from gpnarx.cli.errors import CLIError, UsageError
 
 
@@ -28,9 +29,7 @@ def add_parser(sub):
     p.add_argument("--mc", type=int, default=None,
                    help="Monte Carlo paths per record (default: the model's for novelty, as 'gpnarx novelty' and the "
                         "HTTP service use)")
-    p.add_argument("--fs", type=float, default=None,
-                   help="sampling frequency [Hz] of record files that hold none (a CSV without a time column, an "
-                        "NPY); checked against a file's own fs otherwise")
+    add_fs_argument(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the first record's paths (record k: seed + k)")
     p.add_argument("--method", choices=("mc", "linear"), default="mc", help="uncertainty propagation")
     p.add_argument("--score-method", choices=("rms_standardised_residual", "segment_median_rms"), default=None,

@@ -24,9 +24,7 @@ def _common(p):
     p.add_argument("--mc", type=int, default=None,
                    help="Monte Carlo paths (default: the model's, as the HTTP service and /ui use: see 'gpnarx "
                         "models' / GET /v1/models/NAME default_mc_paths)")
-    p.add_argument("--fs", type=float, default=None,
-                   help="sampling frequency [Hz] of a record file that holds none (a CSV without a time column, "
-                        "an NPY); checked against the file's own fs otherwise")
+    add_fs_argument(p)
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
     p.add_argument("--method", choices=("mc", "linear"), default=None,
                    help="uncertainty propagation (default: the model's, see 'gpnarx models' / GET /v1/models/NAME "
@@ -101,6 +99,14 @@ def resolve_registry(registry, name: str | None = None):
     if name not in DEFAULT_BUNDLES:
         return default_registry_dir()
     return ensure_default_registry(progress=True, names=[n for n in (DERIVED.get(name), name) if n])
+
+
+def add_fs_argument(parser) -> None:
+    """``--fs HZ`` on ``parser``: the sampling frequency of record files that hold none, read by
+    ``read_cli_record`` (the one declaration of predict, loops, novelty, calibrate, predict-many and stream)."""
+    parser.add_argument("--fs", type=float, default=None,
+                        help="sampling frequency [Hz] of record files that hold none (a CSV without a time column, "
+                             "an NPY); checked against a file's own fs otherwise")
 
 
 def read_cli_record(path, fs=None):

@@ -25,6 +25,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from gpnarx.cli.cmd_predict import add_fs_argument
 from gpnarx.cli.errors import CLIError, UsageError
 from gpnarx.storage.atomicio import write_atomic
 
@@ -47,9 +48,7 @@ def add_parser(sub):
                                                        "cores; default 1: one record after the other)")
     p.add_argument("--mc", type=int, default=None,
                    help="Monte Carlo paths (default: the model's, as 'gpnarx predict' and the HTTP service)")
-    p.add_argument("--fs", type=float, default=None,
-                   help="sampling frequency [Hz] of record files that hold none (a CSV without a time column, an "
-                        "NPY); checked against a file's own fs otherwise")
+    add_fs_argument(p)
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths (the same for every "
                                                        "record, as 'gpnarx predict --seed')")
     p.add_argument("--method", choices=("mc", "linear"), default=None,

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from gpnarx.cli.cmd_predict import add_fs_argument
 from gpnarx.cli.errors import CLIError, UsageError
 from gpnarx.model.envelope import assess
 
@@ -30,9 +31,7 @@ def add_parser(sub):
                    help="uncertainty propagation (default: the model's default for predict)")
     p.add_argument("--mc", type=int, default=None,
                    help="Monte Carlo paths (default: the model's, as 'gpnarx predict' and the HTTP service)")
-    p.add_argument("--fs", type=float, default=None,
-                   help="sampling frequency [Hz] of a record file that holds none (a CSV without a time column, an "
-                        "NPY); checked against the file's own fs otherwise")
+    add_fs_argument(p)
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
     p.add_argument("--window", type=int, default=8,
                    help="chunks in the rolling novelty window (default 8)")

@@ -97,3 +97,25 @@ def test_csv_without_time_needs_fs(setup, tmp_path, capsys):
     assert r.status_code == 422 and r.json()["field"] == "fs", r.text
     r = client.post("/v1/records/parse", files=[("files", ("no_time.csv", csv.read_bytes()))], data={"fs": str(FS)})
     assert r.status_code == 200 and r.json()["fs"] == FS, r.text
+
+
+def test_every_record_command_declares_the_same_fs_option(monkeypatch):
+    """--fs is declared once (cli.cmd_predict.add_fs_argument) for every command that reads record files: the
+    same help text everywhere, and the same refusal of a non-positive value."""
+    import argparse
+
+    from gpnarx.cli import cmd_predict
+    from gpnarx.cli.main import build_parser
+
+    calls = []
+    real = cmd_predict.add_fs_argument
+    for mod in ("cmd_predict", "cmd_calibrate", "cmd_predict_many", "cmd_stream"):
+        monkeypatch.setattr(f"gpnarx.cli.{mod}.add_fs_argument", lambda p, real=real: (calls.append(p.prog), real(p)))
+    parser = build_parser()
+    commands = {"predict", "loops", "novelty", "calibrate", "predict-many", "stream"}
+    assert {c.split()[-1] for c in calls} == commands, calls
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    helps = {next(a.help for a in subs[c]._actions if "--fs" in a.option_strings) for c in commands}
+    assert len(helps) == 1 and "sampling frequency [Hz]" in helps.pop()
+    with pytest.raises(Exception, match="--fs must be a finite positive"):
+        cmd_predict.read_cli_record("any.csv", fs=-1.0)
