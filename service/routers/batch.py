@@ -1,4 +1,9 @@
-"""Many records in one request: each answered or failed on its own, in order."""
+"""Many records in one request: each answered or failed on its own, in order.
+
+A large body (``bodies.OFF_LOOP_BYTES`` or more) is parsed and its records validated on a worker
+thread (``bodies.off_loop``, as the record routes do), so a flood of big batches never stalls the
+event loop; the records are then planned on the loop (cheap checks) and computed on the worker pool.
+"""
 from __future__ import annotations
 
 import logging
@@ -10,6 +15,7 @@ from pydantic import ValidationError
 
 from .. import ops
 from ..answers import answer
+from ..bodies import off_loop
 from ..deps import RECORD_PROBLEMS, V1, StateDep
 from ..problems import ProblemError, validation_problem
 from ..responses import parse_json
@@ -28,7 +34,9 @@ router = APIRouter(prefix="/v1", tags=["predict"], dependencies=V1)
              openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
                  "schema": {"$ref": "#/components/schemas/BatchRequest"}}}}})
 async def batch(request: Request, state: StateDep):
-    items = read_items(await request.body(), request.headers.get("content-type", ""), state.settings.max_batch)
+    raw = await request.body()
+    items = await off_loop(len(raw), read_items, raw, request.headers.get("content-type", ""),
+                           state.settings.max_batch)
     results, todo = await plan_items(state, items)
     if todo:
         token = CancelToken()
@@ -41,7 +49,8 @@ async def batch(request: Request, state: StateDep):
 
 
 def read_items(raw: bytes, ctype: str, max_batch: int) -> list:
-    """The records of a batch body (each still unvalidated); a ProblemError for the body as a whole."""
+    """The records of a batch body, each a validated ``BatchItem`` or the problem (a dict located at
+    ``requests.I``) that refuses it; a ProblemError for the body as a whole."""
     if ctype and "json" not in ctype.split(";")[0].lower():
         raise ProblemError(415, f"the body must be application/json, got {ctype[:100]!r}", "body")
     try:
@@ -61,21 +70,25 @@ def read_items(raw: bytes, ctype: str, max_batch: int) -> list:
     if len(items) > max_batch:
         raise ProblemError(413, f"requests holds {len(items)} records; the limit is {max_batch} per batch",
                            "requests", limit=max_batch)
-    return items
+    out: list = []
+    for i, item in enumerate(items):
+        try:
+            out.append(BatchItem.model_validate(item))
+        except ValidationError as exc:
+            out.append(validation_problem(list(exc.errors())).to_dict(f"requests.{i}"))
+    return out
 
 
 async def plan_items(state, items: list) -> tuple[list, list]:
-    """(results with each refused record's problem in its slot, [(slot, plan, request)] to compute); the
-    records share one Monte Carlo work budget."""
+    """(results with each refused record's problem in its slot, [(slot, plan, request)] to compute) of
+    ``read_items``' records; the records share one Monte Carlo work budget."""
     results: list = [None] * len(items)
     todo = []
     budget = state.settings.max_mc_work
-    for i, item in enumerate(items):
+    for i, req in enumerate(items):
         prefix = f"requests.{i}"
-        try:
-            req = BatchItem.model_validate(item)
-        except ValidationError as exc:
-            results[i] = validation_problem(list(exc.errors())).to_dict(prefix)
+        if not isinstance(req, BatchItem):  # refused by validation: its problem
+            results[i] = req
             continue
         try:
             bundle = await state.alookup(req.model, req.version)

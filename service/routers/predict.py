@@ -4,32 +4,27 @@ from __future__ import annotations
 import time
 
 from fastapi import APIRouter, Request
-from fastapi.exceptions import RequestValidationError
 from fastapi.routing import APIRoute
-from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response
 
 from .. import ops
 from ..answers import checked
+from ..bodies import declared_length, is_large, off_loop, parse_or_none, validated
 from ..deps import RECORD_PROBLEMS, V1, NameP, StateDep, VersionP
-from ..responses import JSONBytesResponse, parse_json
+from ..responses import JSONBytesResponse
 from ..schemas import LoopsResponse, NoveltyRequest, NoveltyResponse, PredictResponse, RecordRequest
 from ..state import ServiceState
 from ..wire import NPZ_MEDIA_TYPE, npz_request_fields, render_npz, wants_npz
 from ..worker import CancelToken
-
-#: JSON bodies at least this long [bytes] are parsed and validated on a thread, off the event loop (a flood of
-#: large bodies then never stalls the loop, so /health/live and small requests keep answering)
-OFF_LOOP_BYTES = 64 * 1024
 
 
 class RecordRoute(APIRoute):
     """A record route that also takes an NPZ body (``service.wire``): the archive's arrays and the
     query's fields become the JSON body the route's schema validates (same limits, same problems).
 
-    A large body (JSON of at least ``OFF_LOOP_BYTES``, or NPZ) is read and validated by the route's body
-    model on a worker thread (``starlette.concurrency.run_in_threadpool``); FastAPI is handed the validated
+    A large body (JSON of at least ``bodies.OFF_LOOP_BYTES``, or NPZ) is read and validated by the route's body
+    model on a worker thread (``service.bodies``); FastAPI is handed the validated
     model, which it takes as it is. A validation error is raised as FastAPI raises it (the same problem);
     a JSON body that does not parse goes FastAPI's own way (the same 400).
     """
@@ -40,17 +35,18 @@ class RecordRoute(APIRoute):
 
         async def route_handler(request: Request) -> Response:
             ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+            size = declared_length(request)
             if ctype == NPZ_MEDIA_TYPE:
                 settings = request.app.state.service.settings
                 fields = await run_in_threadpool(npz_request_fields, await request.body(), request.query_params,
                                                  settings.max_body_bytes, settings.max_samples)
-            elif ctype == "application/json" and _declared_length(request) >= OFF_LOOP_BYTES:
-                fields = await run_in_threadpool(_parse_or_none, await request.body())
+            elif ctype == "application/json" and is_large(size):
+                fields = await off_loop(size, parse_or_none, await request.body())
                 if fields is None:  # not JSON: FastAPI answers it (400, its message)
                     return await handler(request)
             else:
                 return await handler(request)
-            body = await run_in_threadpool(_validated, model, fields)
+            body = await run_in_threadpool(validated, model, fields)
             headers = [(k, v) for k, v in request.scope["headers"] if k.lower() != b"content-type"]
             scope = {**request.scope, "headers": [*headers, (b"content-type", b"application/json")],
                      "query_string": b""}
@@ -60,29 +56,6 @@ class RecordRoute(APIRoute):
             return await handler(as_json)
 
         return route_handler
-
-
-def _declared_length(request: Request) -> int:
-    try:
-        return int(request.headers.get("content-length", "0"))
-    except ValueError:
-        return 0
-
-
-def _parse_or_none(raw: bytes):
-    try:
-        return parse_json(raw)
-    except ValueError:
-        return None
-
-
-def _validated(model, fields):
-    """``fields`` validated by the body ``model``; FastAPI's ``RequestValidationError`` (located in the body)
-    otherwise."""
-    try:
-        return model.model_validate(fields)
-    except ValidationError as exc:
-        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in exc.errors()]) from None
 
 
 router = APIRouter(prefix="/v1", tags=["predict"], dependencies=V1, route_class=RecordRoute)
