@@ -54,13 +54,9 @@ from .state import ServiceState
 from .telemetry import Telemetry
 from .tracing import instrument as instrument_tracing
 from .ui import STATIC_DIR
+from .wire import GZIP_LEVEL, GZIP_MIN_BYTES
 
 log = logging.getLogger("gpnarx.service")
-
-#: answers at least this long [bytes] are gzip-compressed for a client that sends Accept-Encoding: gzip
-GZIP_MIN_BYTES = 1024
-#: zlib level of those answers (1: fastest)
-GZIP_LEVEL = 1
 
 
 def limit_blas_threads(n: int) -> None:

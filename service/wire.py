@@ -1,4 +1,5 @@
-"""Wire formats beyond JSON: NPZ request bodies and answers, ETags and conditional GETs.
+"""Wire formats beyond JSON: NPZ request bodies and answers, ETags and conditional GETs (and the gzip
+settings of answers, applied by ``service.app``).
 
 NPZ request bodies (``content-type: application/x-npz``) on the record routes (predict, loops,
 novelty): the archive holds the arrays ``u``, ``y``, ``y0`` (1-D, integer or floating point) and
@@ -32,6 +33,10 @@ import numpy as np
 
 from .problems import ProblemError
 
+#: answers at least this long [bytes] are gzip-compressed for a client that sends Accept-Encoding: gzip
+GZIP_MIN_BYTES = 1024
+#: zlib level of those answers (1: fastest)
+GZIP_LEVEL = 1
 NPZ_MEDIA_TYPE = "application/x-npz"
 #: arrays an NPZ request body may hold
 NPZ_ARRAYS = ("u", "y", "y0")

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -240,6 +241,11 @@ def test_openapi_documents_the_wire_formats(client):
     for path in ("/v1/models/{name}/versions/{version}", "/v1/models/{name}/versions/{version}/report"):
         get = doc["paths"][path]["get"]
         assert "304" in get["responses"] and "ETag" in get["responses"]["200"]["headers"]
+    # gzip is negotiated per request, not per route: the document's description says when it applies
+    from gpnarx.service.wire import GZIP_MIN_BYTES
+
+    assert f"{GZIP_MIN_BYTES} bytes or more is gzip-compressed" in doc["info"]["description"]
+    assert "Accept-Encoding: gzip" in doc["info"]["description"]
 
 
 def test_npz_body_with_stream_query_fields(client):
@@ -252,3 +258,20 @@ def test_npz_body_with_stream_query_fields(client):
     r2 = post_npz(client, npz(u=u, fs=FS), f"?method=linear&state={token}")
     assert r2.status_code == 200, r2.text
     assert r2.json()["start"] == "state"
+
+
+def test_docs_wire_table_is_the_render_of_its_stored_run():
+    """docs/api.md's table of one 64 s predict answer as JSON, gzip JSON and NPZ is bench/bench_wire.py's render
+    of the stored run docs/runs/bench/wire.txt (re-render: ``python bench/bench_wire.py --render docs/api.md``)."""
+    import importlib.util
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("bench_wire", root / "bench" / "bench_wire.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    about, command, kv = bench.stored_run()
+    assert int(kv["samples"]) == 65536 and "--seconds 64" in command  # the issue's 64 s record at 1024 Hz
+    assert int(kv["json_bytes"]) > int(kv["npz_bytes"]) > 0 and int(kv["json_bytes"]) > int(kv["gzip_bytes"]) > 0
+    page = (root / "docs" / "api.md").read_text()
+    block = page[page.index(bench.BEGIN):page.index(bench.END) + len(bench.END)]
+    assert block == bench.render(about, command, kv), "docs/api.md's wire table differs from its stored run's render"
