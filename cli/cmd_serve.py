@@ -3,7 +3,7 @@
 ::
 
     gpnarx serve [--registry DIR] [--host 127.0.0.1] [--port 8000] [--workers N] [--queue N]
-                 [--log-level info]
+                 [--log-level info] [--build-jobs N]
     gpnarx export-openapi [--out openapi/openapi.json]
 
 ``serve`` runs the HTTP service (``service.app``) with uvicorn over a registry: a folder or an
@@ -13,10 +13,11 @@ on one registry pick up new versions by themselves, and keeps at most ``$GPNARX_
 built in memory (``service.settings``). Without
 ``--registry`` the default registry is used (``$GPNARX_REGISTRY`` or ~/.cache/gpnarx/registry):
 the port opens at once and the missing default bundles (``$GPNARX_DEFAULTS`` limits them) are
-built in the background, lightest first, each loaded as soon as it is written
-(``cli.startup``); ``/health/ready`` lists them under ``startup``. Bounds and the optional API key come from
-``GPNARX_*`` environment variables (``service.settings``); ``--workers``/``--queue`` override
-GPNARX_WORKERS/GPNARX_QUEUE_SIZE. SIGHUP rescans the registry (like ``POST /v1/admin/reload``).
+built in the background, lightest first, as many at once as there are cores (``--build-jobs``), each
+loaded as soon as it is written (``cli.startup``); ``/health/ready`` lists them under ``startup``. Bounds
+and the optional API key come from ``GPNARX_*`` environment variables (``service.settings``);
+``--workers``/``--queue`` override GPNARX_WORKERS/GPNARX_QUEUE_SIZE. SIGHUP rescans the registry (like
+``POST /v1/admin/reload``).
 SIGTERM stops accepting connections and lets running requests finish for ``$GPNARX_DRAIN_TIMEOUT``
 seconds (default ``GPNARX_REQUEST_TIMEOUT`` + 10 s); a request still running then is answered 503
 with ``Retry-After``. Slow or idle clients are cut: ``$GPNARX_HEADER_TIMEOUT``, ``$GPNARX_BODY_TIMEOUT``,
@@ -53,6 +54,9 @@ def add_parser(sub):
     p.add_argument("--workers", type=int, default=None, help="prediction worker threads (GPNARX_WORKERS)")
     p.add_argument("--queue", type=int, default=None, help="jobs allowed to wait for a worker (GPNARX_QUEUE_SIZE)")
     p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    p.add_argument("--build-jobs", type=int, default=None, metavar="N",
+                   help="default bundles built at once on an empty default registry (default: the available "
+                        "cores, at most 4)")
     p.set_defaults(func=run_serve)
 
     q = sub.add_parser("export-openapi", help="write the service's OpenAPI document")
@@ -91,12 +95,16 @@ def _log(msg: str) -> None:
     log.info(msg)
 
 
-def _builder(root: Path, plan: dict):
-    """The background builder of the missing defaults (``cli.startup``); started by run_serve."""
-    from gpnarx.cli.startup import ChildBuild, DefaultBuilder
+def _builder(root: Path, plan: dict, jobs: int | None = None):
+    """The background builder of the missing defaults (``cli.startup``), ``jobs`` builds at a time (default
+    ``build_jobs``: the available cores); started by run_serve."""
+    from gpnarx.cli.startup import ChildBuild, DefaultBuilder, available_cores, build_jobs
+    from gpnarx.training.defaults import DERIVED
 
-    return DefaultBuilder(plan["missing"], ChildBuild(root, log=log.info),
-                          present=plan["present"], skipped=plan["skipped"], log=_log)
+    jobs = jobs or build_jobs(len(plan["missing"]))
+    threads = max(1, available_cores() // jobs) if jobs > 1 else None
+    return DefaultBuilder(plan["missing"], ChildBuild(root, log=log.info, threads=threads),
+                          present=plan["present"], skipped=plan["skipped"], log=_log, jobs=jobs, depends=DERIVED)
 
 
 def _loader(state):
@@ -112,6 +120,8 @@ def _loader(state):
 def run_serve(args):
     if not 0 < args.port < 65536:
         raise UsageError(f"--port must be between 1 and 65535, got {args.port}")
+    if args.build_jobs is not None and args.build_jobs < 1:
+        raise UsageError(f"--build-jobs must be at least 1, got {args.build_jobs}")
     # start-up: the server and the app (FastAPI) only when serving (see gpnarx.cli)
     import uvicorn
 
@@ -126,7 +136,7 @@ def run_serve(args):
                                      sighup_reload=True)
     except (TypeError, ValueError) as exc:
         raise CLIError(str(exc)) from None
-    builder = _builder(root, plan) if plan is not None else None
+    builder = _builder(root, plan, args.build_jobs) if plan is not None else None
     try:
         app = create_app(root, settings, startup_status=builder.status if builder is not None else None)
     except OSError as exc:  # e.g. an object-store URL whose package is not installed

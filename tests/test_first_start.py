@@ -169,6 +169,58 @@ def test_builder_lightest_first_ready_transitions_failure_and_rescan(tmp_path):
     assert set(builder.seconds) == {"bouc-wen", "bert-standin-monitor"}
 
 
+def test_parallel_builder_runs_independent_builds_together_and_a_derived_one_after_its_source(tmp_path):
+    """jobs=2: the two lightest defaults build at once; bert-real-monitor (derived from bert-real) waits for
+    bert-real even when a slot is free, and a derived default whose source failed fails without a build."""
+    root = tmp_path / "reg"
+    root.mkdir()
+    names = list(defaults.DEFAULT_BUNDLES)
+    fake = GatedBuild(root, fail={"bert-standin-monitor"})
+    builder = DefaultBuilder(names, fake, jobs=2, depends=defaults.DERIVED).start()
+    _wait(lambda: sorted(fake.order) == ["bert-standin", "bouc-wen"], what="two builds started")
+    assert builder.status()["building"] == ["bouc-wen", "bert-standin"]
+    assert builder.status()["pending"] == ["bert-standin-monitor", "bert-real", "bert-real-monitor"]
+    fake.gate("bouc-wen").set()
+    _wait(lambda: len(fake.order) == 3, what="the freed slot taken")
+    assert fake.order[2] == "bert-standin-monitor"
+    fake.gate("bert-standin").set()
+    _wait(lambda: len(fake.order) == 4, what="bert-real started")
+    time.sleep(0.3)  # a slot is free (bert-standin done), but the monitor's source is still building
+    assert fake.order[3] == "bert-real" and "bert-real-monitor" not in fake.order
+    assert builder.status()["pending"] == ["bert-real-monitor"]
+    fake.gate("bert-real").set()
+    _wait(lambda: "bert-real-monitor" in fake.order, what="the derived build started after its source")
+    for name in names:
+        fake.gate(name).set()
+    assert builder.join(30)
+    st = builder.status()
+    assert st["done"] and st["failed"] == ["bert-standin-monitor"] and len(st["built"]) == 4
+
+    # a source that fails: its derived default is failed too, never built
+    fake2 = GatedBuild(tmp_path / "reg2", fail={"bert-real"})
+    (tmp_path / "reg2").mkdir()
+    fake2.gate("bert-real").set()
+    b2 = DefaultBuilder(["bert-real", "bert-real-monitor"], fake2, jobs=2, depends=defaults.DERIVED).start()
+    assert b2.join(30)
+    assert fake2.order == ["bert-real"]
+    assert b2.status()["failed"] == ["bert-real", "bert-real-monitor"]
+    assert b2.status()["reasons"]["bert-real-monitor"] == "derived from bert-real, which failed"
+    with pytest.raises(ValueError, match="jobs must be at least 1"):
+        DefaultBuilder(names, fake, jobs=0)
+
+
+def test_build_jobs_follow_the_cores_and_children_share_them(monkeypatch):
+    from gpnarx.cli import startup
+
+    monkeypatch.setattr(startup, "available_cores", lambda: 2)
+    assert startup.build_jobs() == 2 and startup.build_jobs(1) == 1
+    monkeypatch.setattr(startup, "available_cores", lambda: 64)
+    assert startup.build_jobs() == startup.MAX_BUILD_JOBS
+    env = ChildBuild("/r", env={"PATH": "/bin", "OMP_NUM_THREADS": "3"}, threads=1).child_env()
+    assert env["OPENBLAS_NUM_THREADS"] == "1" and env["OMP_NUM_THREADS"] == "3" and env["PATH"] == "/bin"
+    assert ChildBuild("/r", env={"PATH": "/bin"}).child_env() == {"PATH": "/bin"}
+
+
 def test_builder_marks_a_bundle_that_does_not_load_as_failed(tmp_path):
     root = tmp_path / "reg"
     root.mkdir()
@@ -353,7 +405,8 @@ defaults.ensure_default_registry(root, progress=False, names=["bouc-wen"], log=l
 def test_two_processes_on_one_empty_registry_build_each_default_once(tmp_path):
     """Two processes that start on the same empty registry at once (two servers, or a server and
     build-defaults) build a default once: the build plan is made under an exclusive lock of the registry
-    (training.defaults.build_lock), so the second waits, says so, and then finds the bundle present."""
+    (training.defaults.build_lock, one lock per default), so the second waits, says so, and then finds the bundle
+    present."""
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     procs = [subprocess.Popen([sys.executable, "-c", _RACER, str(tmp_path), k], stdout=subprocess.PIPE, text=True,
                               env=env) for k in "ab"]
@@ -361,4 +414,4 @@ def test_two_processes_on_one_empty_registry_build_each_default_once(tmp_path):
     assert [p.returncode for p in procs] == [0, 0]
     assert len(list(tmp_path.glob("build-*"))) == 1, outs  # one build, not two
     assert sum("waiting for it" in o for o in outs) == 1, outs
-    assert (tmp_path / defaults.LOCK_FILE).is_file() and defaults.Registry(tmp_path).scan().refused == []
+    assert (tmp_path / defaults.lock_file("bouc-wen")).is_file() and defaults.Registry(tmp_path).scan().refused == []

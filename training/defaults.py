@@ -35,9 +35,9 @@ from gpnarx.training.config import bert_data_dir
 from gpnarx.training.pipeline import train
 from gpnarx.training.real_monitor import build_real_monitor
 
-__all__ = ["CONFIG_DIR", "DEFAULT_BUNDLES", "DEFAULT_MC", "LIGHT_METHOD", "build_default", "default_names",
-           "default_registry_dir", "ensure_default_registry", "plan_defaults", "shipped_config",
-           "shipped_config_names"]
+__all__ = ["CONFIG_DIR", "DEFAULT_BUNDLES", "DEFAULT_MC", "LIGHT_METHOD", "build_default", "build_lock",
+           "default_names", "default_registry_dir", "ensure_default_registry", "lock_file", "plan_defaults",
+           "shipped_config", "shipped_config_names"]
 
 #: build order, lightest first (first start on 2 cores: docs/benchmarks.md)
 DEFAULT_BUNDLES = ("bouc-wen", "bert-standin", "bert-standin-monitor", "bert-real", "bert-real-monitor")
@@ -49,7 +49,6 @@ DEFAULT_MC = 128
 #: report method of a default build; absent: the config's own (``[predict] method``)
 LIGHT_METHOD = {"bouc-wen": "linear", "bert-standin": "linear"}
 DEFAULTS_ENV = "GPNARX_DEFAULTS"
-LOCK_FILE = ".defaults.lock"  # in the registry root; the scan ignores files there
 
 
 def default_registry_dir() -> Path:
@@ -122,34 +121,43 @@ def ensure_default_registry(path=None, progress: bool = True, names=None, mc_pat
     root.mkdir(parents=True, exist_ok=True)
     if log is None and progress:
         log = lambda m: print(f"[gpnarx] {m}", file=sys.stderr, flush=True)  # noqa: E731
-    with build_lock(root, log):
-        plan = plan_defaults(root, names)  # after the lock: another process may have built some meanwhile
-        for name, why in plan["skipped"].items():
-            if log:
-                log(f"{why}: skipping {name}")
-        for name in plan["missing"]:
+    plan = plan_defaults(root, names)
+    for name, why in plan["skipped"].items():
+        if log:
+            log(f"{why}: skipping {name}")
+    for name in plan["missing"]:
+        with build_lock(root, log, name):
+            # under the lock: another process (a server's parallel builds, build-defaults) may have built it
+            if name in plan_defaults(root, [name])["present"]:
+                continue
             if log:
                 log(f"building default bundle {name} into {root} (first use only)")
             build_default(name, root, progress=progress, log=log, mc_paths=mc_paths)
     return root
 
 
+def lock_file(name: str) -> str:
+    """The lock file of default ``name``'s build, in the registry root (the scan ignores files there)."""
+    return f".defaults-{name}.lock"
+
+
 @contextlib.contextmanager
-def build_lock(root: Path, log=None):
-    """Hold ``ROOT/.defaults.lock`` (an exclusive ``flock``) while defaults are planned and built, so two
+def build_lock(root: Path, log=None, name: str = "defaults"):
+    """Hold ``ROOT/.defaults-NAME.lock`` (an exclusive ``flock``) while default ``name`` is built, so two
     processes starting on the same empty registry (two ``gpnarx serve``, or a server and a
-    ``build-defaults``) build each default once: the second waits, then finds the bundles present. The
-    lock is the kernel's, released when its holder exits, even killed. Without ``fcntl`` (not POSIX) the
-    build runs unlocked."""
+    ``build-defaults``) build each default once: the second waits, then finds the bundle present. One
+    lock per default, so different defaults build at the same time (``gpnarx serve`` builds them in
+    parallel, ``cli.startup``). The lock is the kernel's, released when its holder exits, even killed.
+    Without ``fcntl`` (not POSIX) the build runs unlocked."""
     if fcntl is None:  # pragma: no cover - POSIX is where the service runs
         yield
         return
-    with open(root / LOCK_FILE, "a+") as fh:
+    with open(Path(root) / lock_file(name), "a+") as fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             if log:
-                log(f"another process is building defaults into {root}: waiting for it")
+                log(f"another process is building {name} into {root}: waiting for it")
             fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             yield
