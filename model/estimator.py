@@ -187,7 +187,7 @@ class GPNARX(BaseEstimator):
         check_constant_cap(self.constant_cap)
         self.fit_backend = check_backend(self.fit_backend, "fit_backend")
 
-    def fit(self, records, theta: np.ndarray | None = None, heldout=None) -> "GPNARX":
+    def fit(self, records, theta: np.ndarray | None = None, heldout=None, progress=None) -> "GPNARX":
         """Learn standardisation, hyperparameters (ML-II, eq. 13) and the posterior.
 
         records: Record objects or (u, y) pairs; each must have more than max(ny, nu-1) samples.
@@ -196,8 +196,11 @@ class GPNARX(BaseEstimator):
             sigma_y^2 is raised to the held-out maximum-likelihood value of their one-step residuals
             (``model.heldout_noise``; never below ML-II's) and the posterior is rebuilt with it. The
             ML-II value stays in ``noise_var_ml2_``; ``noise_calibration_`` records what was done.
+        progress: optional callable taking one line of text (``print`` will do): the regressor rows, ML-II's
+            evaluations as it goes (``ml2.fit_ml2``) and the posterior; the fit does not depend on it.
         """
         self._check_params()
+        say = progress or (lambda line: None)
         t0 = time.perf_counter()
         pairs = _as_pairs(records)
         held = None
@@ -220,13 +223,17 @@ class GPNARX(BaseEstimator):
         Ys = (Y - self.y_scaler_.mean_[0]) / self.y_scaler_.scale_[0]
         rows = select_rows(Ys, rec_idx, self.max_train_points, self.selection, self.seed)
         Xt, Yt = Xs[rows], Ys[rows]
+        say(f"regressors: {X.shape[0]} rows from {len(pairs)} record(s) (ny={self.ny}, nu={self.nu}); "
+            f"ML-II on {Xt.shape[0]} of them")
         # ML-II and the posterior mean use the uncapped kernel (eqs. 13, 8); the variance its capped copy
         self.kernel_ = make_kernel(self.kernel) if isinstance(self.kernel, str) else self.kernel.for_posterior(None)
         if theta is None:
             sub = default_warm_start_subset(Xt.shape[0])
             res = fit_ml2(self.kernel_, Xt, Yt, n_restarts=int(self.n_restarts), seed=int(self.seed),
-                          warm_start_subset=sub, hold_redundant=sub is not None, backend=self.fit_backend)
+                          warm_start_subset=sub, hold_redundant=sub is not None, backend=self.fit_backend,
+                          progress=progress)
             self.theta_, self.nlml_, self.ml2_restarts_ = res.theta, res.nlml, res.restarts
+            say(f"ML-II done: NLML {res.nlml:.6g} nats after {res.n_evals} evaluations, {res.seconds:.0f} s")
         else:
             theta = np.asarray(theta, dtype=float)
             self.kernel_.set_theta(theta[:-1])
@@ -257,6 +264,7 @@ class GPNARX(BaseEstimator):
         self.n_train_ = int(Xt.shape[0])
         self.n_rows_ = int(X.shape[0])
         self.fit_seconds_ = time.perf_counter() - t0
+        say(f"fitted: {self.mode} posterior on {self.n_train_} rows in {self.fit_seconds_:.0f} s")
         return self
 
     def _calibrate_noise(self, pairs, build) -> None:

@@ -300,6 +300,29 @@ def nlml_objective(backend: str = "numpy"):
     return _nlml_jax if backend == "jax" else nlml_and_grad
 
 
+#: ML-II evaluations between two progress lines of ``fit_ml2``
+PROGRESS_EVERY = 10
+
+
+class _Reporting:
+    """An ML-II objective that also reports its progress (``fit_ml2``'s ``progress``) every
+    ``PROGRESS_EVERY`` evaluations; the values and gradients are the objective's own."""
+
+    def __init__(self, fun, progress, t0: float):
+        self.fun, self.progress, self.t0 = fun, progress, t0
+        self.n, self.best = 0, float("inf")
+
+    def __call__(self, theta, kernel, X, y, ws):
+        out = self.fun(theta, kernel, X, y, ws)
+        self.n += 1
+        if np.isfinite(out[0]):
+            self.best = min(self.best, float(out[0]))
+        if self.n % PROGRESS_EVERY == 0:
+            self.progress(f"ML-II (eq. 13) on {X.shape[0]} rows: {self.n} evaluations, best NLML {self.best:.6g} "
+                          f"nats, {time.perf_counter() - self.t0:.0f} s")
+        return out
+
+
 def _workspace(backend: str, kernel: Kernel, X: np.ndarray):
     return None if backend == "jax" else NLMLWorkspace(kernel, X)
 
@@ -322,6 +345,7 @@ def fit_ml2(
     hold_redundant: bool = False,
     stall_evals: int | None = 10,
     backend: str = "numpy",
+    progress=None,
 ) -> MLIIResult:
     """ML-II: maximise eq. (13) by L-BFGS-B over log-hyperparameters, with seeded restarts.
 
@@ -347,6 +371,9 @@ def fit_ml2(
     backend: 'numpy' (the ``NLMLWorkspace``) or 'jax' (``ml2_jax.nlml_and_grad_jax``: the same objective
     compiled for the JAX device, for N of 10-20 thousand rows on a GPU); the optimiser is the same.
 
+    progress: optional callable taking one line of text, called every ``PROGRESS_EVERY`` evaluations
+    (rows, evaluations so far, best NLML [nats], seconds); the result does not depend on it.
+
     The kernel is left at the best hyperparameters; returns the best theta (kernel
     log-parameters then log sigma_y^2), its NLML and evaluation counts.
     """
@@ -360,18 +387,19 @@ def fit_ml2(
             bounds[j] = (float(base[j]), float(base[j]))  # L-BFGS-B keeps a variable with equal bounds fixed
     n = X.shape[0]
     sub_evals = sub_rows = 0
+    objective = nlml_objective(backend) if progress is None else _Reporting(nlml_objective(backend), progress, t0)
     if warm_start_subset and 2 <= int(warm_start_subset) < n:
         rows = np.unique(np.linspace(0, n - 1, int(warm_start_subset)).astype(int))
         Xs_, ys_ = np.ascontiguousarray(X[rows]), y[rows]
         ws_sub = _workspace(backend, kernel, Xs_)
-        res_sub, _, sub_evals = multistart_lbfgsb(nlml_objective(backend), (kernel, Xs_, ys_, ws_sub), [base], bounds,
+        res_sub, _, sub_evals = multistart_lbfgsb(objective, (kernel, Xs_, ys_, ws_sub), [base], bounds,
                                                   max_iter=max_iter, stall_evals=stall_evals)
         del ws_sub
         sub_rows = rows.size
         if res_sub is not None:
             base = res_sub.x
     ws = _workspace(backend, kernel, X)
-    best, history, n_evals = multistart_lbfgsb(nlml_objective(backend), (kernel, X, y, ws), [base], bounds,
+    best, history, n_evals = multistart_lbfgsb(objective, (kernel, X, y, ws), [base], bounds,
                                                n_restarts=n_restarts, seed=seed, max_iter=max_iter,
                                                agree_tol=agree_tol, stall_evals=stall_evals)
     del ws

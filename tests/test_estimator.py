@@ -484,3 +484,17 @@ def test_estimator_docstring_example_runs():
 
     result = doctest.testmod(estimator, optionflags=doctest.ELLIPSIS)
     assert result.attempted > 0 and result.failed == 0
+
+
+def test_fit_reports_progress_without_changing_the_fit(sdof_data):
+    """fit(progress=print) says what it does while ML-II runs (the README's Python API example); the fitted
+    hyperparameters are those of a silent fit."""
+    pairs = [(sdof_data["u"][:800], sdof_data["yn"][:800])]
+    lines = []
+    a = GPNARX(ny=4, nu=4, max_train_points=400, n_restarts=0).fit(pairs, progress=lines.append)
+    b = GPNARX(ny=4, nu=4, max_train_points=400, n_restarts=0).fit(pairs)
+    assert np.array_equal(a.theta_, b.theta_)
+    assert lines[0].startswith("regressors: 796 rows from 1 record(s) (ny=4, nu=4); ML-II on 400")
+    assert any(line.startswith("ML-II (eq. 13) on 400 rows: 10 evaluations, best NLML") for line in lines), lines
+    assert any(line.startswith("ML-II done: NLML") for line in lines)
+    assert lines[-1].startswith("fitted: exact posterior on 400 rows")
