@@ -96,3 +96,21 @@ def test_unknown_model_or_version(client, op):
     assert res[0]["status"] == 404 and res[0]["field"] == "requests.0.model"
     assert res[1]["status"] == 404 and res[1]["field"] == "requests.1.version"
     assert "status" not in res[2] and res[2]["version"] == "1"
+
+
+@pytest.mark.parametrize("ctype", [None, "text/plain", "application/x-www-form-urlencoded"])
+def test_a_record_body_without_a_json_or_npz_content_type_is_a_problem_naming_the_header(client, ctype):
+    import json
+
+    body = json.dumps({"u": [0.0, 1.0, 0.5], "fs": FS}).encode()
+    headers = {} if ctype is None else {"content-type": ctype}
+    for op in OPS:
+        p = _problem(client.post(f"/v1/models/boucwen/{op}", content=body, headers=headers), 422,
+                     "content-type")
+        assert "content-type: application/json or application/x-npz" in p["detail"], p
+        assert (ctype or "no content-type header") in p["detail"]
+        assert p["accepted"] == ["application/json", "application/x-npz"]
+    # the same body with its header is answered; a +json type is JSON too
+    for good in ("application/json", "application/merged-patch+json"):
+        r = client.post("/v1/models/boucwen/predict", content=body, headers={"content-type": good})
+        assert r.status_code == 200, r.text[:300]

@@ -12,11 +12,26 @@ from .. import ops
 from ..answers import checked
 from ..bodies import declared_length, is_large, off_loop, parse_or_none, validated
 from ..deps import RECORD_PROBLEMS, V1, NameP, StateDep, VersionP
+from ..problems import ProblemError
 from ..responses import JSONBytesResponse
 from ..schemas import LoopsResponse, NoveltyRequest, NoveltyResponse, PredictResponse, RecordRequest
 from ..state import ServiceState
 from ..wire import NPZ_MEDIA_TYPE, npz_request_fields, render_npz, wants_npz
 from ..worker import CancelToken
+
+#: what a record route's body may be sent as (a ``+json`` suffix type counts as JSON, as FastAPI reads it)
+RECORD_MEDIA_TYPES = ("application/json", NPZ_MEDIA_TYPE)
+
+
+def check_content_type(ctype: str) -> None:
+    """A 422 problem naming the ``content-type`` header when a record body is sent as anything but JSON or NPZ
+    (FastAPI would otherwise not read it and answer that the body is not an object)."""
+    if ctype in RECORD_MEDIA_TYPES or (ctype.startswith("application/") and ctype.endswith("+json")):
+        return
+    got = f"'{ctype}'" if ctype else "no content-type header"
+    raise ProblemError(422, f"the body was sent with {got}; send the header content-type: "
+                            f"{' or '.join(RECORD_MEDIA_TYPES)} (a JSON record, or an NPZ archive with the "
+                            f"other fields as query parameters)", "content-type", accepted=list(RECORD_MEDIA_TYPES))
 
 
 class RecordRoute(APIRoute):
@@ -26,7 +41,8 @@ class RecordRoute(APIRoute):
     A large body (JSON of at least ``bodies.OFF_LOOP_BYTES``, or NPZ) is read and validated by the route's body
     model on a worker thread (``service.bodies``); FastAPI is handed the validated
     model, which it takes as it is. A validation error is raised as FastAPI raises it (the same problem);
-    a JSON body that does not parse goes FastAPI's own way (the same 400).
+    a JSON body that does not parse goes FastAPI's own way (the same 400). A body sent with another
+    content-type, or none, is a 422 naming the header and the accepted types (``check_content_type``).
     """
 
     def get_route_handler(self):
@@ -35,6 +51,7 @@ class RecordRoute(APIRoute):
 
         async def route_handler(request: Request) -> Response:
             ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+            check_content_type(ctype)
             size = declared_length(request)
             if ctype == NPZ_MEDIA_TYPE:
                 settings = request.app.state.service.settings
