@@ -196,3 +196,16 @@ def test_stream_state_through_the_client(client):
     assert isinstance(first.state, str) and first.state
     second = client.predict("boucwen", u=u[200:], fs=FS, method="linear", state=first.state)
     np.testing.assert_allclose(np.concatenate([first.mean, second.mean]), whole.mean, rtol=1e-9, atol=1e-12)
+
+
+def test_every_problem_type_the_service_uses_has_its_own_exception_class():
+    """A problem type added to service.problems.SLUGS without a client class would fall back to GpnarxError."""
+    from gpnarx.client.core import BY_TYPE
+    from gpnarx.service.problems import SLUGS, TYPE_BASE
+
+    assert set(BY_TYPE) == {TYPE_BASE + slug for slug in SLUGS.values()}
+    assert len(set(BY_TYPE.values())) == len(BY_TYPE)
+    for status, slug in SLUGS.items():
+        cls = BY_TYPE[TYPE_BASE + slug]
+        assert cls is not GpnarxError and issubclass(cls, GpnarxError) and cls.status == status
+        assert type(error_for({"type": TYPE_BASE + slug, "status": status, "detail": "x"})) is cls

@@ -1,5 +1,6 @@
 """Install tiers: the core install serves and predicts without the extra train's matplotlib and tqdm, and
-a local registry needs no object-storage package (the extra s3's fsspec).
+a local registry needs no object-storage package (the extra s3's fsspec); the test and lint tools are
+dependency groups, which the extra `test` lists again.
 
 A subprocess hides these packages (``sys.modules[name] = None``: every import of them fails, as in a
 core install) and then builds a small model, serves it, predicts over HTTP and with the CLI; training
@@ -10,6 +11,8 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+
+from packaging.requirements import Requirement
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -86,6 +89,39 @@ def test_pyproject_tiers():
     for name in ("scikit-learn", "joblib", "httpx"):
         assert name in core
     extras = meta["optional-dependencies"]
-    assert {"train", "client", "formats", "dask", "s3", "jax"} <= set(extras)
+    assert {"train", "client", "formats", "dask", "s3", "jax", "otel"} <= set(extras)
     assert any("matplotlib" in d for d in extras["train"]) and any("tqdm" in d for d in extras["train"])
-    assert "gpnarx[train]" in extras["test"]  # `pip install -e '.[test]'` keeps everything the tests need
+    # `pip install -e '.[test]'` keeps everything the tests need: the product's extras they exercise...
+    own = [Requirement(r) for r in extras["test"] if Requirement(r).name == "gpnarx"]
+    assert len(own) == 1 and {"train", "formats", "s3", "dask", "jax", "otel"} <= own[0].extras
+
+
+def _group(groups: dict, name: str) -> list[str]:
+    """A PEP 735 dependency group with its include-group entries expanded."""
+    out = []
+    for item in groups[name]:
+        out += _group(groups, item["include-group"]) if isinstance(item, dict) else [item]
+    return out
+
+
+def _canonical(reqs) -> list[str]:
+    return sorted(str(Requirement(r)) for r in reqs)
+
+
+def test_tools_are_dependency_groups_and_the_test_extra_lists_them_again():
+    """The test and lint tools are the PEP 735 groups `test` and `lint` (`dev` = both); the extra `test`
+    lists the same requirements (pip before 25.1 cannot install a group), and no product extra holds one."""
+    import tomllib
+
+    doc = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    groups, extras = doc["dependency-groups"], doc["project"]["optional-dependencies"]
+    tools = [r for r in extras["test"] if Requirement(r).name != "gpnarx"]
+    assert _canonical(tools) == _canonical(_group(groups, "test") + _group(groups, "lint")), (
+        "the extra `test` and the dependency groups `test` + `lint` differ: change both")
+    assert _canonical(_group(groups, "dev")) == _canonical(tools)
+    assert {"pytest", "ruff", "import-linter"} <= {Requirement(r).name for r in tools}
+    names = {Requirement(r).name for r in tools}
+    for extra, reqs in extras.items():
+        if extra != "test":
+            assert not names & {Requirement(r).name for r in reqs}, (extra, names)
+
