@@ -19,7 +19,8 @@
   could not be read), ``gpnarx_registry_held`` (1 while such a scan is held back),
   ``gpnarx_registry_held_accepted_total`` (held listings served after confirmation or an admin action),
   ``gpnarx_registry_versions_added_total`` / ``gpnarx_registry_versions_removed_total``,
-  ``gpnarx_registry_leftovers_removed_total`` (temporary folders of killed writes removed).
+  ``gpnarx_registry_leftovers_removed_total`` (what killed writes left, removed: local temporary
+  folders, unpublished versions on an object store).
 """
 from __future__ import annotations
 
@@ -74,8 +75,8 @@ class ServiceMetrics:
         self.scans_accepted = Counter("gpnarx_registry_held_accepted", "Held registry listings served after "
                                       "confirmation on consecutive scans or an admin reload with accept_removal",
                                       registry=r)
-        self.leftovers = Counter("gpnarx_registry_leftovers_removed", "Temporary folders of killed writes removed "
-                                 "from a local registry at start or by a scan", registry=r)
+        self.leftovers = Counter("gpnarx_registry_leftovers_removed", "What killed writes left, removed at start or "
+                                 "by a scan: local temporary folders, unpublished object-store versions", registry=r)
         self.leftovers.inc(getattr(state, "leftovers_removed", 0))
         self.versions_added = Counter("gpnarx_registry_versions_added", "Versions a registry scan added",
                                       registry=r)

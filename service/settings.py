@@ -192,6 +192,11 @@ class Settings(BaseSettings):
                                                   label="consecutive scans that must show the same held listing "
                                                         "before it is served (1 = at once; `POST /v1/admin/reload?"
                                                         "accept_removal=true` serves it now)")
+    registry_leftover_age: float = _setting(600.0, ge=0, allow_inf_nan=False, kind=_SECONDS, shown="600 s",
+                                            label="seconds without a new object after which a server's start or scan "
+                                                  "removes what a killed write left: an unpublished version on an "
+                                                  "object store, a `.tmp-*` folder of another host (0 = never; a "
+                                                  "folder whose writer is gone from this host goes at once)")
     max_loaded: int = _setting(8, ge=1, kind=_POSITIVE, label="built models kept in memory (least recently used "
                                                               "dropped first)")
     backend: Literal["numpy", "jax"] = _setting("numpy", kind=None, shown="numpy",
@@ -292,6 +297,11 @@ class Settings(BaseSettings):
         if self.drain_timeout is not None:
             return float(self.drain_timeout)
         return (self.request_timeout if self.request_timeout > 0 else 120.0) + DRAIN_MARGIN
+
+    @property
+    def leftover_seconds(self) -> float:
+        """Age [s] after which a scan removes a killed write's leftovers (``registry_leftover_age``; inf if 0)."""
+        return float(self.registry_leftover_age) if self.registry_leftover_age > 0 else math.inf
 
     def bounds(self) -> dict:
         """The request bounds in force (no secrets)."""

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from fastapi import Request
 
-from gpnarx.storage.bundle import BundleError, check_name, remove_stale_temps
+from gpnarx.storage.bundle import BundleError, check_name
 from gpnarx.storage.registry import Registry, check_version_ref
 from gpnarx.storage.remote import StorageError
 
@@ -40,13 +40,13 @@ class ServiceState:
         self.registry = Registry(self.registry_dir or Path("/nonexistent-gpnarx-registry"), lazy=True,
                                  max_loaded=settings.max_loaded)
         self.registry_error: str | None = None
-        self.leftovers_removed = self._clean_leftovers()
         if self.registry_dir is not None:
             try:
                 self.registry.scan()
             except StorageError as exc:  # unreachable store: not ready; the poll and reload try again
                 self.registry_error = str(exc)
                 log.error("the registry could not be read: %s", exc)
+        self.leftovers_removed = self._clean_leftovers(self.registry)
         self.executor = BoundedExecutor(settings.workers, settings.queue_size)
         self.metrics = ServiceMetrics(self)
         self.reload_lock = asyncio.Lock()
@@ -56,18 +56,20 @@ class ServiceState:
         self._pending: tuple | None = None  # (listing, consecutive scans that showed it) of a held scan
         self._reported = self._listed(self.registry)  # what the last reload answered against
 
-    def _clean_leftovers(self) -> int:
-        """Remove the temporary folders of killed writes from a local registry (``remove_stale_temps``:
-        those whose writer process is gone from this host at once, others after an hour); logged."""
-        if self.registry_dir is None or self.registry.remote:
+    def _clean_leftovers(self, registry: Registry) -> int:
+        """Remove what killed writes left in ``registry`` after its scan (``Registry.remove_leftovers``:
+        local ``NAME/.tmp-*`` folders whose writer is gone from this host at once; unpublished versions
+        on an object store, and folders of another host, once ``settings.registry_leftover_age`` old);
+        logged at WARNING. A registry this server may not write to is left as it is (logged)."""
+        if self.registry_dir is None:
             return 0
         try:
-            removed = remove_stale_temps(self.registry.root)
-        except OSError as exc:  # a read-only registry: nothing of ours to clean
-            log.info("registry: temporary folders not checked (%s)", exc)
+            removed = registry.remove_leftovers(self.settings.leftover_seconds)
+        except (OSError, StorageError) as exc:  # a read-only registry or store: nothing of ours to clean
+            log.info("registry: leftovers of killed writes not removed (%s)", exc)
             return 0
         for path in removed:
-            log.warning("registry: removed %s, the temporary folder of a killed write", path)
+            log.warning("registry: removed %s, what a killed write left", path)
         return len(removed)
 
     def refused(self, registry: Registry | None = None) -> list[dict]:
@@ -105,9 +107,8 @@ class ServiceState:
         async with self.reload_lock:
             old = self.registry
             try:
-                removed = await asyncio.to_thread(self._clean_leftovers)
-                self.metrics.leftovers.inc(removed)
                 new = await asyncio.to_thread(old.rescan)
+                self.metrics.leftovers.inc(await asyncio.to_thread(self._clean_leftovers, new))
             except StorageError as exc:
                 self.registry_error = str(exc)
                 self.metrics.scans.labels(trigger, "error").inc()

@@ -13,13 +13,20 @@ the process id and the process's start time), so a leftover ``NAME/.tmp-VERSION-
 writer process is gone from this host is removed at once by ``remove_stale_temps`` (which the
 next ``save_bundle`` of the model and every scan of a serving registry run); one of another host,
 or without a writer tag, once it is older than ``STALE_TMP_SECONDS`` (one hour, so a write in
-progress elsewhere is never touched), or at once with ``remove_stale_temps(registry, 0)``.
+progress elsewhere is never touched; a server passes its ``GPNARX_REGISTRY_LEFTOVER_AGE``), or at
+once with ``remove_stale_temps(registry, 0)``.
 Versions are positive integers, increasing; an existing version is never overwritten.
 
 A registry may also live on object storage behind an fsspec URL (``s3://bucket/prefix``,
 ``gs://...``; ``storage.remote``). There a version is published by writing its array files (and
 report) first and ``manifest.json`` last, so a version whose manifest is absent (in progress, or a
-killed write) is not listed; ``manifest.sha256`` goes just before it. Readers copy a version's
+killed write) is not listed; ``manifest.sha256`` goes just before it. The objects of a killed write
+(an unpublished version whose newest object is older than a given age: ``stale_unpublished``) are
+removed by the next write of that model (``remove_stale_remote``, after ``STALE_TMP_SECONDS``) and
+by a serving registry's start and scans (``Registry.remove_leftovers``, after the server's
+``GPNARX_REGISTRY_LEFTOVER_AGE``). A live writer uploads its objects one after another, so its newest
+object is never older than one file's upload; should its objects be removed all the same, it finds
+them gone before writing its manifest and fails instead of publishing a version without them. Readers copy a version's
 objects into a local cache, verify them against the manifest's checksums and load from there; an
 object rewritten in the store is noticed by its listing (size and ETag) and verified again.
 
@@ -265,29 +272,45 @@ def _write_new_version(registry, name: str, version, fill):
     return target
 
 
+def remote_groups(listing: dict) -> dict:
+    """{(name, version): {file: info}} of every version prefix in a store ``listing``
+    (``RemoteStore.listing``: {relative path: {size, tag, mtime}}), published or not."""
+    out: dict = {}
+    for rel, info in listing.items():
+        parts = rel.split("/")
+        if len(parts) >= 3 and NAME_RE.match(parts[0]) and VERSION_RE.match(parts[1]):
+            out.setdefault((parts[0], parts[1]), {})["/".join(parts[2:])] = info
+    return out
+
+
 def _remote_versions(store: RemoteStore, name: str) -> dict:
     """{version: {file: info}} of every version prefix of ``name`` in the store, published or not."""
-    out: dict = {}
-    for rel, info in store.listing(name).items():
-        parts = rel.split("/")
-        if len(parts) >= 3 and parts[0] == name and VERSION_RE.match(parts[1]):
-            out.setdefault(parts[1], {})["/".join(parts[2:])] = info
+    return {v: files for (n, v), files in remote_groups(store.listing(name)).items() if n == name}
+
+
+def stale_unpublished(groups: dict, older_than: float, now: float | None = None) -> list[str]:
+    """The ``NAME/VERSION/FILE`` objects of the unpublished versions (no manifest) among ``groups``
+    (``remote_groups``) whose newest object is at least ``older_than`` seconds old [s]: the leftovers
+    of killed writes. A version with an object of unknown time is never judged."""
+    import time
+
+    now = time.time() if now is None else now
+    out = []
+    for (name, version), files in sorted(groups.items()):
+        times = [i.get("mtime") for i in files.values()]
+        if MANIFEST in files or not times or any(t is None for t in times) or now - max(times) < older_than:
+            continue
+        out += [f"{name}/{version}/{fn}" for fn in sorted(files)]
     return out
 
 
 def remove_stale_remote(store: RemoteStore, name: str, older_than: float = STALE_TMP_SECONDS) -> list[str]:
-    """Remove the objects of unpublished versions (no manifest) whose newest object is at least
-    ``older_than`` seconds old: the leftovers of killed writes. Returns the removed version prefixes."""
-    import time
-
-    removed = []
-    for version, files in _remote_versions(store, name).items():
-        times = [i.get("mtime") for i in files.values()]
-        if MANIFEST in files or not times or any(t is None for t in times) or time.time() - max(times) < older_than:
-            continue
-        store.remove([f"{name}/{version}/{fn}" for fn in files])
-        removed.append(f"{name}/{version}")
-    return removed
+    """Remove the objects of ``name``'s unpublished versions (no manifest) whose newest object is at
+    least ``older_than`` seconds old: the leftovers of killed writes. Returns the removed version prefixes."""
+    objects = stale_unpublished({(name, v): f for v, f in _remote_versions(store, name).items()}, older_than)
+    if objects:
+        store.remove(objects)
+    return sorted({"/".join(o.split("/")[:2]) for o in objects})
 
 
 def _publish_remote(store: RemoteStore, name: str, version, fill) -> BundleURI:
@@ -311,10 +334,16 @@ def _publish_remote(store: RemoteStore, name: str, version, fill) -> BundleURI:
                 rel = f"{prefix}/{p.relative_to(tmp).as_posix()}"
                 store.put_file(p, rel)
                 uploaded.append(rel)
-            if f"{prefix}/{MANIFEST}" in store.listing(prefix):
+            listed = store.listing(prefix)
+            if f"{prefix}/{MANIFEST}" in listed:
                 clash = True  # another writer published this version meanwhile: leave its objects alone
                 raise BundleError(f"bundle {name}:{version} was published by another writer meanwhile at "
                                   f"{store.uri(prefix)}; give concurrent writers distinct versions")
+            gone = [rel for rel in uploaded if rel not in listed]
+            if gone:  # removed as a killed write's leftovers (an upload slower than their age): never publish
+                raise BundleError(f"bundle {name}:{version}: {len(gone)} uploaded object(s) were removed meanwhile "
+                                  f"(first {store.uri(gone[0])}), as a killed write's leftovers are; the upload "
+                                  f"took longer than the leftover age (GPNARX_REGISTRY_LEFTOVER_AGE); write again")
             store.put_file(tmp / MANIFEST_SUM, f"{prefix}/{MANIFEST_SUM}")
             uploaded.append(f"{prefix}/{MANIFEST_SUM}")
             store.put_file(tmp / MANIFEST, f"{prefix}/{MANIFEST}")  # last: the version is listed from now on

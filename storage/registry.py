@@ -41,6 +41,8 @@ from .bundle import (
     check_version,
     default_method,
     load_bundle,
+    remove_stale_temps,
+    stale_unpublished,
     verify_bundle,
 )
 from .remote import RemoteStore, StorageError, as_local, cache_dir_for
@@ -224,6 +226,7 @@ class Registry:
         self._loaded = _Loaded(max_loaded)
         self._only: str | None = None
         self._lock = threading.Lock()
+        self.unpublished: dict = {}  # object store: {(name, version): {file: info}} listed without a manifest
 
     @property
     def remote(self) -> bool:
@@ -235,6 +238,7 @@ class Registry:
             self._only
         new.bundles, new.refused, new.aliases, new._seen, new._alias_seen = {}, [], {}, {}, {}
         new._lock = threading.Lock()
+        new.unpublished = {}
         return new
 
     def scan(self, only: str | None = None) -> "Registry":
@@ -318,12 +322,37 @@ class Registry:
             if len(parts) < 3 or parts[0].startswith(".") or parts[1].startswith("."):
                 continue
             groups.setdefault((parts[0], parts[1]), {})["/".join(parts[2:])] = info
-        versions = {}
+        versions, unpublished = {}, {}
         for key, files in groups.items():
-            if MANIFEST not in files:
-                continue  # not published yet (or a killed write): not listed
+            if MANIFEST not in files:  # not published yet (or a killed write): not listed
+                if NAME_RE.match(key[0]) and VERSION_RE.match(key[1]):
+                    unpublished[key] = files
+                continue
             versions[key] = tuple(sorted((fn, i["size"], i["tag"]) for fn, i in files.items()))
+        self.unpublished = unpublished
         return versions, alias_files
+
+    def remove_leftovers(self, older_than: float) -> list[str]:
+        """Remove what killed writes left (returns what was removed, as paths or URLs).
+
+        Local: the ``NAME/.tmp-*`` folders whose writer process is gone from this host at once, the
+        others once untouched for ``older_than`` seconds (``bundle.remove_stale_temps``). Object store:
+        the objects of every version the last scan listed without a manifest whose newest object is at
+        least ``older_than`` seconds old (``bundle.stale_unpublished``; a live writer's newest object is
+        never older than one file's upload). ``older_than`` = inf: only the gone writers' folders.
+        """
+        if not self.remote:
+            return [str(p) for p in remove_stale_temps(self.root, older_than, self._only)]
+        if older_than == float("inf"):
+            return []
+        objects = stale_unpublished(self.unpublished, older_than)
+        if not objects:
+            return []
+        self.store.remove(objects)
+        prefixes = sorted({"/".join(o.split("/")[:2]) for o in objects})
+        for p in prefixes:
+            self.unpublished.pop(tuple(p.split("/")), None)
+        return [self.store.uri(p) for p in prefixes]
 
     def _verify(self, name: str, version: str, fingerprint) -> tuple:
         """(entry, None) for a valid version, (None, reason) for a refused one."""

@@ -606,16 +606,117 @@ def test_killed_write_leftover_is_removed_at_start_and_by_a_scan(tmp_path, caplo
         assert r.json()["models"] == {"boucwen": ["1", "2"], "plain": ["1"]}  # nothing half-written listed
 
 
+def test_object_store_leftovers_are_removed_by_age_at_start_and_scan(tmp_path, monkeypatch):
+    """A killed publish on an object store (a version's objects without its manifest) is removed by a
+    server's start or scan once its newest object is GPNARX_REGISTRY_LEFTOVER_AGE old; a live writer's
+    fresh objects, and objects that are no version, are kept."""
+    import time
+
+    import fsspec
+
+    from gpnarx.storage.bundle import save_bundle
+
+    monkeypatch.setenv("GPNARX_CACHE", str(tmp_path / "cache"))
+    top = f"/left-{tmp_path.name}"
+    url, fs = f"memory:/{top}", fsspec.filesystem("memory")
+    try:
+        save_bundle(built_registry().model, url, "bw", "1", fs=FS, units={"u": "N", "y": "m"})
+        fs.pipe(f"{top}/bw/2/theta.npy", b"partial")  # a calibrate killed inside its publish
+        fs.pipe(f"{top}/bw/2/report/index.html", b"partial")
+        fs.pipe(f"{top}/bw/notes/readme.txt", b"not a version: never touched")
+        app = create_app(url, _settings(registry_leftover_age=1))
+        assert fs.exists(f"{top}/bw/2/theta.npy")  # fresh at start: could be a live writer's
+        time.sleep(1.2)
+        fs.pipe(f"{top}/bw/3/theta.npy", b"a live writer's first object")
+        with TestClient(app, raise_server_exceptions=False) as c:
+            r = c.post("/v1/admin/reload")
+            assert r.status_code == 200 and r.json()["models"] == {"bw": ["1"]}
+            assert not fs.exists(f"{top}/bw/2/theta.npy") and not fs.exists(f"{top}/bw/2/report/index.html")
+            assert fs.exists(f"{top}/bw/3/theta.npy") and fs.exists(f"{top}/bw/notes/readme.txt")
+            assert "gpnarx_registry_leftovers_removed_total 1.0" in c.get("/metrics").text
+        time.sleep(1.2)
+        create_app(url, _settings(registry_leftover_age=1))  # at start too, once old enough
+        assert not fs.exists(f"{top}/bw/3/theta.npy") and fs.exists(f"{top}/bw/1/manifest.json")
+        create_app(url, _settings(registry_leftover_age=0))  # 0: never by age
+    finally:
+        if fs.exists(top):
+            fs.rm(top, recursive=True)
+
+
+def test_publisher_whose_objects_were_removed_does_not_publish(tmp_path, monkeypatch):
+    """A writer slower than the leftover age whose uploads a scan removed fails before its manifest."""
+    import fsspec
+
+    from gpnarx.storage import bundle
+    from gpnarx.storage.remote import RemoteStore
+
+    top = f"/slow-{tmp_path.name}"
+    url, fs = f"memory:/{top}", fsspec.filesystem("memory")
+    real = RemoteStore.listing
+
+    def listing(self, under=""):  # a scan removed the first uploaded object meanwhile
+        out = real(self, under)
+        if under == "bw/1" and out:
+            first = sorted(out)[0]
+            self.remove([first])
+            out.pop(first)
+        return out
+
+    monkeypatch.setattr(RemoteStore, "listing", listing)
+    try:
+        with pytest.raises(bundle.BundleError, match="removed meanwhile"):
+            bundle.save_bundle(built_registry().model, url, "bw", "1", fs=FS, units={"u": "N", "y": "m"})
+        assert not fs.exists(f"{top}/bw/1/manifest.json")
+    finally:
+        if fs.exists(top):
+            fs.rm(top, recursive=True)
+
+
+def test_local_leftover_of_another_host_is_removed_once_old(tmp_path):
+    import os
+    import time
+
+    root = copy_registry(tmp_path / "reg")
+    other = root / "boucwen" / ".tmp-7-wdeadbeefp1s1-x"  # another host's writer: judged by age only
+    other.mkdir()
+    create_app(root, _settings())
+    assert other.is_dir()
+    old = time.time() - 601
+    os.utime(other, (old, old))
+    create_app(root, _settings(registry_leftover_age=0))  # 0: never by age
+    assert other.is_dir()
+    create_app(root, _settings())  # the default 600 s
+    assert not other.exists()
+
+
 # ------------------------------------------------------------------------------------------ chaos on moto S3
 def test_chaos_two_replicas_on_moto_emptied_and_killed_store(tmp_path, monkeypatch):
-    """Two apps (replicas, each with its own cache) on one moto S3 registry: the bucket is emptied, then the
-    store is killed; neither replica answers a 5xx to a predict nor stops being ready."""
+    """Two replicas (real uvicorn servers with ``gpnarx serve``'s options, each with its own cache, an API
+    key) on one moto S3 registry. The bucket is emptied; unauthenticated 8 MiB bodies flood one replica;
+    the other is SIGTERMed in the middle of a long request; then the store is killed. No predict or
+    readiness answer is anything but 200, the long request finishes within the drain window, and the
+    flood leaves the process's memory where it was."""
+    import threading
+    import time
+
+    import httpx
+
     pytest.importorskip("s3fs")
     server_mod = pytest.importorskip("moto.server")
     import s3fs
 
+    from gpnarx.service import ops
+    from gpnarx.service.server import uvicorn_options
     from gpnarx.storage.bundle import save_bundle
 
+    real_compute = ops.compute
+
+    def compute(plan, req, token=None):  # a long request: the one with seed 99
+        if getattr(req, "seed", None) == 99:
+            time.sleep(2.0)
+        return real_compute(plan, req, token)
+
+    monkeypatch.setattr(ops, "compute", compute)
     server = server_mod.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
     server.start()
     host, port = server.get_host_and_port()
@@ -627,22 +728,23 @@ def test_chaos_two_replicas_on_moto_emptied_and_killed_store(tmp_path, monkeypat
     s3fs.S3FileSystem.clear_instance_cache()
     fs = s3fs.S3FileSystem()
     url = "s3://faults/plant"
-    stopped = False
+    key = {"X-API-Key": "k3y"}
+    stopped, replicas = False, []
     try:
         fs.mkdir("faults")
         for v in ("1", "2"):
             save_bundle(built_registry().model, url, "bw", v, fs=FS, units={"u": "N", "y": "m"})
-        clients = []
+        settings = _settings(registry_confirm_scans=3, api_key="k3y", drain_timeout=10)
         for i in range(2):
             monkeypatch.setenv("GPNARX_CACHE", str(tmp_path / f"cache-{i}"))
-            clients.append(TestClient(create_app(url, _settings(registry_confirm_scans=3)),
-                                      raise_server_exceptions=False))
+            replicas.append(LiveServer(create_app(url, settings), **uvicorn_options(settings)).__enter__())
+        clients = [httpx.Client(base_url=r.url, timeout=30, headers=key) for r in replicas]
         statuses = []
 
-        def traffic():
-            for c in clients:
-                statuses.append(c.post("/v1/models/bw/predict", json=_body()).status_code)
-                statuses.append(c.get("/health/ready").status_code)
+        def traffic(live=(0, 1)):
+            for i in live:
+                statuses.append(clients[i].post("/v1/models/bw/predict", json=_body()).status_code)
+                statuses.append(clients[i].get("/health/ready").status_code)
 
         traffic()
         fs.rm("faults/plant", recursive=True)  # the store comes back empty
@@ -651,17 +753,43 @@ def test_chaos_two_replicas_on_moto_emptied_and_killed_store(tmp_path, monkeypat
             for c in clients:
                 assert c.post("/v1/admin/reload").json()["held"]["listed"] == 0
             traffic()
+        # an unauthenticated flood on replica 0 while both serve
+        junk, flood = b"[" * (8 * 1024 * 1024), []
+        base = _rss()
+        threads = [threading.Thread(target=lambda: flood.append(_raw_post(replicas[0].port, "/v1/models/bw/predict",
+                                                                          junk))) for _ in range(16)]
+        for t in threads:
+            t.start()
+        traffic()
+        for t in threads:
+            t.join(timeout=60)
+        assert flood == [401] * 16 and (_rss() - base) / 2**20 < 64
+        # a rolling update: replica 1 gets SIGTERM while a long request runs on it; replica 0 keeps serving
+        long = {}
+        t = threading.Thread(target=lambda: long.update(r=clients[1].post("/v1/models/bw/predict",
+                                                                          json={**_body(), "seed": 99})))
+        t.start()
+        time.sleep(0.5)
+        t_stop = time.monotonic()
+        replicas[1].server.should_exit = True  # what SIGTERM does
+        traffic(live=(0,))
+        t.join(timeout=30)
+        assert long["r"].status_code == 200 and time.monotonic() - t_stop < 10  # finished in the drain window
+        replicas[1].thread.join(timeout=20)
+        assert not replicas[1].thread.is_alive()
         server.stop()  # the store is gone altogether
         stopped = True
         monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
-        for c in clients:
-            assert c.post("/v1/admin/reload").status_code == 503  # says so, and keeps serving
-        traffic()
+        assert clients[0].post("/v1/admin/reload").status_code == 503  # says so, and keeps serving
+        traffic(live=(0,))
         assert statuses and all(s == 200 for s in statuses), statuses
+        ready = clients[0].get("/health/ready").json()
+        assert ready["bundles"] == 2 and ready["registry_held"]["scans"] == 2
         for c in clients:
-            ready = c.get("/health/ready").json()
-            assert ready["bundles"] == 2 and ready["registry_held"]["scans"] == 2
+            c.close()
     finally:
+        for r in replicas:
+            r.__exit__(None, None, None)
         if not stopped:
             server.stop()
         s3fs.S3FileSystem.clear_instance_cache()
