@@ -55,6 +55,11 @@ def _component_schemas(model) -> dict:
 
 
 def build_openapi(app: FastAPI) -> dict:
+    """The app's OpenAPI document. The ``ApiKeyAuth`` security scheme (header ``X-API-Key``) is declared, on every
+    /v1 operation, only when the app's settings hold an API key (``GPNARX_API_KEY``); the committed
+    ``openapi/openapi.json`` (default settings) has none."""
+    state = getattr(app.state, "service", None)
+    keyed = bool(getattr(getattr(state, "settings", None), "api_key", None))
     doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes,
                       tags=[{"name": "predict", "description": "Predictions, loops, novelty, batch"},
                             {"name": "models", "description": "Model metadata and training reports"},
@@ -84,7 +89,8 @@ def build_openapi(app: FastAPI) -> dict:
                     resp["content"] = {PROBLEM_MEDIA_TYPE: problem_ref}
                     if code == "422":
                         resp["description"] = RECORD_PROBLEMS[422]
-            if op.get("security") and {} not in op["security"]:
-                # the key dependency (service.deps) documents the scheme; a server without a key needs none
-                op["security"] = [{}, *op["security"]]
+            if not keyed:  # with a key, the key dependency (service.deps) requires the scheme on every /v1 route
+                op.pop("security", None)
+    if not keyed:  # no key set: no scheme, so Swagger UI shows no lock and no Authorize button
+        doc["components"].pop("securitySchemes", None)
     return doc

@@ -433,6 +433,26 @@ def test_api_key(registry):
             assert "secret" not in p["detail"]
 
 
+def test_openapi_declares_the_key_scheme_only_when_a_key_is_set(registry):
+    """Without GPNARX_API_KEY the document has no security scheme (Swagger UI shows no lock on any route); with
+    one, every /v1 operation requires ApiKeyAuth (the X-API-Key header) and /health/* stay open."""
+    def ops(doc):
+        return {(path, m): op for path, item in doc["paths"].items() for m, op in item.items()}
+
+    plain = create_app(registry, settings()).openapi()
+    assert "securitySchemes" not in plain["components"] and not any("security" in op for op in ops(plain).values())
+    committed = json.loads((ROOT / "openapi" / "openapi.json").read_text())
+    assert "securitySchemes" not in committed["components"]
+    keyed = create_app(registry, settings(api_key="s3cret")).openapi()
+    assert keyed["components"]["securitySchemes"]["ApiKeyAuth"] == {
+        "type": "apiKey", "in": "header", "name": "X-API-Key",
+        "description": "Required on /v1 routes only when the server sets GPNARX_API_KEY."}
+    for (path, _), op in ops(keyed).items():
+        assert op.get("security") == ([{"ApiKeyAuth": []}] if path.startswith("/v1/") else None), path
+    with TestClient(create_app(registry, settings())) as c:  # the served document and Swagger UI follow it
+        assert "securitySchemes" not in c.get("/openapi.json").json()["components"]
+
+
 # ------------------------------------------------------------------------------------------ load shedding, liveness
 def _wait(cond, timeout=20.0):
     t0 = time.monotonic()
