@@ -192,6 +192,32 @@ def test_lag_surface_figure(tmp_path):
     assert paths["lag_surface"].exists()
 
 
+def test_lag_surface_marks_outline_the_cell_and_leave_its_label_visible(tmp_path, monkeypatch):
+    """The chosen (and paper's) cell is outlined along the cell's edges, not covered by a marker at its centre,
+    so its own fit label stays readable; a cell off the grid still gets a marker."""
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    figs = []
+    monkeypatch.setattr(rf.plt, "close", lambda fig=None: figs.append(fig))
+    surface = [{"ny": a, "nu": b, "fit": 50.0 + a + b} for a in (4, 8, 12) for b in (2, 6, 10)]
+    rf.lag_surface_figure(surface, (8, 6), (12, 10, 70.0), tmp_path / "lag.png")
+    ax = figs[-1].axes[0]
+    boxes = {p.get_label(): p for p in ax.patches if isinstance(p, Rectangle)}
+    chosen = boxes["chosen ny=8, nu=6 (64.0 %)"]
+    assert (chosen.get_x(), chosen.get_y(), chosen.get_width(), chosen.get_height()) == (4.0, 6.0, 4.0, 4.0)
+    label = next(t for t in ax.texts if t.get_position() == (6.0, 8.0))
+    assert label.get_text() == "64.0"  # the label is drawn at the cell's centre, inside the outline
+    assert not [ln for ln in ax.lines if list(ln.get_xdata()) == [6]]  # no marker on top of it
+    assert rf.cell_box(np.array([2.0, 6.0, 10.0]), np.array([4.0, 8.0, 12.0]), 10, 12, inset=0.25) == (
+        9.0, 11.0, 2.0, 2.0)
+    rf.lag_surface_figure(surface, (8, 6), (20, 17, 92.4), tmp_path / "lag2.png")  # the paper's cell off the grid
+    assert [ln.get_label() for ln in figs[-1].axes[0].lines] == ["paper ny=20, nu=17 (92.4 %)"]
+    monkeypatch.undo()
+    for fig in figs:
+        plt.close(fig)
+
+
 def test_json_sanitiser():
     out = rmet.to_report_json({"a": np.float64("nan"), "b": np.arange(3), "c": np.zeros(1000), "d": (1, np.int64(2)),
                         "e": math.inf})

@@ -179,6 +179,29 @@ def _edges(v: np.ndarray) -> np.ndarray:
     return np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
 
 
+def cell_box(nu: np.ndarray, ny: np.ndarray, cu, cy, inset: float = 0.0) -> tuple | None:
+    """(x0, y0, width, height) of the heat map's cell (nu=cu, ny=cy) in data units, shrunk by ``inset`` (a
+    fraction of the cell on each side); None when (cu, cy) is not a cell of the grid."""
+    j = np.flatnonzero(nu == float(cu))
+    i = np.flatnonzero(ny == float(cy))
+    if not (i.size and j.size):
+        return None
+    xe, ye = _edges(nu), _edges(ny)
+    x0, x1, y0, y1 = xe[j[0]], xe[j[0] + 1], ye[i[0]], ye[i[0] + 1]
+    dx, dy = inset * (x1 - x0), inset * (y1 - y0)
+    return float(x0 + dx), float(y0 + dy), float(x1 - x0 - 2 * dx), float(y1 - y0 - 2 * dy)
+
+
+def _mark_cell(ax, nu, ny, cu, cy, label: str, edge: dict, marker: dict, inset: float) -> None:
+    from matplotlib.patches import Rectangle
+
+    box = cell_box(nu, ny, cu, cy, inset)
+    if box is None:
+        ax.plot([cu], [cy], ls="none", ms=10, mfc="none", mew=2, label=label, **marker)
+    else:
+        ax.add_patch(Rectangle(box[:2], box[2], box[3], fill=False, label=label, zorder=3, **edge))
+
+
 def lag_surface_figure(surface: list[dict], chosen: tuple | None, paper: tuple | None, path: Path) -> Path:
     """Heat map of fit % over ny x nu (paper Figs. 1 / 14) with the chosen (and paper's) lags marked.
 
@@ -219,21 +242,24 @@ def lag_surface_figure(surface: list[dict], chosen: tuple | None, paper: tuple |
                 if np.isfinite(Z[i, j]):
                     ax.text(nu[j], ny[i], f"{Z[i, j]:.1f}", ha="center", va="center", fontsize=6,
                             color="w" if Z[i, j] < (vmin + vmax) / 2 else "k")
+    # the chosen and the paper's cells are outlined along the cell's edges, so the cell's own fit label stays
+    # readable (a marker at the centre covered it); a cell off the grid gets a marker at its (nu, ny)
     if chosen is not None:
         cy, cu = chosen[0], chosen[1]
         cf = next((r.get("fit") for r in surface if int(r["ny"]) == int(cy) and int(r["nu"]) == int(cu)), None)
         lab = f"chosen ny={cy}, nu={cu}" + (f" ({float(cf):.1f} %)" if finite_or_none(cf) is not None else "")
-        ax.plot([cu], [cy], "o", ms=11, mfc="none", mec="red", mew=2, label=lab)
+        _mark_cell(ax, nu, ny, cu, cy, lab, dict(edgecolor="red", linewidth=2.5), dict(marker="o", mec="red"), 0.0)
     if paper is not None and paper[0] is not None and paper[1] is not None:
         py, pu = paper[0], paper[1]
         pf = paper[2] if len(paper) > 2 else None
         lab = f"paper ny={py}, nu={pu}" + (f" ({float(pf):.1f} %)" if finite_or_none(pf) is not None else "")
-        ax.plot([pu], [py], "X", ms=10, mfc="white", mec="k", label=lab)
+        _mark_cell(ax, nu, ny, pu, py, lab, dict(edgecolor="k", linewidth=1.5, linestyle="--"),
+                   dict(marker="X", mec="k"), 0.12)
     ax.set_xlabel("nu (input lags)")
     ax.set_ylabel("ny (output lags)")
     ax.set_title("Lag selection surface ny x nu x fit")
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="lower right", fontsize=8, framealpha=0.85)
+    if ax.get_legend_handles_labels()[0]:  # below the axes: over the map it would hide cells' labels
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2, fontsize=8, frameon=False)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
