@@ -2,15 +2,16 @@
 
 Each chunk continues the previous chunk's free run (``FreeRun.state``, the state the HTTP API carries
 as a token), so the chunks together are the record predicted whole (docs/api.md, Streams). One JSON
-line per chunk on stdout: where it lies in the stream, the band summary, the out-of-range flags, and,
-when the chunk has measured outputs and the model a novelty calibration, the chunk's novelty verdict
-and the verdict over a rolling window of the last chunks. What a data-acquisition script pipes into.
+line per chunk on stdout: where it lies in the stream, the band summary, the out-of-range flags, the
+cycles completed so far (for a model with physical constants: each cycle once, with its energy and
+interval, including cycles that straddle chunks; ``model.cycle_stream``, the HTTP loops stream's rule),
+and, when the chunk has measured outputs and the model a novelty calibration, the chunk's novelty verdict
+and the verdict over a rolling window of the last chunks (``model.novelty_window``, the HTTP novelty
+stream's). What a data-acquisition script pipes into.
 """
 from __future__ import annotations
 
 import sys
-from collections import deque
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -34,7 +35,8 @@ def add_parser(sub):
     add_fs_argument(p)
     p.add_argument("--seed", type=int, default=0, help="random seed of the Monte Carlo paths")
     p.add_argument("--window", type=int, default=8,
-                   help="chunks in the rolling novelty window (default 8)")
+                   help="the rolling novelty window, in chunks: it scores the last WINDOW x --chunk seconds "
+                        "(default 8)")
     p.add_argument("--blas-threads", type=int, default=None, help="BLAS threads (default as 'gpnarx predict')")
     p.set_defaults(func=run_stream, backend=None)
     return p
@@ -77,8 +79,12 @@ def _record_chunks(rec, n: int):
 
 def run_stream(args):
     from gpnarx.cli.cmd_predict import check_mc, load_model, read_cli_record
+    from gpnarx.model.cycle_stream import STREAM_COV_WINDOW
+    from gpnarx.model.cycle_stream import advance as stream_cycles
     from gpnarx.model.metrics import summary
     from gpnarx.model.novelty import assess_novelty, novelty_start
+    from gpnarx.model.novelty_window import RollingWindow
+    from gpnarx.model.operations import OperationError, physics_of
     from gpnarx.storage.jsonsafe import dumps_json
 
     if not args.chunk > 0:
@@ -103,32 +109,36 @@ def run_stream(args):
             raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {fs} Hz")
         chunks = _record_chunks(rec, n)
     nov = bundle.manifest.get("novelty")
-    recent = deque(maxlen=int(args.window))  # (y, mean, std) of the last chunks, for the rolling score
-    state, t = None, 0
+    window = RollingWindow(int(args.window) * n)  # the last chunks' samples, for the rolling score
+    try:
+        phys = physics_of(bundle)  # completed cycles need the restoring force's constants
+    except OperationError:
+        phys = None
+    extra = {} if phys is None else ({"keep_paths": True} if method == "mc" else {"cov_window": STREAM_COV_WINDOW})
+    state, t, loops = None, 0, None
     for k, (u, y, last) in enumerate(chunks):
         y0 = None
         if state is None and y is not None and nov and u.size > model.ny:
             y0 = novelty_start(y, model.ny)  # a monitor's stream starts as its calibration did
-        run = model.simulate(u, n_paths=mc, seed=args.seed, method=method, y0=y0, state=state, open_end=not last)
+        run = model.simulate(u, n_paths=mc, seed=args.seed, method=method, y0=y0, state=state, open_end=not last,
+                             **extra)
         state = run.state
         flags = assess(getattr(model, "envelope_", None), run, u, y)
         line = {"model": bundle.name, "version": bundle.version, "chunk": k, "start_s": t / fs,
                 "end_s": (t + u.size) / fs, "n_samples": int(u.size), "method": run.method,
                 "mean_rms": float(np.sqrt(np.mean(run.mean ** 2))),
                 "band_half_width_mean": float(np.mean(run.upper - run.lower) / 2.0), **flags}
+        if phys is not None:
+            done, loops = stream_cycles(loops, u, run.mean, fs=fs, physics=phys, y=y, paths=run.paths,
+                                        cov_band=run.cov_band, confidence=float(run.confidence))
+            line["cycles"] = done
         if y is not None:
             s = summary(y, run.mean, run.lower, run.upper)
             line.update(fit=s["fit"], coverage=s["coverage"])
             if nov:
                 a = assess_novelty(nov, u, y, fs, run, start="measured", flags=flags)
                 line["novelty"] = {key: a[key] for key in ("score", "threshold", "verdict")}
-                recent.append((u, y, run.mean, run.std, flags))
-                uw, yw, mw, sw = (np.concatenate([c[j] for c in recent]) for j in range(4))
-                wflags = {"diverged_paths": max(c[4]["diverged_paths"] for c in recent),  # each chunk's flags,
-                          "out_of_range": sorted({f for c in recent for f in c[4]["out_of_range"]})}  # together
-                w = assess_novelty(nov, uw, yw, fs, SimpleNamespace(mean=mw, std=sw), start="measured", flags=wflags)
-                line["novelty_window"] = {"chunks": len(recent), **{key: w[key] for key in
-                                                                      ("score", "threshold", "verdict")}}
+                line["novelty_window"] = window.add(u, y, run.mean, run.std, flags).assess(nov, fs)
         sys.stdout.write(dumps_json(line).decode() + "\n")
         sys.stdout.flush()
         t += u.size

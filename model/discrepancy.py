@@ -7,7 +7,15 @@ response (start-up transients, near resonance) while the band stays at the noise
 adds that error as a variance proportional to the square of the local response amplitude:
 
     std_total(t)^2 = std(t)^2 + (scale * a(t))^2,    a(t) = RMS of the predicted mean over ``window``
-                                                      samples centred on t [output units]
+                                                      samples around t [output units]
+
+Where the window lies (``kind``, stored with the scale): ``"centred"`` on t (the window of bundles
+calibrated before the choice existed, and their default), or ``"trailing"``, the ``window`` samples
+ending at t. A trailing amplitude depends on the mean up to t only, so a record predicted in chunks
+(a stream) gets the whole record's band exactly: the state carries the last ``window - 1`` means. A
+centred one needs half a window of the future, which a stream's chunk does not have yet. The scale is
+calibrated with the kind the band will use, so the trailing window's lag behind a rising amplitude is
+covered by the calibration like any other model-form error.
 
 ``scale`` is dimensionless (a fraction of the local amplitude). It is calibrated on records the
 GP was not trained on (the config's ``lags`` records): the smallest value of a geometric grid at
@@ -26,19 +34,36 @@ from scipy.special import ndtri
 #: default averaging window of the local amplitude [s]: several cycles of the rig's resonance
 #: (about 19 Hz), one to two of its lowest drive frequencies (5 Hz)
 DEFAULT_WINDOW_SECONDS = 0.25
+#: where the amplitude window lies: centred on each sample, or ending at it (causal; streams)
+WINDOW_KINDS = ("centred", "trailing")
+#: the kind of a stored discrepancy that names none (bundles calibrated before the choice existed)
+LEGACY_WINDOW_KIND = "centred"
 #: the calibration grid of ``scale``: 0 then geometric from 1e-3 to 1 (a band of +/- the amplitude)
 SCALE_GRID = np.concatenate([[0.0], np.geomspace(1e-3, 1.0, 61)])
 
 
-def local_amplitude(mean: np.ndarray, window: int, open_end: bool = False) -> np.ndarray:
-    """Moving RMS of ``mean`` over ``window`` samples centred on each sample [output units].
+def local_amplitude(mean: np.ndarray, window: int, open_end: bool = False, kind: str = "centred") -> np.ndarray:
+    """Moving RMS of ``mean`` over ``window`` samples around each sample [output units].
 
-    Beyond the ends the first and last samples repeat. ``open_end``: the record goes on after its
-    last sample (a stream's chunk): a window that reaches past the end averages the samples it has
-    instead, the better guess of an amplitude that is still to come.
+    kind ``"centred"``: the window is centred on each sample; beyond the ends the first and last samples
+    repeat. ``open_end``: the record goes on after its last sample (a stream's chunk): a window that
+    reaches past the end averages the samples it has instead, the better guess of an amplitude that is
+    still to come. kind ``"trailing"``: the ``window`` samples ending at each sample (the first sample
+    repeats before the start); it never reaches past the end, so ``open_end`` changes nothing.
     """
     m = np.asarray(mean, dtype=float)
     w = max(1, int(window))
+    if kind == "trailing":
+        if not m.size:
+            return m.copy()
+        from numpy.lib.stride_tricks import sliding_window_view
+
+        sq = np.concatenate([np.full(w - 1, m[0] * m[0]), m * m])
+        # each window summed on its own (no running sum): a sample's amplitude is the same number
+        # whichever chunk of a stream it arrives in
+        return np.sqrt(np.maximum(sliding_window_view(sq, w).sum(axis=1) / w, 0.0))
+    if kind != "centred":
+        raise ValueError(f"window kind must be one of {WINDOW_KINDS}, got {kind!r}")
     if open_end and m.size:
         left, right = w // 2, w - 1 - w // 2  # scipy's centring of an even window
         sq = np.concatenate([np.full(left, m[0] * m[0]), m * m])  # the start repeats, as below
@@ -49,6 +74,11 @@ def local_amplitude(mean: np.ndarray, window: int, open_end: bool = False) -> np
     from scipy.ndimage import uniform_filter1d  # here: scipy.ndimage costs 0.2 s of every CLI start
 
     return np.sqrt(np.maximum(uniform_filter1d(m * m, size=w, mode="nearest"), 0.0))
+
+
+def window_kind(d: dict | None) -> str:
+    """The amplitude window's kind of a stored discrepancy (``LEGACY_WINDOW_KIND`` when it names none)."""
+    return (d or {}).get("window_kind") or LEGACY_WINDOW_KIND
 
 
 def check_discrepancy(d: dict | None) -> dict | None:
@@ -62,6 +92,9 @@ def check_discrepancy(d: dict | None) -> dict | None:
         raise ValueError(f"band_discrepancy.scale must be a number in [0, 10], got {scale!r}")
     if isinstance(window, bool) or not isinstance(window, int) or window < 1:
         raise ValueError(f"band_discrepancy.window must be a positive integer (samples), got {window!r}")
+    kind = d.get("window_kind", LEGACY_WINDOW_KIND)
+    if kind not in WINDOW_KINDS:
+        raise ValueError(f"band_discrepancy.window_kind must be one of {WINDOW_KINDS}, got {kind!r}")
     return d
 
 
@@ -71,18 +104,18 @@ def _widen_pair(mean, lower, upper, extra):
     return lo, hi
 
 
-def widen(run, scale: float, window: int, mean_before=None, open_end: bool = False):
+def widen(run, scale: float, window: int, mean_before=None, open_end: bool = False, kind: str = "centred"):
     """A copy of the free run ``run`` (``freerun.FreeRun``) with the discrepancy term added.
 
-    scale: fraction of the local amplitude (dimensionless); window: samples of the moving RMS.
-    mean_before: the mean outputs just before ``run`` (a stream's earlier chunks; output units): the
-    moving RMS of the run's first samples then sees them, as in the run of the whole record.
-    open_end: the record goes on after ``run`` (``local_amplitude``).
+    scale: fraction of the local amplitude (dimensionless); window: samples of the moving RMS; kind:
+    where the window lies (``WINDOW_KINDS``). mean_before: the mean outputs just before ``run`` (a
+    stream's earlier chunks; output units): the moving RMS of the run's first samples then sees them,
+    as in the run of the whole record. open_end: the record goes on after ``run`` (``local_amplitude``).
     """
     if scale <= 0.0:
         return run
     before = np.zeros(0) if mean_before is None else np.asarray(mean_before, dtype=float).ravel()
-    amp = local_amplitude(np.concatenate([before, run.mean]), window, open_end)[before.size:]
+    amp = local_amplitude(np.concatenate([before, run.mean]), window, open_end, kind)[before.size:]
     extra_sd = float(scale) * amp
     z = float(ndtri(0.5 + 0.5 * run.confidence))
     lo, hi = _widen_pair(run.mean, run.lower, run.upper, z * extra_sd)
@@ -93,38 +126,59 @@ def widen(run, scale: float, window: int, mean_before=None, open_end: bool = Fal
     return replace(run, **changes)
 
 
-def coverage_at(y: np.ndarray, run, scale: float, window: int, skip: int = 0) -> float:
+def tail_for(kind: str, window: int) -> int:
+    """Samples of the mean a stream's state keeps for the next chunk's window: ``window - 1`` for a
+    trailing window (all it can see of the past), ``window`` for a centred one."""
+    return max(0, int(window) - 1) if kind == "trailing" else int(window)
+
+
+def widen_chunk(run, disc: dict, mean_before=None, open_end: bool = False):
+    """(``run`` widened by the stored discrepancy ``disc`` (``band_discrepancy``: scale, window, window_kind),
+    the mean outputs the next chunk of a stream needs before it). ``mean_before``: the previous chunk's
+    such tail (None: the record starts with ``run``); ``open_end``: more of the record follows."""
+    window, kind = int(disc["window"]), window_kind(disc)
+    out = widen(run, float(disc["scale"]), window, mean_before, open_end, kind)
+    prev = np.zeros(0) if mean_before is None else np.asarray(mean_before, dtype=float).ravel()
+    both = np.concatenate([prev, np.asarray(run.mean, dtype=float)])
+    return out, both[max(0, both.size - tail_for(kind, window)):].copy()
+
+
+def coverage_at(y: np.ndarray, run, scale: float, window: int, skip: int = 0, kind: str = "centred") -> float:
     """Share of samples of the measured ``y`` inside the band widened by ``scale`` (0-1)."""
-    r = widen(run, scale, window)
+    r = widen(run, scale, window, kind=kind)
     y = np.asarray(y, dtype=float)[skip:]
     return float(np.mean((y >= r.lower[skip:]) & (y <= r.upper[skip:])))
 
 
-def calibrate_scale(runs, window: int, grid: np.ndarray = SCALE_GRID) -> dict:
+def calibrate_scale(runs, window: int, grid: np.ndarray = SCALE_GRID, kind: str = "centred") -> dict:
     """The smallest ``scale`` of ``grid`` at which every run's band reaches its confidence.
 
     runs: list of (name, y_measured, FreeRun, skip) for the held-out calibration records; ``skip``
     samples at the start are the measured initial outputs (not predicted) and are not scored.
-    Returns the ``band_discrepancy`` record: scale, window, the target, the calibration coverage of
-    each record before and after, and ``reached`` (False when even the largest scale falls short:
-    the largest is then kept and the shortfall is on record).
+    kind: where the amplitude window lies (``WINDOW_KINDS``), stored as ``window_kind``.
+    Returns the ``band_discrepancy`` record: scale, window, window_kind, the target, the calibration
+    coverage of each record before and after, and ``reached`` (False when even the largest scale
+    falls short: the largest is then kept and the shortfall is on record).
     """
     if not runs:
         raise ValueError("band calibration needs at least one held-out record")
+    if kind not in WINDOW_KINDS:
+        raise ValueError(f"window kind must be one of {WINDOW_KINDS}, got {kind!r}")
     target = min(r.confidence for _, _, r, _ in runs)
-    before = {name: coverage_at(y, r, 0.0, window, skip) for name, y, r, skip in runs}
+    before = {name: coverage_at(y, r, 0.0, window, skip, kind) for name, y, r, skip in runs}
     chosen, after, reached = float(grid[-1]), None, False
     for s in grid:
-        cov = {name: coverage_at(y, r, float(s), window, skip) for name, y, r, skip in runs}
+        cov = {name: coverage_at(y, r, float(s), window, skip, kind) for name, y, r, skip in runs}
         if min(cov.values()) >= target:
             chosen, after, reached = float(s), cov, True
             break
     if after is None:
-        after = {name: coverage_at(y, r, chosen, window, skip) for name, y, r, skip in runs}
-    return {"method": "amplitude", "scale": chosen, "window": int(window), "target": float(target),
-            "reached": reached, "criterion": "worst held-out record",
+        after = {name: coverage_at(y, r, chosen, window, skip, kind) for name, y, r, skip in runs}
+    return {"method": "amplitude", "scale": chosen, "window": int(window), "window_kind": kind,
+            "target": float(target), "reached": reached, "criterion": "worst held-out record",
             "coverage_before": before, "coverage_after": after}
 
 
-__all__ = ["DEFAULT_WINDOW_SECONDS", "SCALE_GRID", "calibrate_scale", "check_discrepancy", "coverage_at",
-           "local_amplitude", "widen"]
+__all__ = ["DEFAULT_WINDOW_SECONDS", "LEGACY_WINDOW_KIND", "SCALE_GRID", "WINDOW_KINDS", "calibrate_scale",
+           "check_discrepancy", "coverage_at", "local_amplitude", "tail_for", "widen", "widen_chunk",
+           "window_kind"]

@@ -12,7 +12,7 @@ from sklearn.base import BaseEstimator
 
 from . import freerun
 from .backend import check_backend
-from .discrepancy import calibrate_scale, check_discrepancy, widen
+from .discrepancy import calibrate_scale, check_discrepancy, widen_chunk
 from .envelope import check_envelope, divergence_limit, training_envelope
 from .gp import ExactPosterior, SparsePosterior, choose_inducing
 from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, kernel_from_dict, make_kernel
@@ -291,14 +291,17 @@ class GPNARX(BaseEstimator):
             self.posterior_ = build(s2)
 
     def calibrate_band(self, records, window: int, method: str = "linear", n_paths: int = 256,
-                       confidence: float = 0.99) -> dict:
+                       confidence: float = 0.99, kind: str = "centred") -> dict:
         """Calibrate the band's model-discrepancy term (``model.discrepancy``) on held-out records.
 
         records: (name, u, y, start) tuples of records NOT used by ``fit``; ``start`` is 'rest' or
             'measured' (the first ny measured outputs are taken as known and not scored).
         window: samples of the local-amplitude RMS (``discrepancy.DEFAULT_WINDOW_SECONDS`` x fs).
         method, n_paths: how the calibration records are predicted (the linearised method by default:
-            seconds per whole record). Sets and returns ``band_discrepancy_``.
+            seconds per whole record).
+        kind: where the amplitude window lies, ``"centred"`` or ``"trailing"`` (causal: a stream's
+            chunks get the whole record's band; ``discrepancy.WINDOW_KINDS``).
+        Sets and returns ``band_discrepancy_``.
         """
 
         self._check_fitted()
@@ -312,7 +315,7 @@ class GPNARX(BaseEstimator):
             y0 = y[: self.ny] if start == "measured" else None
             run = self.simulate(u, n_paths=n_paths, seed=0, y0=y0, confidence=confidence, method=method)
             runs.append((name, y, run, self.ny if start == "measured" else 0))
-        self.band_discrepancy_ = {**calibrate_scale(runs, int(window)), "calibration_method": method,
+        self.band_discrepancy_ = {**calibrate_scale(runs, int(window), kind=kind), "calibration_method": method,
                                   "records": [name for name, *_ in records]}
         return self.band_discrepancy_
 
@@ -367,9 +370,11 @@ class GPNARX(BaseEstimator):
             whole, the linearised one to round-off and Monte Carlo's identically at the same seed
             (``seed`` is then unused: the state carries the generator).
         open_end: more of the record follows this call (a stream's chunk). The band's discrepancy
-            term (``model.discrepancy``) averages the amplitude over a centred window; in the last
-            half-window of a chunk it averages what the chunk holds, so there the chunked band may
-            differ slightly from the whole record's (elsewhere it is the same).
+            term (``model.discrepancy``) averages the amplitude over a window: a trailing window
+            (``window_kind`` "trailing") sees only the past, and the chunks' band is the whole
+            record's; a centred one (bundles calibrated before the choice) averages, in the last
+            half-window of a chunk, what the chunk holds, so there the chunked band may differ
+            slightly from the whole record's (elsewhere it is the same).
         local: Monte Carlo on the numpy backend, serve steps from the checked local model of eq. 8-9
             (``freerun.simulate_mc``'s ``local``); False evaluates eq. 8-9 exactly at every path.
         Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units); Monte Carlo runs
@@ -387,12 +392,9 @@ class GPNARX(BaseEstimator):
         disc = getattr(self, "band_discrepancy_", None)
         if not disc:
             return run
-        window = int(disc["window"])
-        amp_tail = None if state is None else state.amp_tail
-        out = widen(run, float(disc["scale"]), window, amp_tail, open_end)
+        out, tail = widen_chunk(run, disc, None if state is None else state.amp_tail, open_end)
         if out.state is not None:
-            prev = np.zeros(0) if amp_tail is None else np.asarray(amp_tail, dtype=float)
-            out.state.amp_tail = np.concatenate([prev, run.mean])[-window:].copy()
+            out.state.amp_tail = tail
         return out
 
     def _simulate(self, u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,

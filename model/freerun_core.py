@@ -50,7 +50,10 @@ class FreeRunState:
     first), ``path_peak`` (running peak |y| of each path), the random generator's state ``rng`` and
     the local model's check generator ``check_rng``, ``floor`` and ``retry_in`` (steps until the
     local model retries its cheapest level). ``amp_tail``: the last mean outputs the band's
-    discrepancy window needs on its left (``model.discrepancy``).
+    discrepancy window needs on its left (``model.discrepancy``). ``carry``: what an operation carries
+    across a stream's chunks beside the free run, by operation name (``"loops"``: the unfinished cycle,
+    ``model.cycle_stream``; ``"novelty"``: the rolling window, ``model.novelty_window``), each a dict of
+    numpy arrays and JSON values.
     """
 
     method: str
@@ -65,6 +68,7 @@ class FreeRunState:
     floor: int = 0
     retry_in: int = 0
     amp_tail: np.ndarray | None = None
+    carry: dict | None = None
 
 
 def inputs_with_tail(u: np.ndarray, nu: int, state: "FreeRunState | None") -> np.ndarray:

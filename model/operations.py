@@ -27,11 +27,14 @@ from typing import Any, Callable
 import numpy as np
 
 from .backend import jax_available
+from .cycle_stream import STREAM_COV_WINDOW
+from .cycle_stream import advance as stream_cycles
 from .cycles import cov_window_for, cycles
 from .envelope import assess
 from .freerun_core import FreeRunState, check_state
 from .metrics import summary
 from .novelty import UnusableProbeContract, assess_novelty, novelty_start
+from .novelty_window import HTTP_WINDOW_SECONDS, RollingWindow
 from .restoring import loop_area, loop_units, restoring_force
 from .stream_token import StateMismatch, StateTokenError, decode_state, encode_state
 
@@ -314,8 +317,9 @@ def _simulate(plan: Plan, req, u: np.ndarray, progress: Callable | None):
             stream = {"state": plan.state, "open_end": bool(getattr(req, "return_state", False))}
             extra = {}
             if plan.operation == "loops":  # per-cycle energy intervals need every path / the covariance band
-                extra = ({"keep_paths": True} if plan.method == "mc"
-                         else {"cov_window": cov_window_for(u, plan.bundle.fs, model.ny)})
+                window = (STREAM_COV_WINDOW if _is_stream(plan, req)  # a stream's chunks keep one window
+                          else cov_window_for(u, plan.bundle.fs, model.ny))
+                extra = {"keep_paths": True} if plan.method == "mc" else {"cov_window": max(window, model.ny)}
             run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=_initial_outputs(plan, req),
                                  confidence=float(req.confidence), method=plan.method, backend=plan.backend,
                                  progress=progress, **extra, **stream)
@@ -330,12 +334,24 @@ def _simulate(plan: Plan, req, u: np.ndarray, progress: Callable | None):
     return run
 
 
-def _stream_fields(plan: Plan, req, run) -> dict:
-    """The answer's stream members: the end state's token when asked for, and the stream position."""
-    if plan.state is None and not getattr(req, "return_state", False):
+def _is_stream(plan: Plan, req) -> bool:
+    """A call of a stream: it continues a state, or asks for one."""
+    return plan.state is not None or bool(getattr(req, "return_state", False))
+
+
+def _carried(plan: Plan, key: str) -> dict | None:
+    """What the request's state carries for operation ``key`` (None: nothing, or no state)."""
+    return ((plan.state.carry or {}).get(key)) if plan.state is not None else None
+
+
+def _stream_fields(plan: Plan, req, run, carry: dict | None = None) -> dict:
+    """The answer's stream members: the end state's token (with what the operation carries to the next chunk,
+    ``carry``) when asked for, and the stream position."""
+    if not _is_stream(plan, req):
         return {}
     out = {"stream_position": int(run.state.position)}  # plan: streams run on numpy, which returns a state
     if getattr(req, "return_state", False):
+        run.state.carry = {plan.operation: carry} if carry else None
         out["state"] = encode_state(run.state, plan.bundle.name, plan.bundle.version, plan.stream_key)
     return out
 
@@ -359,16 +375,17 @@ def compute(plan: Plan, req, *, progress: Callable | None = None,
     run = _simulate(plan, req, u, progress)
     flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
     common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
-              "backend": run.backend, "seed": int(req.seed), "start": start_of(plan.operation, req), **flags,
-              **_stream_fields(plan, req, run)}
+              "backend": run.backend, "seed": int(req.seed), "start": start_of(plan.operation, req), **flags}
     steps = int(run.path_steps) if run.method == "mc" else 0
     y = None if req.y is None else np.asarray(req.y, float)
+    carry = None  # what the operation carries to a stream's next chunk (FreeRunState.carry)
     if plan.operation == "predict":
         body, metrics = _predict(plan, u, y, run, common)
     elif plan.operation == "loops":
-        body, metrics = _loops(plan, u, y, run, common, checkpoint), None
+        (body, carry), metrics = _loops(plan, req, u, y, run, common, checkpoint), None
     else:
-        body, metrics = _novelty(plan, req, u, run, common, flags), None
+        (body, carry), metrics = _novelty(plan, req, u, run, common, flags), None
+    body.update(_stream_fields(plan, req, run, carry))
     return Answer(body, steps, run, metrics)
 
 
@@ -387,7 +404,7 @@ def _predict(plan: Plan, u, y, run, common) -> tuple[dict, dict | None]:
     return out, s
 
 
-def _loops(plan: Plan, u, y, run, common, checkpoint) -> dict:
+def _loops(plan: Plan, req, u, y, run, common, checkpoint) -> tuple[dict, dict | None]:
     b = plan.bundle
     phys = physics_of(b)
     kw = dict(fs=b.fs, mass=phys["mass"], input_gain=phys["input_gain"], output=phys["output"])
@@ -405,14 +422,24 @@ def _loops(plan: Plan, u, y, run, common, checkpoint) -> dict:
         out["measured"] = loop(y)
     if checkpoint is not None:
         checkpoint()
-    cyc = cycles(u, b.fs, phys, run.mean, paths=run.paths, cov_band=run.cov_band, y=y,
-                 confidence=float(run.confidence))
+    carry = None
+    if _is_stream(plan, req):  # the cycles completed so far, cut causally (model.cycle_stream)
+        before = _carried(plan, "loops") or {"position": int(run.state.position) - int(u.size)}
+        try:
+            done, carry = stream_cycles(before, u, run.mean, fs=b.fs, physics=phys, y=y, paths=run.paths,
+                                        cov_band=run.cov_band, confidence=float(run.confidence))
+        except ValueError as exc:
+            raise OperationError(str(exc), "state") from None
+        cyc = {"cycles": done, "basis": "stream", "frequency": None, "n_cycles": len(done), "steady_from": 0}
+    else:
+        cyc = cycles(u, b.fs, phys, run.mean, paths=run.paths, cov_band=run.cov_band, y=y,
+                     confidence=float(run.confidence))
     out["cycles"] = [{k: (_num(v) if isinstance(v, float) else v) for k, v in c.items()} for c in cyc["cycles"]]
     out["cycle_basis"] = {k: cyc[k] for k in ("basis", "frequency", "n_cycles", "steady_from")}
-    return out
+    return out, carry
 
 
-def _novelty(plan: Plan, req, u, run, common, flags) -> dict:
+def _novelty(plan: Plan, req, u, run, common, flags) -> tuple[dict, dict | None]:
     b = plan.bundle
     nov = novelty_of(b)
     try:
@@ -426,7 +453,19 @@ def _novelty(plan: Plan, req, u, run, common, flags) -> dict:
         raise OperationError(f"cannot score this record: {exc}", "y") from None
     probe = {k: a.pop(k) for k in ("probe_match", "probe_reasons", "drive")}
     flagged = a.pop("out_of_range")
-    return {**_head(b), **a, **common, "out_of_range": flagged, **probe}
+    out = {**_head(b), **a, **common, "out_of_range": flagged, **probe}
+    if not _is_stream(plan, req):
+        return out, None
+    try:  # the stream's rolling window (model.novelty_window), carried in the token
+        window = RollingWindow.from_carry(_carried(plan, "novelty"), int(round(HTTP_WINDOW_SECONDS * b.fs)))
+        window.add(u, req.y, run.mean, run.std, flags)
+        out["novelty_window"] = window.assess(nov, b.fs)
+    except UnusableProbeContract as exc:
+        raise OperationError(f"model {b.name}:{b.version} has an unusable probe contract: {exc}",
+                             kind=CONFLICT) from None
+    except ValueError as exc:
+        raise OperationError(f"cannot score the stream's rolling window: {exc}", "state") from None
+    return out, window.as_carry()
 
 
 __all__ = ["CONFLICT", "DEFAULT_MC_PATHS", "INVALID", "OPERATIONS", "TOO_LARGE", "Answer", "Limits", "OperationError",

@@ -13,7 +13,9 @@ without one, the signature is a checksum of the fixed public key ``PUBLIC_KEY`` 
 damaged tokens only. Sizes: ``MAX_TOKEN_CHARS`` bounds a token, ``MAX_BODY_BYTES`` its decompressed body.
 A linearised state holds ny means, nu - 1 inputs and an L x L covariance (L = ny, or a loops call's
 cycle window): a few kB to a few hundred kB. A Monte Carlo state holds every path's ny lags: about
-8 P ny bytes before compression (200 kB at P = 1024, ny = 24).
+8 P ny bytes before compression (200 kB at P = 1024, ny = 24). An operation's ``carry`` adds its arrays
+(loops: the unfinished cycle, ``model.cycle_stream``; novelty: the rolling window,
+``model.novelty_window``) and JSON values (in the header).
 """
 from __future__ import annotations
 
@@ -34,6 +36,7 @@ PUBLIC_KEY = b"gpnarx-stream-state"  # the checksum key when a deployment sets n
 MAX_TOKEN_CHARS = 16 * 1024 * 1024  # characters of base64 text
 MAX_BODY_BYTES = 64 * 1024 * 1024  # decompressed body
 _ARRAYS = ("u_tail", "mean_tail", "cov", "paths", "path_peak", "amp_tail")
+_CARRY = "carry."  # array names of an operation's carry: carry.OPERATION.KEY
 
 
 class StateTokenError(ValueError):
@@ -57,6 +60,16 @@ def encode_state(state: FreeRunState, model: str, version: str, key: bytes | str
               "rng": _jsonable(state.rng), "check_rng": _jsonable(state.check_rng)}
     buf = io.BytesIO()
     arrays = {k: np.asarray(getattr(state, k), dtype=np.float64) for k in _ARRAYS if getattr(state, k) is not None}
+    carry_json: dict = {}
+    for op, d in (state.carry or {}).items():
+        carry_json[op] = {}
+        for k, v in d.items():
+            if isinstance(v, np.ndarray):
+                arrays[f"{_CARRY}{op}.{k}"] = np.asarray(v, dtype=np.float64)
+            else:
+                carry_json[op][k] = v
+    if carry_json:
+        header["carry"] = carry_json
     np.savez(buf, header=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
     body = zlib.compress(buf.getvalue(), 6)
     sig = hmac.new(_key(key), body, hashlib.sha256).digest()
@@ -87,6 +100,11 @@ def decode_state(token: str, model: str, version: str, key: bytes | str | None =
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             header = json.loads(bytes(z["header"]).decode())
             arrays = {k: np.array(z[k], dtype=np.float64) for k in _ARRAYS if k in z.files}
+            carry = {op: dict(d) for op, d in (header.get("carry") or {}).items()}
+            for name in z.files:
+                if name.startswith(_CARRY):
+                    op, _, k = name[len(_CARRY):].partition(".")
+                    carry.setdefault(op, {})[k] = np.array(z[name], dtype=np.float64)
     except StateTokenError:
         raise
     except Exception as exc:  # a signed body that does not parse: written by an incompatible version
@@ -100,7 +118,8 @@ def decode_state(token: str, model: str, version: str, key: bytes | str | None =
                         mean_tail=arrays.get("mean_tail"), cov=arrays.get("cov"), paths=arrays.get("paths"),
                         path_peak=arrays.get("path_peak"), rng=_from_json(header.get("rng")),
                         check_rng=_from_json(header.get("check_rng")), floor=int(header.get("floor", 0)),
-                        retry_in=int(header.get("retry_in", 0)), amp_tail=arrays.get("amp_tail"))
+                        retry_in=int(header.get("retry_in", 0)), amp_tail=arrays.get("amp_tail"),
+                        carry=carry or None)
 
 
 def _jsonable(rng_state):

@@ -235,12 +235,14 @@ class Cycle(BaseModel):
 
 
 class CycleBasis(BaseModel):
-    basis: Literal["drive", "response"] = Field(..., description="'drive': cycles of a sine drive (zero "
-                                                "crossings of the sine fitted to u at its dominant frequency); "
-                                                "'response': a broadband drive, cycles of the predicted "
-                                                "displacement (upward zero crossings).")
-    frequency: float | None = Field(..., description="Dominant frequency of u [Hz].")
-    n_cycles: int = Field(..., description="Whole cycles found in the record.")
+    basis: Literal["drive", "response", "stream"] = Field(
+        ..., description="'drive': cycles of a sine drive (zero crossings of the sine fitted to u at its dominant "
+        "frequency); 'response': a broadband drive, cycles of the predicted displacement (upward zero "
+        "crossings); 'stream': a call with `state` or `return_state`: the cycles completed by this chunk, each "
+        "reported once across the stream, cut causally at upward zero crossings of the predicted mean output "
+        "(docs/api.md, Streams).")
+    frequency: float | None = Field(..., description="Dominant frequency of u [Hz] (null in a stream).")
+    n_cycles: int = Field(..., description="Whole cycles found in the record (in a stream: in `cycles`).")
     steady_from: int = Field(..., description="Index of the first steady cycle among them; the earlier ones "
                              "(start-up of a free run from rest) are not in `cycles`.")
 
@@ -297,6 +299,17 @@ class Probe(BaseModel):
     n_records: int
 
 
+class NoveltyWindow(BaseModel):
+    """The rolling window of a novelty stream (``model.novelty_window``)."""
+
+    chunks: int = Field(..., description="Chunks with samples in the window.")
+    samples: int = Field(..., description="Samples in the window (at most 8 s of the stream).")
+    seconds: float = Field(..., description="Length of the window [s].")
+    score: float = Field(..., description="The score of the window's samples, as a record's.")
+    threshold: float
+    verdict: Literal["healthy", "novel", "unjudged"]
+
+
 class NoveltyResponse(_Knowledge):
     model: str
     version: str
@@ -322,6 +335,9 @@ class NoveltyResponse(_Knowledge):
                                               "(null if the calibration does not say).")
     nlpd: float = Field(..., description="Mean negative log predictive density.")
     n_samples: int = Field(..., description="Samples that entered the score.")
+    novelty_window: NoveltyWindow | None = Field(
+        None, description="With `state` or `return_state`: the verdict over the stream's last 8 s (this chunk "
+        "and the earlier ones the state token carries), scored like a record.")
     confidence: float = Field(..., description="Band level of the free run the score was computed from (the "
                               "request's `confidence`).")
     mc_paths: int

@@ -356,6 +356,8 @@ GOOD = "name='x'\n[system]\nfs=750.0\n{tables}[[records]]\nname='rec-1'\nroles=[
         ("[model]\nselection='best'\n", "",
          "model.selection: must be one of 'stride', 'random', 'resonance', got 'best'"),
         ("[model]\nband_window=10.5\n", "", "model.band_window: must be a number of seconds in (0, 10], got 10.5"),
+        ("[model]\nband_window_kind='ahead'\n", "",
+         "model.band_window_kind: must be one of 'centred', 'trailing', got 'ahead'"),
         ("[predict]\nconfidence=1.5\n", "", "predict.confidence: must be between 0 and 1, got 1.5"),
         ("[predict]\nconfidence=1.0\n", "", "predict.confidence: must be between 0 and 1, got 1.0"),
         ("[predict]\nmc_paths=0\n", "", "predict.mc_paths: must be an integer >= 1, got 0"),
@@ -458,7 +460,7 @@ def test_schema_defaults_are_the_documented_ones():
     assert config.MODEL_DEFAULTS == {
         "kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000, "selection": "stride",
         "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none", "band_window": 0.25,
-        "hyper": "subset"}
+        "band_window_kind": "centred", "hyper": "subset"}
     assert config.PREDICT_DEFAULTS == {"mc_paths": 1024, "confidence": 0.99, "method": "mc"}
     assert config.NOVELTY_DEFAULTS == {"false_alarm_rate": 0.01, "method": "rms_standardised_residual"}
     assert config.PHYSICS_DEFAULTS == {"mass": None, "input_gain": 1.0}
@@ -511,7 +513,7 @@ def _shipped_expectation(doc: dict, base: Path) -> dict:
 
     model = {"kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000,
              "selection": "stride", "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none",
-             "band_window": 0.25, "hyper": "subset", **doc.get("model", {})}
+             "band_window": 0.25, "band_window_kind": "centred", "hyper": "subset", **doc.get("model", {})}
     records = [(r["name"], list(r["roles"]), expand_path(r["path"], base) if "path" in r else None,
                 r.get("simulate"), r.get("noise"), tuple(r["window"]) if "window" in r else None, r.get("fs"),
                 r.get("meta", {})) for r in doc["records"]]

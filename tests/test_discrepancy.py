@@ -70,6 +70,30 @@ def test_bad_stored_discrepancy_is_refused(bad):
         check_discrepancy(bad)
 
 
+def test_the_window_kind_is_stored_and_a_bundle_without_one_is_centred():
+    from gpnarx.model.discrepancy import window_kind
+
+    assert window_kind(check_discrepancy({"scale": 0.1, "window": 10})) == "centred"  # bundles before the choice
+    assert window_kind(check_discrepancy({"scale": 0.1, "window": 10, "window_kind": "trailing"})) == "trailing"
+    with pytest.raises(ValueError, match="band_discrepancy.window_kind"):
+        check_discrepancy({"scale": 0.1, "window": 10, "window_kind": "ahead"})
+    run = _sine_run(amp=1.0)
+    d = calibrate_scale([("s", run.mean + 0.02 * np.sin(np.arange(run.mean.size)), run, 0)], 100, kind="trailing")
+    assert d["window_kind"] == "trailing" and d["reached"]
+
+
+def test_a_trailing_amplitude_sees_only_the_past():
+    m = np.random.default_rng(2).normal(size=500)
+    a = local_amplitude(m, 50, kind="trailing")
+    ref = [np.sqrt(np.mean(np.concatenate([np.full(max(0, 49 - i), m[0]), m[max(0, i - 49): i + 1]]) ** 2))
+           for i in range(m.size)]
+    assert np.allclose(a, ref, rtol=1e-12)
+    cut = m.copy()
+    cut[300:] = 0.0  # the future changes: the amplitude up to it does not
+    assert np.array_equal(local_amplitude(cut, 50, kind="trailing")[:300], a[:300])
+    assert not np.array_equal(local_amplitude(cut, 50)[:300], local_amplitude(m, 50)[:300])  # the centred one does
+
+
 def test_model_calibrates_on_held_out_records_and_the_bundle_keeps_it(sdof_model, sdof_data, tmp_path):
     from conftest import sdof_simulate
 
@@ -88,7 +112,7 @@ def test_model_calibrates_on_held_out_records_and_the_bundle_keeps_it(sdof_model
         assert cov == pytest.approx(d["coverage_after"]["held"])
         path = save_bundle(model, tmp_path, "sdof", fs=500.0, units={"u": "N", "y": "m"})
         back = load_bundle(path).model
-        assert back.band_discrepancy_["scale"] == d["scale"]
+        assert back.band_discrepancy_["scale"] == d["scale"] and back.band_discrepancy_["window_kind"] == "centred"
         assert np.allclose(back.simulate(u, method="linear").upper, after.upper)
         with pytest.raises(ValueError, match="start"):
             model.calibrate_band([("bad", u, y, "sometime")], window=100)

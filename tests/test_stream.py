@@ -56,6 +56,76 @@ def test_discrepancy_band_differs_only_in_a_chunks_last_half_window(sdof_model, 
     assert np.array_equal(parts["mean"], whole.mean)
 
 
+@pytest.mark.parametrize("method", ["linear", "mc"])
+def test_a_trailing_discrepancy_window_gives_the_whole_records_band_in_chunks(sdof_model, sdof_data, method):
+    import copy
+
+    model = copy.deepcopy(sdof_model)
+    model.band_discrepancy_ = {"scale": 0.2, "window": 20, "window_kind": "trailing"}
+    u = np.asarray(sdof_data["u2"], float)[:900]
+    kw = {"n_paths": 32, "seed": 3} if method == "mc" else {}
+    whole = model.simulate(u, method=method, **kw)
+    parts, state = _chunked(model, u, method, **kw)
+    plain = copy.deepcopy(sdof_model).simulate(u, method=method, **kw)
+    assert np.min(whole.upper - plain.upper) >= 0 and np.max(whole.upper - plain.upper) > 0  # the term is on
+    assert state.amp_tail.size == 19  # window - 1 means: all a trailing window sees of the past
+    for k in ("mean", "std", "lower", "upper"):
+        if method == "mc" or k == "mean":  # the same numbers, chunk ends included
+            assert np.array_equal(parts[k], getattr(whole, k)), k
+        else:  # eq. 9 in row blocks of another size: round-off
+            assert np.max(np.abs(parts[k] - getattr(whole, k))) <= 1e-7 * np.max(np.abs(getattr(whole, k))), k
+
+
+def test_stream_cycles_in_chunks_are_the_whole_records():
+    from gpnarx.model.cycle_stream import MAX_CYCLE_SAMPLES, advance
+
+    fs, n = 750.0, 3000
+    t = np.arange(n) / fs
+    rng = np.random.default_rng(1)
+    u = np.sin(2 * np.pi * 20 * t) * (1 + 0.3 * np.sin(2 * np.pi * 0.7 * t))
+    m = 0.01 * np.sin(2 * np.pi * 20 * t - 0.5) * (t < 2.0) + 1e-4 * rng.normal(size=n)  # then no cycle for 2 s
+    m[2600:] = 0.01 * np.sin(2 * np.pi * 9 * t[2600:])
+    y = m + 1e-4 * rng.normal(size=n)
+    paths = m[:, None] + 1e-4 * rng.normal(size=(n, 16))
+    phys = {"mass": 2.0, "input_gain": 1.0, "output": "displacement"}
+    whole, _ = advance(None, u, m, fs=fs, physics=phys, y=y, paths=paths)
+    assert len(whole) > 30 and all(c["energy_lower"] <= c["energy"] <= c["energy_upper"] for c in whole)
+    for chunk in (17, 150, 1000):
+        got, carry = [], None
+        for c in range(0, n, chunk):
+            cyc, carry = advance(carry, u[c:c + chunk], m[c:c + chunk], fs=fs, physics=phys, y=y[c:c + chunk],
+                                 paths=paths[c:c + chunk])
+            got += cyc
+            assert carry["u"].size <= MAX_CYCLE_SAMPLES + 40  # the carry stays bounded
+        assert got == whole, chunk  # the same cycles, to the last bit, whatever the chunks
+
+
+@pytest.mark.parametrize("method,paths", [("linear", None), ("mc", 32)])
+def test_http_loops_in_chunks_report_the_whole_records_cycles_once(method, paths):
+    registry = built_registry().root
+    u, y = short_record(900, 12)
+    a, b = _app(registry), _app(registry)
+    body = {"fs": FS, "method": method, "seed": 2, "return_state": True, **({"mc_paths": paths} if paths else {})}
+    whole = a.post("/v1/models/boucwen/loops", json={**body, "u": u.tolist(), "y": y.tolist()}).json()
+    assert whole["cycle_basis"]["basis"] == "stream" and len(whole["cycles"]) >= 5, whole.get("cycle_basis")
+    state, got = None, []
+    for k, c in enumerate(range(0, u.size, 125)):  # chunks shorter than some cycles: cycles straddle them
+        req = {**body, "u": u[c:c + 125].tolist(), "y": y[c:c + 125].tolist(), **({"state": state} if state else {})}
+        r = (a if k % 2 == 0 else b).post("/v1/models/boucwen/loops", json=req)
+        assert r.status_code == 200, r.text
+        state = r.json()["state"]
+        got += r.json()["cycles"]
+    if method == "mc":  # the same paths: the same numbers
+        assert got == whole["cycles"]
+    else:  # the linearised mean to round-off (eq. 9's covariance band in row blocks of another size)
+        assert len(got) == len(whole["cycles"])
+        for g, w in zip(got, whole["cycles"]):
+            assert g.keys() == w.keys() and all(
+                g[k] == pytest.approx(w[k], rel=1e-9, abs=1e-12) for k in w if w[k] is not None), (g, w)
+    assert all(c["energy_lower"] <= c["energy"] <= c["energy_upper"] and c["measured_energy"] is not None
+               for c in got)
+
+
 def test_a_token_round_trips_and_refuses_damage_and_other_versions(sdof_model, sdof_data):
     u = np.asarray(sdof_data["u2"], float)[:300]
     run = sdof_model.simulate(u, method="mc", n_paths=32, seed=1)
@@ -130,6 +200,8 @@ def test_gpnarx_stream_reads_stdin_csv_and_prints_a_line_per_chunk():
     import subprocess
     import sys
 
+    from gpnarx.model.novelty_window import HTTP_WINDOW_SECONDS
+
     registry = built_registry().root
     u, y = short_record(700, 4)
     csv = "u,y\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(u, y))
@@ -143,6 +215,26 @@ def test_gpnarx_stream_reads_stdin_csv_and_prints_a_line_per_chunk():
     assert lines[-1]["end_s"] == pytest.approx(700 / FS)
     for x in lines:
         assert x["novelty"]["verdict"] in ("healthy", "novel", "unjudged") and 0 <= x["coverage"] <= 100
-        assert x["novelty_window"]["chunks"] == min(x["chunk"] + 1, 2)
+    # the window holds the last 2 x 200 samples: after the short last chunk, parts of three chunks
+    assert [x["novelty_window"]["samples"] for x in lines] == [200, 400, 400, 400]
+    assert [x["novelty_window"]["chunks"] for x in lines] == [1, 2, 2, 3]
+    # cycles completed so far: each once, in order, across the chunks
+    ends = [c["end"] for x in lines for c in x["cycles"]]
+    assert len(ends) >= 3 and ends == sorted(ends) and all(c["end"] <= x["end_s"] for x in lines for c in x["cycles"])
+    # the HTTP novelty stream's window is the same code: with the CLI's window as long (8 s), the same scores
+    n_win = int(round(HTTP_WINDOW_SECONDS * FS / 200))
+    cli = subprocess.run(cmd[:-3] + ["--window", str(n_win), "-"], input=csv, capture_output=True, text=True,
+                         timeout=300)
+    assert cli.returncode == 0, cli.stderr
+    c = _app(registry)
+    state = None
+    for x, start in zip([json.loads(v) for v in cli.stdout.splitlines()], range(0, 700, 200)):
+        req = {"u": u[start:start + 200].tolist(), "y": y[start:start + 200].tolist(), "fs": FS, "method": "linear",
+               "return_state": True, **({"state": state} if state else {})}
+        r = c.post("/v1/models/boucwen/versions/2/novelty", json=req)
+        assert r.status_code == 200, r.text
+        state = r.json()["state"]
+        assert r.json()["score"] == pytest.approx(x["novelty"]["score"], rel=1e-9)
+        assert r.json()["novelty_window"] == pytest.approx(x["novelty_window"], rel=1e-9)
     bad = subprocess.run(cmd, input="u,y\n1.0,2.0\n1.0,oops\n", capture_output=True, text=True, timeout=300)
     assert bad.returncode == 1 and "stdin line 3" in bad.stderr, bad.stderr

@@ -32,6 +32,8 @@ key name below is a contract)::
     band_calibration = "none"         # "none" | "lags": add the model-discrepancy term to the free-run
                                       # band, calibrated on the 'lags' records (model.discrepancy)
     band_window = 0.25                # [s] window of its local amplitude
+    band_window_kind = "centred"      # "centred" | "trailing": the window ends at each sample (causal: a
+                                      # stream's chunks get the whole record's band, docs/api.md)
     hyper = "subset"                  # sparse mode: "subset" (exact ML-II on the capped rows) | "vfe"
     fit_backend = "numpy"             # "numpy" | "jax": ML-II and the exact posterior's solves on the JAX
                                       # device (a GPU: exact mode at 10-20 thousand rows; docs/accelerator.md)

@@ -10,7 +10,7 @@ One model per TOML table::
       PhysicsTable            mass [kg] > 0 (optional), input_gain [N per input unit] > 0
       ModelTable              ny, nu >= 1 (optional), kernel, mode, inducing >= 1, max_train_points >= 1,
                               selection, restarts >= 0, seed >= 0, noise_calibration, band_calibration,
-                              band_window [s] in (0, 10]
+                              band_window [s] in (0, 10], band_window_kind "centred" | "trailing"
       lags                    any key: a lag range LO:HI[:STEP] (parse_range)
       PredictTable            mc_paths >= 1, confidence in (0, 1), method "mc" | "linear"
       NoveltyTable            false_alarm_rate in (0, 1), method (gpnarx.model.novelty.METHODS)
@@ -55,6 +55,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from gpnarx.model.discrepancy import WINDOW_KINDS as BAND_WINDOW_KINDS
 from gpnarx.model.novelty import METHODS as NOVELTY_METHODS
 from gpnarx.model.record import RecordError
 from gpnarx.storage.record_files import normalize_unit
@@ -284,6 +285,9 @@ class ModelTable(_Closed):
     band_calibration: _choice(BAND_CALIBRATIONS) = "none"
     band_window: _number("a number of seconds in (0, 10]", gt=0, le=10) = Field(
         0.25, description="window of the band's local amplitude [s]")
+    band_window_kind: _choice(BAND_WINDOW_KINDS) = Field(
+        "centred", description="where that window lies: centred on each sample, or trailing (ending at it: a "
+                               "stream's chunks then get the whole record's band)")
     ny: Count | None = Field(None, description="output lags (omit when chosen by the lag surface)")
     nu: Count | None = Field(None, description="input lags")
     hyper: _choice(("subset", "vfe")) = Field(
