@@ -47,3 +47,24 @@ def test_bad_method_and_too_short_records_are_refused():
 def test_method_of_a_bundle_calibration():
     assert method_of(None) == RMS_METHOD and method_of({"threshold": 1.0}) == RMS_METHOD  # older bundles
     assert method_of({"method": SEGMENT_METHOD}) == SEGMENT_METHOD
+
+
+def test_healthy_records_scored_at_once_give_the_scores_of_one_at_a_time():
+    """training.novelty_calibration.score_healthy(jobs=2) scores records in forked processes (how the default
+    build calibrates bert-real-monitor on 2 cores): the same scores as one at a time, in record order."""
+    from test_service_support import FS, built_registry, short_record
+
+    from gpnarx.model.record import Record
+    from gpnarx.storage.bundle import load_bundle
+    from gpnarx.training.novelty_calibration import score_healthy
+
+    bundle = load_bundle(built_registry().root / "plain" / "1")
+    recs = []
+    for k in range(3):
+        u, y = short_record(200 + 20 * k)
+        recs.append(Record(u, y, FS, name=f"r{k}"))
+    one = score_healthy(bundle, recs, RMS_METHOD, n_paths=8, seed=3, jobs=1)
+    two = score_healthy(bundle, recs, RMS_METHOD, n_paths=8, seed=3, jobs=2)
+    assert [r["name"] for r in two] == ["r0", "r1", "r2"] and two == one
+    with pytest.raises(ValueError, match="r0: a healthy record needs its measured output y"):
+        score_healthy(bundle, [Record(recs[0].u, None, FS, name="r0"), recs[1]], RMS_METHOD, n_paths=8, jobs=2)

@@ -15,6 +15,9 @@ one free run per healthy record, which is training-sized work, not request-sized
 """
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+
 from gpnarx.model.novelty import (
     RMS_METHOD,
     calibrate_threshold,
@@ -31,40 +34,68 @@ from gpnarx.storage.bundle import Bundle, derive_bundle
 __all__ = ["calibrate", "score_healthy"]
 
 
-def score_healthy(bundle: Bundle, records, method: str, n_paths: int = 1024, seed: int = 0,
-                  propagation: str = "mc", progress=None) -> list[dict]:
-    """Novelty score of each record (``model.record.Record`` with y) by the scoring rule of
-    ``gpnarx novelty``; record k uses seed ``seed + k``."""
+def _score_one(bundle: Bundle, rec, k: int, method: str, n_paths: int, seed: int, propagation: str, progress) -> dict:
+    """Score of healthy record ``rec`` (the k-th: seed ``seed + k``) by the scoring rule of ``gpnarx novelty``."""
     model = bundle.model
-    out = []
-    for k, rec in enumerate(records):
+    if rec.y is None:
+        raise ValueError(f"{rec.name}: a healthy record needs its measured output y")
+    if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
+        raise ValueError(f"{rec.name}: fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs "
+                         f"{bundle.fs} Hz")
+    y0 = novelty_start(rec.y, model.ny)
+    if y0 is None:
+        raise ValueError(f"{rec.name}: a healthy record must be longer than ny={model.ny} samples")
+    run = model.simulate(rec.u, n_paths=n_paths, seed=seed + k, method=propagation, y0=y0,
+                         progress=None if progress is None else progress(rec))
+    s = novelty_score(rec.y, run.mean, run.std, method)
+    return {"name": rec.name, "score": s["score"], "n_samples": rec.n}
+
+
+_FORKED: dict = {}  # what the forked scorers of ``score_healthy(jobs > 1)`` inherit
+
+
+def _forked_score(k: int) -> dict:
+    a = _FORKED
+    return _score_one(a["bundle"], a["records"][k], k, a["method"], a["n_paths"], a["seed"], a["propagation"], None)
+
+
+def score_healthy(bundle: Bundle, records, method: str, n_paths: int = 1024, seed: int = 0,
+                  propagation: str = "mc", progress=None, jobs: int = 1) -> list[dict]:
+    """Novelty score of each record (``model.record.Record`` with y) by the scoring rule of
+    ``gpnarx novelty``; record k uses seed ``seed + k``.
+
+    jobs: records scored at once, each in a forked process (POSIX ``fork``; elsewhere, or with one
+    record, one at a time); the scores are the same as one at a time (each record's seed is its own).
+    """
+    records = list(records)
+    for rec in records:  # checked before any work, as one at a time would
         if rec.y is None:
             raise ValueError(f"{rec.name}: a healthy record needs its measured output y")
-        if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
-            raise ValueError(f"{rec.name}: fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs "
-                             f"{bundle.fs} Hz")
-        y0 = novelty_start(rec.y, model.ny)
-        if y0 is None:
-            raise ValueError(f"{rec.name}: a healthy record must be longer than ny={model.ny} samples")
-        run = model.simulate(rec.u, n_paths=n_paths, seed=seed + k, method=propagation, y0=y0,
-                             progress=None if progress is None else progress(rec))
-        s = novelty_score(rec.y, run.mean, run.std, method)
-        out.append({"name": rec.name, "score": s["score"], "n_samples": rec.n})
-    return out
+    jobs = max(1, min(int(jobs), len(records)))
+    if jobs > 1 and "fork" in multiprocessing.get_all_start_methods():
+        _FORKED.update(bundle=bundle, records=records, method=method, n_paths=n_paths, seed=seed,
+                       propagation=propagation)
+        try:
+            with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork")) as pool:
+                return list(pool.map(_forked_score, range(len(records))))
+        finally:
+            _FORKED.clear()
+    return [_score_one(bundle, rec, k, method, n_paths, seed, propagation, progress) for k, rec in enumerate(records)]
 
 
 def calibrate(bundle: Bundle, records, registry, *, false_alarm_rate: float = 0.01, score_method: str | None = None,
               n_paths: int = 1024, seed: int = 0, propagation: str = "mc", version=None, progress=None,
-              name: str | None = None) -> dict:
+              name: str | None = None, jobs: int = 1) -> dict:
     """Write a new version of ``bundle`` calibrated on healthy ``records``; returns its name, version,
     path, the novelty calibration and each record's score and verdict under it. ``name``: write it
-    under that model name instead (a monitor derived from a model, same GP)."""
+    under that model name instead (a monitor derived from a model, same GP). ``jobs``: healthy records
+    scored at once (``score_healthy``; the same scores)."""
     records = list(records)
     if len(records) < 2:
         raise ValueError(f"at least 2 healthy records are needed to calibrate, got {len(records)}")
     old = bundle.manifest.get("novelty") if isinstance(bundle.manifest.get("novelty"), dict) else None
     method = check_method(score_method or (method_of(old) if old else RMS_METHOD))
-    scored = score_healthy(bundle, records, method, n_paths, seed, propagation, progress)
+    scored = score_healthy(bundle, records, method, n_paths, seed, propagation, progress, jobs=jobs)
     novelty = calibrate_threshold([s["score"] for s in scored], false_alarm_rate)
     novelty["method"] = method
     novelty["mc_paths"] = int(n_paths) if propagation == "mc" else 0

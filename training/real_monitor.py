@@ -16,6 +16,7 @@ measured outputs (the novelty rule).
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from gpnarx.model.record import Record
@@ -50,11 +51,19 @@ def windows(data, spec: dict, width: float = WINDOW_SECONDS) -> list[Record]:
     return out
 
 
-def build_real_monitor(root, data, *, mc_paths: int = 256, log=None) -> dict:
+def _cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def build_real_monitor(root, data, *, mc_paths: int = 256, log=None, jobs: int | None = None) -> dict:
     """Derive ``bert-real-monitor`` from the newest ``bert-real`` in the registry ``root``.
 
     data: the BERT records folder (``config.bert_data_dir()``); mc_paths: Monte Carlo paths of each
-    calibration score. Returns ``calibrate``'s answer (name, version, threshold, scores).
+    calibration score; jobs: windows scored at once (default: the cores this process may use; the
+    scores do not depend on it). Returns ``calibrate``'s answer (name, version, threshold, scores).
     """
     log = log or (lambda msg: None)
     reg = Registry(root).scan()
@@ -63,9 +72,10 @@ def build_real_monitor(root, data, *, mc_paths: int = 256, log=None) -> dict:
     source = reg.get(SOURCE_MODEL)
     cal = windows(data, CALIBRATION)
     log(f"calibrating {MONITOR_NAME} from {SOURCE_MODEL}:{source.version} on {len(cal)} healthy "
-        f"{WINDOW_SECONDS:g} s windows ({', '.join(CALIBRATION)}), {mc_paths} paths each")
+        f"{WINDOW_SECONDS:g} s windows ({', '.join(CALIBRATION)}), {mc_paths} paths each, "
+        f"{_cores() if jobs is None else jobs} at a time")
     res = calibrate(source, cal, Path(root), false_alarm_rate=FALSE_ALARM_RATE, score_method=SCORE_METHOD,
-                    n_paths=mc_paths, name=MONITOR_NAME)
+                    n_paths=mc_paths, name=MONITOR_NAME, jobs=_cores() if jobs is None else jobs)
     log(f"{MONITOR_NAME}:{res['version']} threshold {res['novelty']['threshold']:.3g}")
     return res
 
