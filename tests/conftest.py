@@ -24,6 +24,35 @@ from gpnarx.training.datapaths import bert_data_dir  # noqa: E402
 BERT_DATA = bert_data_dir()
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _session_cache_root(tmp_path_factory):
+    """The cache root of tests/session_cache.py: one folder for the whole session, beside the
+    pytest-xdist workers' base folders (their common parent) so every worker builds into the same one."""
+    import session_cache
+
+    base = tmp_path_factory.getbasetemp()
+    session_cache.set_root((base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "session-cache")
+
+
+@pytest.fixture(scope="session")
+def bert_real_registry(_session_cache_root):
+    """A registry folder holding ``bert-real`` trained from its shipped config as the default-registry
+    build trains it (``training.pipeline.train``, the report's free runs linearised, no report folder),
+    once per session for every module and pytest-xdist worker (tests/session_cache.py), rebuilt when the
+    config, the package's source or the data folder's path changes. Read it only: copy it to add bundles."""
+    from session_cache import build_once, digest
+
+    from gpnarx.training.defaults import shipped_config
+    from gpnarx.training.pipeline import train
+
+    config = shipped_config("bert-real")
+
+    def build(folder: Path) -> None:
+        train(config, folder / "registry", report=False, report_method="linear")
+
+    return build_once("bert-real", digest(config, Path(__file__), extra=str(BERT_DATA)), build) / "registry"
+
+
 def sdof_simulate(u, fs=500.0, f_n=20.0, zeta=0.02, mass=1.0):
     """Linear SDOF oscillator (m=1 kg, k=(2 pi 20 Hz)^2 N/m, 2% damping), exact ZOH discretisation."""
     from scipy import signal

@@ -1,18 +1,16 @@
 """Shared fixtures for the service tests: a small trained Bouc-Wen registry and a real uvicorn server.
 
-The registry is built once per test session (module-level cache, shared by every test_service*
-module): a GP-NARX (ny = nu = 10, 400 training points) trained on two 10 N RMS multisines and a
-30 N sweep with 5 % output noise, saved as ``boucwen`` versions 1 and 2 (novelty calibrated on
+The registry is built once per test session (tests/session_cache.py: one build shared by every
+pytest-xdist worker and every module): a GP-NARX (ny = nu = 10, 400 training points) trained on two
+10 N RMS multisines and a 30 N sweep with 5 % output noise, saved as ``boucwen`` versions 1 and 2 (novelty calibrated on
 three healthy multisines, Bouc-Wen physics m = 2 kg) and ``plain`` version 1 (no physics, no
 novelty calibration). Tests import what they need from here.
 """
 from __future__ import annotations
 
-import atexit
 import functools
 import shutil
 import socket
-import tempfile
 import threading
 import time
 import warnings
@@ -20,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from session_cache import build_once, digest
 
 FS = 750.0
 NOISE = 0.05
@@ -56,7 +55,18 @@ MC_PATHS = 48
 
 @functools.lru_cache(maxsize=1)
 def built_registry() -> Built:
-    """Train once per session; returns the registry folder (do not modify it: copy it)."""
+    """The registry, trained once per session (tests/session_cache.py: the first pytest-xdist worker to
+    ask builds it, the others wait and read it); do not modify it: copy it. ``model`` is the bundle
+    ``plain/1`` as loaded, the same arrays every served version holds."""
+    from gpnarx.storage.bundle import load_bundle
+
+    root = build_once("svc-registry", digest(Path(__file__)), _build_registry)
+    test = np.load(root / "test_record.npz")
+    return Built(root / "registry", load_bundle(root / "registry" / "plain" / "1").model, test["u"], test["y"])
+
+
+def _build_registry(folder: Path) -> None:
+    """Train the fixture model and write its bundles into ``folder/registry`` (the test record beside)."""
     from gpnarx.model.estimator import GPNARX
     from gpnarx.model.novelty import calibrate_threshold, novelty_score, record_envelope
     from gpnarx.service.app import limit_blas_threads
@@ -64,8 +74,7 @@ def built_registry() -> Built:
     from gpnarx.training import excitations as ex
 
     limit_blas_threads(1)  # as the service does; multi-threaded BLAS on small products only oversubscribes
-    root = Path(tempfile.mkdtemp(prefix="gpnarx-svc-registry-"))
-    atexit.register(shutil.rmtree, root, True)
+    root = folder / "registry"
     recs = []
     for k, s in enumerate((1, 2)):
         u = multisine(1024, s)
@@ -96,8 +105,7 @@ def built_registry() -> Built:
     save_bundle(model, root, "plain", "1", fs=FS, units=units, physics=None, novelty=None, training={},
                 extra=predict)
     test_u = multisine(1024, 3)
-    test_y = noisy(simulate(test_u), 400)
-    return Built(root, model, test_u, test_y)
+    np.savez(folder / "test_record.npz", u=test_u, y=noisy(simulate(test_u), 400))
 
 
 def copy_registry(dest: Path) -> Path:
