@@ -3,6 +3,8 @@ healthy real windows, derived without a refit, judging unseen healthy windows an
 outside its probe. Skipped, with the reason, when the lab records are not beside the repository."""
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -22,11 +24,10 @@ def test_plan_skips_the_monitor_when_its_source_is_neither_present_nor_built(tmp
 
 
 @pytest.fixture(scope="module")
-def registry(tmp_path_factory):
-    from gpnarx.training.pipeline import train
-
-    root = tmp_path_factory.mktemp("reg")
-    train(defaults.shipped_config("bert-real"), root, report=False, report_method="linear")
+def registry(bert_real_registry, tmp_path_factory):
+    """bert-real as trained once for the session (conftest), copied, with the monitor derived from it."""
+    root = tmp_path_factory.mktemp("reg") / "registry"
+    shutil.copytree(bert_real_registry, root)
     defaults.build_default("bert-real-monitor", root, mc_paths=16)
     return root
 

@@ -1,9 +1,10 @@
 """The shipped real-BERT model on every real record of the data folder: no divergence anywhere,
 and a 99 % band that holds the measured output.
 
-Trains ``configs/bert-real.toml`` as shipped (about a minute on 2 cores, with its noise and band
-calibrations) and free-runs each whole real record (13 sines of 64 s and the noise run) from rest
-with the linearised method, plus a short Monte Carlo run at resonance. A record fails when the
+Takes ``configs/bert-real.toml`` trained as shipped, with its noise and band calibrations (the
+session's one training, conftest ``bert_real_registry``, shared with tests/test_real_monitor.py),
+and free-runs each whole real record (13 sines of 64 s and the noise run) from rest with the
+linearised method, plus a short Monte Carlo run at resonance. A record fails when the
 mean's peak exceeds 3x the measured peak, the answer flags a divergence, or the 99 % band covers
 less than 90 % of the measured output (the real-data target, resonance sines included). Records a
 user adds to the data folder are checked too.
@@ -24,15 +25,16 @@ pytestmark = pytest.mark.skipif(not RECORDS, reason=f"real BERT records not foun
 
 
 @pytest.fixture(scope="module")
-def model():
+def model(bert_real_registry):
+    from gpnarx.storage.registry import Registry
     from gpnarx.training.config import load_config
     from gpnarx.training.defaults import shipped_config
-    from gpnarx.training.pipeline import calibrate_band_from_config, model_from_config
 
     cfg = load_config(shipped_config("bert-real"))
-    m = model_from_config(cfg, None, None).fit(cfg.records_for("train"), heldout=cfg.records_for("lags"))
     assert cfg.model["band_calibration"] == "lags"
-    d = calibrate_band_from_config(m, cfg, cfg.records_for("lags"))
+    m = Registry(bert_real_registry).scan().get("bert-real").model
+    d = m.band_discrepancy_  # the band calibration on the config's 'lags' records, as trained
+    assert d["records"] == [r.name for r in cfg.records_for("lags")]
     assert d["reached"] and min(d["coverage_after"].values()) >= 0.99
     return m
 
