@@ -43,7 +43,8 @@ from gpnarx.model.discrepancy import calibrate_scale, widen_chunk
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "docs" / "runs" / "band-window"
 PAGE = ROOT / "docs" / "band-window.md"
-KINDS = ("centred", "trailing")
+# the windows compared: name -> (kind, length as a fraction of the config's band_window)
+VARIANTS = {"centred": ("centred", 1.0), "trailing": ("trailing", 1.0), "trailing_half": ("trailing", 0.5)}
 
 
 def _trailing_copy(name: str, folder: Path) -> Path:
@@ -131,18 +132,20 @@ def study(name: str, bundle_registry: str | None) -> dict:
                "stored_band_discrepancy": {k: stored.get(k) for k in ("scale", "window", "window_kind")},
                "kinds": {}, "needed": {}}
         runs = _raw_runs(model, report)
-        for kind in KINDS:
-            cfg.model["band_window_kind"] = kind
+        seconds = float(cfg.model.get("band_window", 0.25))
+        for variant, (kind, share) in VARIANTS.items():
+            cfg.model["band_window_kind"], cfg.model["band_window"] = kind, seconds * share
             d = calibrate_band_from_config(model, cfg, held)
-            res["kinds"][kind] = {"scale": d["scale"], "window": d["window"], "reached": d["reached"],
-                                  "calibration_coverage": d["coverage_after"], "records": _quality(runs, d)}
-            if kind == "trailing":
+            res["kinds"][variant] = {"kind": kind, "scale": d["scale"], "window": d["window"], "reached": d["reached"],
+                                     "calibration_coverage": d["coverage_after"], "records": _quality(runs, d)}
+            if variant == "trailing":
                 res["stream"] = _stream_check(model, report[0])
-            # the scale each kind needs for every report record to reach the band's confidence, and the
-            # band that gives: the two windows' shapes compared at equal coverage
+            # the scale each window needs for every report record to reach the band's confidence, and the
+            # band that gives: the windows' shapes compared at equal coverage
             need = calibrate_scale([(n_, y, r, k) for n_, y, r, k in runs], d["window"], kind=kind)
-            res["needed"][kind] = {"scale": need["scale"], "reached": need["reached"],
-                                   "records": _quality(runs, {**need, "window_kind": kind})}
+            res["needed"][variant] = {"scale": need["scale"], "reached": need["reached"],
+                                      "records": _quality(runs, {**need, "window_kind": kind})}
+        cfg.model["band_window"] = seconds
     res["seconds"] = time.perf_counter() - t0
     return res
 
@@ -155,47 +158,55 @@ def render() -> str:
              "mean over a window (`band_window`, 0.25 s). `band_window_kind = \"trailing\"` puts that window on the",
              "samples up to each sample, so a record sent in chunks (a stream, docs/api.md) gets the whole record's",
              "band; `\"centred\"` (the default, and every bundle calibrated before the choice) needs half a window",
-             "of the record still to come. Each kind's scale is calibrated on the config's `lags` records (the",
-             "worst record reaches the band's confidence); the report records (verify, validate) are then",
-             "predicted linearised with each. Coverage [%] of the measured record by the 99 % band, and the",
-             "band's mean half-width relative to the record's RMS (sharpness: smaller is sharper).", ""]
+             "of the record still to come. A centred window looks half a window back; a trailing window of half",
+             "the length (`band_window = 0.125`) looks as far back and no further. Each window's scale is",
+             "calibrated on the config's `lags` records (the worst record reaches the band's confidence); the",
+             "report records (verify, validate) are then predicted linearised with each. Coverage [%] of the",
+             "measured record by the 99 % band, and the band's mean half-width relative to the record's RMS",
+             "(sharpness: smaller is sharper).", ""]
+    names = {"centred": "centred", "trailing": "trailing", "trailing_half": "trailing, half window"}
     for r in runs:
-        c, t = r["kinds"]["centred"], r["kinds"]["trailing"]
+        ks = [v for v in names if v in r["kinds"]]
+        c, s = r["kinds"]["centred"], r["stream"]
         lines += [f"## {r['config']}", "", f"{r['how']}; ny={r['ny']}, nu={r['nu']}, fs {r['fs']:g} Hz.", "",
-                  f"Scale: centred {c['scale']:.4g}, trailing {t['scale']:.4g} of the local amplitude "
-                  f"(window {t['window']} samples).", "",
-                  "| record | coverage centred | coverage trailing | half-width/RMS centred | trailing |",
-                  "|---|---|---|---|---|"]
-        for name, q in c["records"].items():
-            qt = t["records"][name]
-            lines.append(f"| {name} | {q['coverage']:.2f} | {qt['coverage']:.2f} | {q['half_width_rel_rms']:.4f} | "
-                         f"{qt['half_width_rel_rms']:.4f} |")
-        cov = [(q["coverage"], t["records"][k]["coverage"]) for k, q in c["records"].items()]
-        hw = [t["records"][k]["half_width"] / q["half_width"] for k, q in c["records"].items()]
-        s = r["stream"]
-        if c["scale"] == 0 and t["scale"] == 0:
-            lines += ["", "The `lags` records are covered without the term (scale 0 with either window): the two "
-                      "kinds give the same band on this model as shipped."]
+                  "Calibrated on the `lags` records (as training does): scale of the local amplitude, "
+                  + ", ".join(f"{names[v]} {r['kinds'][v]['scale']:.4g} ({r['kinds'][v]['window']} samples)"
+                              for v in ks) + ".", "",
+                  "| record | " + " | ".join(f"coverage {names[v]}" for v in ks) + " | "
+                  + " | ".join(f"half-width/RMS {names[v]}" for v in ks) + " |",
+                  "|---|" + "---|" * (2 * len(ks))]
+        for name in c["records"]:
+            q = [r["kinds"][v]["records"][name] for v in ks]
+            lines.append(f"| {name} | " + " | ".join(f"{x['coverage']:.2f}" for x in q) + " | "
+                         + " | ".join(f"{x['half_width_rel_rms']:.4f}" for x in q) + " |")
+        lines += [""]
+        for v in ks[1:]:
+            hw = [r["kinds"][v]["records"][k]["half_width"] / q["half_width"] for k, q in c["records"].items()]
+            worst = min(q["coverage"] for q in r["kinds"][v]["records"].values())
+            lines.append(f"- {names[v]}: worst coverage {worst:.2f} % "
+                         f"(centred {min(q['coverage'] for q in c['records'].values()):.2f} %); half-width over the "
+                         f"centred one's {min(hw):.3f} to {max(hw):.3f} (median {float(np.median(hw)):.3f}).")
+        if all(r["kinds"][v]["scale"] == 0 for v in ks):
+            lines += ["", "The `lags` records are covered without the term (scale 0 with every window): the windows "
+                      "give the same band on this model as shipped."]
         if r.get("needed"):
-            nc, nt = r["needed"]["centred"], r["needed"]["trailing"]
-            ratio = [nt["records"][k]["half_width"] / q["half_width"] for k, q in nc["records"].items()]
-            lines += ["", f"At equal coverage: the scale each kind needs for every report record to reach 99 % "
-                      f"(calibrated on the report records themselves, to compare the windows' shapes): centred "
-                      f"{nc['scale']:.4g}, trailing {nt['scale']:.4g}"
-                      + ("" if nc["reached"] and nt["reached"] else " (not reached by both)")
-                      + f"; the band's half-width then, trailing / centred: {min(ratio):.3f} to {max(ratio):.3f} "
-                      f"(median {float(np.median(ratio)):.3f}); worst coverage centred "
-                      f"{min(q['coverage'] for q in nc['records'].values()):.2f} %, trailing "
-                      f"{min(q['coverage'] for q in nt['records'].values()):.2f} %."]
+            nc = r["needed"]["centred"]
+            lines += ["", "At equal coverage: the scale each window needs for every report record to reach 99 % "
+                      "(calibrated on the report records themselves: not a held-out claim, a comparison of the "
+                      "windows' shapes), and the band's half-width then over the centred window's:", ""]
+            for v in ks:
+                n = r["needed"][v]
+                ratio = [n["records"][k]["half_width"] / q["half_width"] for k, q in nc["records"].items()]
+                lines.append(f"- {names[v]}: scale {n['scale']:.4g}" + ("" if n["reached"] else " (not reached)")
+                             + f", worst coverage {min(q['coverage'] for q in n['records'].values()):.2f} %, "
+                             f"half-width ratio {min(ratio):.3f} to {max(ratio):.3f} (median "
+                             f"{float(np.median(ratio)):.3f}).")
         if r.get("training_check"):
             tc = r["training_check"]
             lines += ["", f"Training check: {tc['how']}; the bundle read back stores "
                       f"`{json.dumps(tc['stored_band_discrepancy'])}`."]
-        lines += ["", f"Worst coverage: centred {min(a for a, _ in cov):.2f} %, trailing "
-                  f"{min(b for _, b in cov):.2f} %; half-width trailing / centred: {min(hw):.3f} to {max(hw):.3f} "
-                  f"(median {float(np.median(hw)):.3f}).", "",
-                  f"Stream, trailing kind: `{s['record']}` in {s['chunks']} chunks of {s['chunk_samples']} samples "
-                  f"(1 s) against the record whole: largest mean difference {s['max_mean_diff']:.3g}, largest "
+        lines += ["", f"Stream, trailing window: `{s['record']}` in {s['chunks']} chunks of {s['chunk_samples']} "
+                  f"samples (1 s) against the record whole: largest mean difference {s['max_mean_diff']:.3g}, largest "
                   f"band-edge difference {s['max_band_diff_rel_half_width']:.3g} of the half-width.", ""]
     return "\n".join(lines)
 

@@ -75,7 +75,9 @@ def record(n=96, seed=5, y=True, **extra):
 
 OPS = [("predict", {}), ("predict", {"y": False, "method": "linear"}), ("predict", {"return_state": True}),
        ("loops", {"n": 400}), ("loops", {"n": 400, "method": "linear", "y": False}), ("novelty", {"n": 256}),
-       ("novelty", {"n": 256, "method": "linear", "start": "rest"})]
+       ("novelty", {"n": 256, "method": "linear", "start": "rest"}),
+       ("loops", {"n": 400, "method": "linear", "return_state": True}),  # stream: basis 'stream'
+       ("novelty", {"n": 256, "method": "linear", "return_state": True})]  # stream: novelty_window
 
 
 @pytest.mark.parametrize("op, kw", OPS)
