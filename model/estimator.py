@@ -47,6 +47,25 @@ def _as_pairs(records) -> list[tuple[np.ndarray, np.ndarray]]:
     return pairs
 
 
+def _row_weights(records) -> list[float] | None:
+    """Each training record's ``meta["row_weight"]`` (its share of the ML-II rows per sample relative to
+    the others, ``model.selection``), or None when no record names one."""
+    if isinstance(records, Record):
+        records = [records]
+    if not isinstance(records, (list, tuple)):
+        return None
+    found = [r.meta.get("row_weight") if isinstance(r, Record) else None for r in records]
+    if all(v is None for v in found):
+        return None
+    out = []
+    for k, v in enumerate(found):
+        v = 1.0 if v is None else v
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0:
+            raise ValueError(f"records[{k}] ({records[k].name}): row_weight must be a positive number, got {v!r}")
+        out.append(float(v))
+    return out
+
+
 def _as_input(u, name: str = "u") -> np.ndarray:
     try:
         arr = np.asarray(u, dtype=float)
@@ -190,7 +209,9 @@ class GPNARX(BaseEstimator):
     def fit(self, records, theta: np.ndarray | None = None, heldout=None, progress=None) -> "GPNARX":
         """Learn standardisation, hyperparameters (ML-II, eq. 13) and the posterior.
 
-        records: Record objects or (u, y) pairs; each must have more than max(ny, nu-1) samples.
+        records: Record objects or (u, y) pairs; each must have more than max(ny, nu-1) samples. A Record's
+            ``meta["row_weight"]`` (positive, 1 when absent) scales its share of the ML-II rows
+            (``selection.select_rows``).
         theta: optional fixed log-hyperparameters (kernel then log sigma_y^2); skips ML-II.
         heldout: optional records NOT in ``records`` (Record objects or (u, y) pairs). When given,
             sigma_y^2 is raised to the held-out maximum-likelihood value of their one-step residuals
@@ -203,6 +224,7 @@ class GPNARX(BaseEstimator):
         say = progress or (lambda line: None)
         t0 = time.perf_counter()
         pairs = _as_pairs(records)
+        weights = _row_weights(records)
         held = None
         if heldout is not None:  # checked before ML-II, so a bad held-out record fails fast
             try:
@@ -221,7 +243,7 @@ class GPNARX(BaseEstimator):
         self.y_scaler_ = Standardizer().fit(Y[:, None])
         Xs = self.x_scaler_.transform(X)
         Ys = (Y - self.y_scaler_.mean_[0]) / self.y_scaler_.scale_[0]
-        rows = select_rows(Ys, rec_idx, self.max_train_points, self.selection, self.seed)
+        rows = select_rows(Ys, rec_idx, self.max_train_points, self.selection, self.seed, weights=weights)
         Xt, Yt = Xs[rows], Ys[rows]
         say(f"regressors: {X.shape[0]} rows from {len(pairs)} record(s) (ny={self.ny}, nu={self.nu}); "
             f"ML-II on {Xt.shape[0]} of them")
@@ -244,7 +266,7 @@ class GPNARX(BaseEstimator):
                 return ExactPosterior.fit(self.kernel_, nv, Xt, Yt, var_kernel=self._posterior_kernel(),
                                           backend=self.fit_backend)
         else:
-            all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed)
+            all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed, weights=weights)
             Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
             if self.hyper == "vfe" and theta is None:
                 from .vfe import fit_vfe  # here: training-only, kept out of a predict process's start-up
