@@ -1,6 +1,7 @@
 """docs/results-monitoring.md from the stored runs of three studies (docs/runs/monitoring/): the per-cycle
 energy of ``studies.cycle_study`` (``cycles-*.json``), the torque study of ``studies.torque_study``
-(``torque.json``) and the real-rig false-alarm study of ``studies.real_monitor_study`` (``real_monitor.json``),
+(``torque.json``) and the real-rig false-alarm study of ``studies.real_monitor_study`` (``real_monitor.json``; its
+linearised calibration ``real_monitor-linear.json``, when stored),
 with the facts of the bundles they ran on (``bundles.json``, from the bundles' manifests). Every figure on the
 page is a value of those files or computed from them here, so the page cannot drift from its runs
 (tests/test_results_pages.py re-renders it).
@@ -176,7 +177,7 @@ def torque_section(t: dict | None, bundles: dict) -> str:
     return out
 
 
-def real_monitor_section(m: dict | None, bundles: dict) -> str:
+def real_monitor_section(m: dict | None, bundles: dict, linear: dict | None = None) -> str:
     if not m:
         return _no_run("A real-rig monitor: false alarms on recordings it never saw", "real-monitor-study",
                        "real_monitor.json")
@@ -223,7 +224,28 @@ def real_monitor_section(m: dict | None, bundles: dict) -> str:
                 f"{_pct(100 * m['false_alarm_rate_target'], 0)} % target, and windows of one recording are not "
                 "independent realizations (same mounting, same day).\n")
     out += "- **Detection:** how well it detects loosening on the rig cannot be measured with these records.\n"
-    return out
+    return out + cheaper_calibration(m, linear)
+
+
+def cheaper_calibration(m: dict, lin: dict | None = None) -> str:
+    """The linearised calibration of the same split (``real_monitor-linear.json``, ``--method linear``) against
+    the Monte Carlo one of ``m``: the cheaper calibration considered for the default build, kept only if its
+    false-alarm count holds."""
+    if lin is None or not m:
+        return ""
+    n, fa, lfa = m["n_test"], m["false_alarms"], lin["false_alarms"]
+    held = lfa <= fa
+    cal = (f"calibration {_g(lin['calibration_s'], 3)} s against {_g(m['calibration_s'], 3)} s (1-minute load "
+           f"{_g(lin['load_average'], 3)} and {_g(m['load_average'], 3)} at each study's end, on 2 cores)"
+           if lin.get("calibration_s") is not None and m.get("calibration_s") is not None else "")
+    return (f"- **A cheaper calibration, linearised** (`--method linear`, the same windows and split: "
+            f"`real_monitor-linear.json`): {cal}; threshold {_g(lin['threshold'], 3)}, calibration scores "
+            f"{_g(min(lin['calibration_scores']), 2)}-{_g(max(lin['calibration_scores']), 2)}, false-alarm windows "
+            f"up to {_g(lin['test_score_max'], 2)}: **{lfa} novel of {lin['n_test']}** against {fa} of {n} with "
+            f"{m['mc_paths']} Monte Carlo paths. "
+            + ("Its false-alarm count holds.\n" if held else
+               f"Its false-alarm count does not hold, so the default build keeps Monte Carlo ({m['mc_paths']} "
+               "paths, the windows scored side by side on the cores it may use).\n"))
 
 
 def render(run_dir) -> str:
@@ -236,7 +258,8 @@ def render(run_dir) -> str:
             "command that regenerates its run. Definitions: [per-cycle loops](api.md#per-cycle-loops), [probe "
             "contract](api.md#probe-contract), [gpnarx calibrate](cli.md#calibrate).\n\n"
             + cycles_section(run_dir, bundles) + torque_section(_load(run_dir, "torque.json"), bundles)
-            + real_monitor_section(_load(run_dir, "real_monitor.json"), bundles))
+            + real_monitor_section(_load(run_dir, "real_monitor.json"), bundles,
+                                   _load(run_dir, "real_monitor-linear.json")))
 
 
 def bundle_facts(bundle_dir) -> dict:

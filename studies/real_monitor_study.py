@@ -2,7 +2,7 @@
 measured on other recordings it never saw (a study script).
 
     python -m studies.real_monitor_study --registry R [--model bert-real] [--data DIR]
-        [--mc 256] [--window 2] [--out FILE.json]
+        [--mc 256] [--method mc|linear] [--window 2] [--out FILE.json]
 
 The real BERT subset holds one 64 s steady-sine recording per drive frequency, all at 5 N m (no
 loosened state), so what can be measured on the rig is the false-alarm rate. The monitor is the
@@ -26,8 +26,10 @@ quoted with its split and its counts.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -58,24 +60,31 @@ def windows(data: Path, spec: dict, width: float, out: Path) -> list[Path]:
 
 
 def study(registry, model: str = "bert-real", data=None, mc: int = 256, width: float = 2.0,
-          false_alarm_rate: float = 0.01, workdir=None) -> dict:
+          false_alarm_rate: float = 0.01, workdir=None, method: str = "mc") -> dict:
+    """``method``: the calibration's propagation, 'mc' (``mc`` paths per window) or 'linear' (the linearised
+    free run); the test windows are then scored the same way (the monitor's own default method)."""
     data = Path(data) if data else bert_data_dir()
     work = Path(workdir or tempfile.mkdtemp(prefix="gpnarx-real-monitor-"))
     cal = windows(data, CALIBRATION, width, work)
     test = windows(data, TEST, width, work)
     off = windows(data, OFF_PROBE, width, work)
-    res = _cli(["calibrate", "--registry", str(registry), "--model", model, *map(str, cal), "--mc", str(mc),
+    paths = ["--mc", str(mc)] if method == "mc" else []
+    t0 = time.perf_counter()
+    res = _cli(["calibrate", "--registry", str(registry), "--model", model, *map(str, cal), *paths, "--method", method,
                 "--score-method", "segment_median_rms", "--false-alarm-rate", str(false_alarm_rate)])
+    calibration_s = time.perf_counter() - t0
     ref = f"{res['name']}:{res['version']}"
     scored = []
     for p in test + off:
-        a = _cli(["novelty", "--registry", str(registry), "--model", ref, str(p), "--mc", str(mc)])
+        a = _cli(["novelty", "--registry", str(registry), "--model", ref, str(p), *paths, "--method", method])
         scored.append({"window": p.stem, "score": a["score"], "verdict": a["verdict"], "probe_match": a["probe_match"],
                        "out_of_range": a["out_of_range"], "drive_frequency": a["drive"]["frequency"]})
     on = [s for s in scored if any(s["window"].startswith(k) for k in TEST)]
     offp = [s for s in scored if any(s["window"].startswith(k) for k in OFF_PROBE)]
     novel = [s for s in on if s["verdict"] == "novel"]
-    return {"model": ref, "source_version": res["source_version"], "mc_paths": mc, "window_s": width,
+    return {"model": ref, "source_version": res["source_version"], "method": method,
+            "mc_paths": mc if method == "mc" else 0, "window_s": width,
+            "calibration_s": calibration_s, "load_average": os.getloadavg()[0],
             "split": {"calibration": {k: list(v) for k, v in CALIBRATION.items()},
                       "test": {k: list(v) for k, v in TEST.items()},
                       "off_probe": {k: list(v) for k, v in OFF_PROBE.items()}},
@@ -96,12 +105,14 @@ def main(argv=None) -> int:
     p.add_argument("--registry", required=True)
     p.add_argument("--model", default="bert-real")
     p.add_argument("--data", default=None, help="the BERT records (default: $GPNARX_BERT_DATA or ../shared/data)")
-    p.add_argument("--mc", type=int, default=256)
+    p.add_argument("--mc", type=int, default=256, help="Monte Carlo paths per window (with --method mc)")
+    p.add_argument("--method", choices=("mc", "linear"), default="mc",
+                   help="propagation of the calibration and of the test windows' scores")
     p.add_argument("--window", type=float, default=2.0)
     p.add_argument("--false-alarm-rate", type=float, default=0.01, dest="far")
     p.add_argument("--out", default=None)
     a = p.parse_args(argv)
-    res = study(a.registry, a.model, a.data, a.mc, a.window, a.far)
+    res = study(a.registry, a.model, a.data, a.mc, a.window, a.far, method=a.method)
     return emit(res, a.out)
 
 
