@@ -29,6 +29,8 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
             "bench/bench_gpu.py (commands: docs/runs/accelerator/h200/run.json)"),
            ("accelerator/h200/bench_gpu_steps.txt", "GPU time per step by variant, H200",
             "bench/bench_gpu_steps.py (commands: docs/runs/accelerator/h200/run.json)"))
+# runs that are a product figure only, with no same-run baseline (so no ratio=): their lines are listed as they are
+FIGURES = (("bench/first_start_real.txt", "First start with the lab records (no same-run baseline)", None),)
 # fields shown in their own columns; the rest of each line is listed after the table
 COLUMNS = ("ratio", "baseline", "baseline_what", "user_ratio", "user_baseline")
 
@@ -177,7 +179,20 @@ def render(runs: Path = RUNS) -> str:
     for rel, heading, command in SOURCES:
         if (runs / rel).is_file():
             parts.append(section(runs / rel, heading, command))
+    for rel, heading, command in FIGURES:
+        if (runs / rel).is_file():
+            parts.append(figures_section(runs / rel, heading, command))
     return "\n".join(parts)
+
+
+def figures_section(path: Path, heading: str, default_command: str | None = None) -> str:
+    """A run of ``FIGURES``: its description and each RESULT line's fields, no baseline columns."""
+    about, rows = parse(path.read_text())
+    rel = path.relative_to(RUNS.parent.parent).as_posix()
+    out = [f"## {heading}\n", f"Stored run: `{rel}`." + (f" {about}" if about else "") + "\n"]
+    for command, kv in rows:
+        out.append(f"- `{command or default_command}`: `{' '.join(f'{k}={v}' for k, v in kv.items())}`")
+    return "\n".join(out) + "\n"
 
 
 def main(argv=None) -> int:
