@@ -61,11 +61,15 @@ def test_readme_example_runs_against_a_live_server(server, tmp_path, monkeypatch
     m = re.search(r"<!-- client-example[^>]*-->\s*```python\n(.*?)```", readme, re.S)
     assert m, "README.md has no client example block"
     code = m.group(1)
-    assert 'Client("http://127.0.0.1:8000"' in code
+    # the address and key follow the environment (the server's GPNARX_API_KEY), not a port typed into the code
+    assert 'os.environ.get("GPNARX_URL", "http://127.0.0.1:8000")' in code and code.count(":8000") == 1
+    assert 'api_key=os.environ.get("GPNARX_API_KEY")' in code
     u, y = record(700, 4)
     np.savez(tmp_path / "sine-50N.npz", u=u, y=y, fs=FS)
     monkeypatch.chdir(tmp_path)
-    exec(compile(code.replace("http://127.0.0.1:8000", server.url), "README.md", "exec"), {})
+    monkeypatch.setenv("GPNARX_URL", server.url)
+    monkeypatch.delenv("GPNARX_API_KEY", raising=False)
+    exec(compile(code, "README.md", "exec"), {})
     out = capsys.readouterr().out.splitlines()
     assert "bouc-wen" in out[0]
     shape, dtype, fit, coverage = out[1].split()[:4]
