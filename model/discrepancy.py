@@ -17,6 +17,18 @@ centred one needs half a window of the future, which a stream's chunk does not h
 calibrated with the kind the band will use, so the trailing window's lag behind a rising amplitude is
 covered by the calibration like any other model-form error.
 
+Held amplitude (``hold``, samples; 0: none, the default and the kind of bundles calibrated before
+it existed): the amplitude the term scales is a decaying peak-hold of a(t),
+
+    h(t) = max(a(t), h(t - 1) exp(-1 / hold)),
+
+so after a large response (a sweep through resonance, a start-up, the stop of a drive) the band
+keeps a share of that response's size for a few time constants. A free run's error outlives the
+response that caused it: a lightly damped bolted joint's free decay is the least certain part of
+its model (on the real rig the 0.20 V sweep's decay after resonance is 2-3x the model's), while
+a(t) follows the model's own, faster decay. h depends on the past only; a stream's state carries
+its last value. The scale is calibrated with the hold the band will use.
+
 ``scale`` is dimensionless (a fraction of the local amplitude). It is calibrated on records the
 GP was not trained on (the config's ``lags`` records): the smallest value of a geometric grid at
 which every calibration record's band reaches the band's confidence level (the worst record, as
@@ -76,6 +88,29 @@ def local_amplitude(mean: np.ndarray, window: int, open_end: bool = False, kind:
     return np.sqrt(np.maximum(uniform_filter1d(m * m, size=w, mode="nearest"), 0.0))
 
 
+def held_amplitude(amp: np.ndarray, hold: float, start: float | None = None) -> np.ndarray:
+    """Decaying peak-hold of ``amp`` [output units]: h_i = max(amp_i, h_{i-1} exp(-1 / hold)).
+
+    hold: time constant in samples (0: ``amp`` itself). start: h just before the first sample (a
+    stream's previous chunk; None or 0: nothing held). Computed in one pass without a loop:
+    log h_i = -i / hold + max over j <= i of (log amp_j + j / hold).
+    """
+    a = np.asarray(amp, dtype=float)
+    if not hold or hold <= 0 or a.size == 0:
+        return a
+    j = np.arange(a.size) / float(hold)
+    with np.errstate(divide="ignore"):
+        log_a = np.log(np.maximum(a, 0.0)) + j
+        if start is not None and start > 0:
+            log_a[0] = max(log_a[0], float(np.log(start)) - 1.0 / float(hold))
+    return np.exp(np.maximum.accumulate(log_a) - j)
+
+
+def hold_of(d: dict | None) -> int:
+    """The held amplitude's time constant of a stored discrepancy in samples (0 when it names none)."""
+    return int((d or {}).get("hold") or 0)
+
+
 def window_kind(d: dict | None) -> str:
     """The amplitude window's kind of a stored discrepancy (``LEGACY_WINDOW_KIND`` when it names none)."""
     return (d or {}).get("window_kind") or LEGACY_WINDOW_KIND
@@ -95,6 +130,9 @@ def check_discrepancy(d: dict | None) -> dict | None:
     kind = d.get("window_kind", LEGACY_WINDOW_KIND)
     if kind not in WINDOW_KINDS:
         raise ValueError(f"band_discrepancy.window_kind must be one of {WINDOW_KINDS}, got {kind!r}")
+    hold = d.get("hold", 0)
+    if isinstance(hold, bool) or not isinstance(hold, int) or hold < 0:
+        raise ValueError(f"band_discrepancy.hold must be an integer >= 0 (samples), got {hold!r}")
     return d
 
 
@@ -104,18 +142,31 @@ def _widen_pair(mean, lower, upper, extra):
     return lo, hi
 
 
-def widen(run, scale: float, window: int, mean_before=None, open_end: bool = False, kind: str = "centred"):
+def band_amplitude(mean: np.ndarray, window: int, kind: str = "centred", hold: float = 0, mean_before=None,
+                   open_end: bool = False, hold_start: float | None = None) -> np.ndarray:
+    """The amplitude the discrepancy term scales at each sample of ``mean`` [output units]: the moving RMS
+    (``local_amplitude``), held (``held_amplitude``) when ``hold`` > 0. mean_before, hold_start: a stream's
+    previous chunk (its last means, its last held value)."""
+    before = np.zeros(0) if mean_before is None else np.asarray(mean_before, dtype=float).ravel()
+    amp = local_amplitude(np.concatenate([before, np.asarray(mean, dtype=float)]), window, open_end, kind)[before.size:]
+    return held_amplitude(amp, hold, hold_start)
+
+
+def widen(run, scale: float, window: int, mean_before=None, open_end: bool = False, kind: str = "centred",
+          hold: float = 0, hold_start: float | None = None, amp: np.ndarray | None = None):
     """A copy of the free run ``run`` (``freerun.FreeRun``) with the discrepancy term added.
 
     scale: fraction of the local amplitude (dimensionless); window: samples of the moving RMS; kind:
-    where the window lies (``WINDOW_KINDS``). mean_before: the mean outputs just before ``run`` (a
-    stream's earlier chunks; output units): the moving RMS of the run's first samples then sees them,
-    as in the run of the whole record. open_end: the record goes on after ``run`` (``local_amplitude``).
+    where the window lies (``WINDOW_KINDS``); hold: the held amplitude's time constant (samples, 0:
+    none). mean_before: the mean outputs just before ``run`` (a stream's earlier chunks; output units):
+    the moving RMS of the run's first samples then sees them, as in the run of the whole record;
+    hold_start: the held amplitude just before ``run``. open_end: the record goes on after ``run``
+    (``local_amplitude``). amp: the amplitude already computed (``band_amplitude``), else computed here.
     """
     if scale <= 0.0:
         return run
-    before = np.zeros(0) if mean_before is None else np.asarray(mean_before, dtype=float).ravel()
-    amp = local_amplitude(np.concatenate([before, run.mean]), window, open_end, kind)[before.size:]
+    if amp is None:
+        amp = band_amplitude(run.mean, window, kind, hold, mean_before, open_end, hold_start)
     extra_sd = float(scale) * amp
     z = float(ndtri(0.5 + 0.5 * run.confidence))
     lo, hi = _widen_pair(run.mean, run.lower, run.upper, z * extra_sd)
@@ -132,31 +183,37 @@ def tail_for(kind: str, window: int) -> int:
     return max(0, int(window) - 1) if kind == "trailing" else int(window)
 
 
-def widen_chunk(run, disc: dict, mean_before=None, open_end: bool = False):
-    """(``run`` widened by the stored discrepancy ``disc`` (``band_discrepancy``: scale, window, window_kind),
-    the mean outputs the next chunk of a stream needs before it). ``mean_before``: the previous chunk's
-    such tail (None: the record starts with ``run``); ``open_end``: more of the record follows."""
-    window, kind = int(disc["window"]), window_kind(disc)
-    out = widen(run, float(disc["scale"]), window, mean_before, open_end, kind)
+def widen_chunk(run, disc: dict, mean_before=None, open_end: bool = False, hold_start: float | None = None):
+    """(``run`` widened by the stored discrepancy ``disc`` (``band_discrepancy``: scale, window, window_kind,
+    hold), the mean outputs the next chunk of a stream needs before it, the held amplitude at the run's
+    last sample (None without a hold)). ``mean_before``, ``hold_start``: the previous chunk's such tail
+    and held value (None: the record starts with ``run``); ``open_end``: more of the record follows."""
+    window, kind, hold = int(disc["window"]), window_kind(disc), hold_of(disc)
+    amp = band_amplitude(run.mean, window, kind, hold, mean_before, open_end, hold_start)
+    out = widen(run, float(disc["scale"]), window, amp=amp)
     prev = np.zeros(0) if mean_before is None else np.asarray(mean_before, dtype=float).ravel()
     both = np.concatenate([prev, np.asarray(run.mean, dtype=float)])
-    return out, both[max(0, both.size - tail_for(kind, window)):].copy()
+    last = float(amp[-1]) if hold and amp.size else (hold_start if hold else None)
+    return out, both[max(0, both.size - tail_for(kind, window)):].copy(), last
 
 
-def coverage_at(y: np.ndarray, run, scale: float, window: int, skip: int = 0, kind: str = "centred") -> float:
+def coverage_at(y: np.ndarray, run, scale: float, window: int, skip: int = 0, kind: str = "centred",
+                hold: float = 0, amp: np.ndarray | None = None) -> float:
     """Share of samples of the measured ``y`` inside the band widened by ``scale`` (0-1)."""
-    r = widen(run, scale, window, kind=kind)
+    r = widen(run, scale, window, kind=kind, hold=hold, amp=amp)
     y = np.asarray(y, dtype=float)[skip:]
     return float(np.mean((y >= r.lower[skip:]) & (y <= r.upper[skip:])))
 
 
-def calibrate_scale(runs, window: int, grid: np.ndarray = SCALE_GRID, kind: str = "centred") -> dict:
+def calibrate_scale(runs, window: int, grid: np.ndarray = SCALE_GRID, kind: str = "centred",
+                    hold: int = 0) -> dict:
     """The smallest ``scale`` of ``grid`` at which every run's band reaches its confidence.
 
     runs: list of (name, y_measured, FreeRun, skip) for the held-out calibration records; ``skip``
     samples at the start are the measured initial outputs (not predicted) and are not scored.
-    kind: where the amplitude window lies (``WINDOW_KINDS``), stored as ``window_kind``.
-    Returns the ``band_discrepancy`` record: scale, window, window_kind, the target, the calibration
+    kind: where the amplitude window lies (``WINDOW_KINDS``), stored as ``window_kind``; hold: the held
+    amplitude's time constant (samples, 0: none), stored as ``hold``.
+    Returns the ``band_discrepancy`` record: scale, window, window_kind, hold, the target, the calibration
     coverage of each record before and after, and ``reached`` (False when even the largest scale
     falls short: the largest is then kept and the shortfall is on record).
     """
@@ -164,21 +221,29 @@ def calibrate_scale(runs, window: int, grid: np.ndarray = SCALE_GRID, kind: str 
         raise ValueError("band calibration needs at least one held-out record")
     if kind not in WINDOW_KINDS:
         raise ValueError(f"window kind must be one of {WINDOW_KINDS}, got {kind!r}")
+    hold = int(hold)
+    if hold < 0:
+        raise ValueError(f"hold must be >= 0 samples, got {hold}")
     target = min(r.confidence for _, _, r, _ in runs)
-    before = {name: coverage_at(y, r, 0.0, window, skip, kind) for name, y, r, skip in runs}
+    amps = {name: band_amplitude(r.mean, window, kind, hold) for name, _, r, _ in runs}  # one per run, any scale
+
+    def coverages(s):
+        return {name: coverage_at(y, r, s, window, skip, kind, amp=amps[name]) for name, y, r, skip in runs}
+
+    before = coverages(0.0)
     chosen, after, reached = float(grid[-1]), None, False
     for s in grid:
-        cov = {name: coverage_at(y, r, float(s), window, skip, kind) for name, y, r, skip in runs}
+        cov = coverages(float(s))
         if min(cov.values()) >= target:
             chosen, after, reached = float(s), cov, True
             break
     if after is None:
-        after = {name: coverage_at(y, r, chosen, window, skip, kind) for name, y, r, skip in runs}
-    return {"method": "amplitude", "scale": chosen, "window": int(window), "window_kind": kind,
+        after = coverages(chosen)
+    return {"method": "amplitude", "scale": chosen, "window": int(window), "window_kind": kind, "hold": hold,
             "target": float(target), "reached": reached, "criterion": "worst held-out record",
             "coverage_before": before, "coverage_after": after}
 
 
-__all__ = ["DEFAULT_WINDOW_SECONDS", "LEGACY_WINDOW_KIND", "SCALE_GRID", "WINDOW_KINDS", "calibrate_scale",
-           "check_discrepancy", "coverage_at", "local_amplitude", "tail_for", "widen", "widen_chunk",
-           "window_kind"]
+__all__ = ["DEFAULT_WINDOW_SECONDS", "LEGACY_WINDOW_KIND", "SCALE_GRID", "WINDOW_KINDS", "band_amplitude",
+           "calibrate_scale", "check_discrepancy", "coverage_at", "held_amplitude", "hold_of", "local_amplitude",
+           "tail_for", "widen", "widen_chunk", "window_kind"]

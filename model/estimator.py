@@ -313,7 +313,7 @@ class GPNARX(BaseEstimator):
             self.posterior_ = build(s2)
 
     def calibrate_band(self, records, window: int, method: str = "linear", n_paths: int = 256,
-                       confidence: float = 0.99, kind: str = "centred") -> dict:
+                       confidence: float = 0.99, kind: str = "centred", hold: int = 0) -> dict:
         """Calibrate the band's model-discrepancy term (``model.discrepancy``) on held-out records.
 
         records: (name, u, y, start) tuples of records NOT used by ``fit``; ``start`` is 'rest' or
@@ -323,6 +323,7 @@ class GPNARX(BaseEstimator):
             seconds per whole record).
         kind: where the amplitude window lies, ``"centred"`` or ``"trailing"`` (causal: a stream's
             chunks get the whole record's band; ``discrepancy.WINDOW_KINDS``).
+        hold: time constant of the held amplitude in samples (``discrepancy.held_amplitude``; 0: none).
         Sets and returns ``band_discrepancy_``.
         """
 
@@ -337,7 +338,8 @@ class GPNARX(BaseEstimator):
             y0 = y[: self.ny] if start == "measured" else None
             run = self.simulate(u, n_paths=n_paths, seed=0, y0=y0, confidence=confidence, method=method)
             runs.append((name, y, run, self.ny if start == "measured" else 0))
-        self.band_discrepancy_ = {**calibrate_scale(runs, int(window), kind=kind), "calibration_method": method,
+        self.band_discrepancy_ = {**calibrate_scale(runs, int(window), kind=kind, hold=int(hold)),
+                                  "calibration_method": method,
                                   "records": [name for name, *_ in records]}
         return self.band_discrepancy_
 
@@ -414,9 +416,11 @@ class GPNARX(BaseEstimator):
         disc = getattr(self, "band_discrepancy_", None)
         if not disc:
             return run
-        out, tail = widen_chunk(run, disc, None if state is None else state.amp_tail, open_end)
+        held = None if state is None or state.amp_hold is None else float(np.ravel(state.amp_hold)[0])
+        out, tail, last = widen_chunk(run, disc, None if state is None else state.amp_tail, open_end, held)
         if out.state is not None:
             out.state.amp_tail = tail
+            out.state.amp_hold = None if last is None else np.array([last])
         return out
 
     def _simulate(self, u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,

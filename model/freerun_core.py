@@ -50,7 +50,8 @@ class FreeRunState:
     first), ``path_peak`` (running peak |y| of each path), the random generator's state ``rng`` and
     the local model's check generator ``check_rng``, ``floor`` and ``retry_in`` (steps until the
     local model retries its cheapest level). ``amp_tail``: the last mean outputs the band's
-    discrepancy window needs on its left (``model.discrepancy``). ``carry``: what an operation carries
+    discrepancy window needs on its left (``model.discrepancy``); ``amp_hold``: its held amplitude at the
+    last sample (one value; None without a hold). ``carry``: what an operation carries
     across a stream's chunks beside the free run, by operation name (``"loops"``: the unfinished cycle,
     ``model.cycle_stream``; ``"novelty"``: the rolling window, ``model.novelty_window``), each a dict of
     numpy arrays and JSON values.
@@ -68,6 +69,7 @@ class FreeRunState:
     floor: int = 0
     retry_in: int = 0
     amp_tail: np.ndarray | None = None
+    amp_hold: np.ndarray | None = None
     carry: dict | None = None
 
 

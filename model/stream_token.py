@@ -35,7 +35,7 @@ MAGIC = b"GS1"
 PUBLIC_KEY = b"gpnarx-stream-state"  # the checksum key when a deployment sets no secret
 MAX_TOKEN_CHARS = 16 * 1024 * 1024  # characters of base64 text
 MAX_BODY_BYTES = 64 * 1024 * 1024  # decompressed body
-_ARRAYS = ("u_tail", "mean_tail", "cov", "paths", "path_peak", "amp_tail")
+_ARRAYS = ("u_tail", "mean_tail", "cov", "paths", "path_peak", "amp_tail", "amp_hold")
 _CARRY = "carry."  # array names of an operation's carry: carry.OPERATION.KEY
 
 
@@ -119,6 +119,7 @@ def decode_state(token: str, model: str, version: str, key: bytes | str | None =
                         path_peak=arrays.get("path_peak"), rng=_from_json(header.get("rng")),
                         check_rng=_from_json(header.get("check_rng")), floor=int(header.get("floor", 0)),
                         retry_in=int(header.get("retry_in", 0)), amp_tail=arrays.get("amp_tail"),
+                        amp_hold=arrays.get("amp_hold"),
                         carry=carry or None)
 
 

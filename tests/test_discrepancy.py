@@ -118,3 +118,59 @@ def test_model_calibrates_on_held_out_records_and_the_bundle_keeps_it(sdof_model
             model.calibrate_band([("bad", u, y, "sometime")], window=100)
     finally:
         model.band_discrepancy_ = None  # the session fixture is shared
+
+
+def test_held_amplitude_is_the_decaying_peak_hold_and_continues_across_chunks():
+    from gpnarx.model.discrepancy import held_amplitude
+
+    a = np.abs(np.random.default_rng(4).normal(size=3000))
+    a[800:900] *= 40.0  # a large response, then a small one
+    h = held_amplitude(a, 250.0)
+    ref, cur = np.empty_like(a), 0.0
+    for i, v in enumerate(a):  # the recursion itself
+        cur = max(v, cur * np.exp(-1.0 / 250.0))
+        ref[i] = cur
+    assert np.allclose(h, ref, rtol=1e-12)
+    assert np.all(h >= a * (1 - 1e-12)) and h[1400] > 2.0 * a[1000:].max()  # the burst still held 500 samples on
+    first = held_amplitude(a[:1234], 250.0)
+    assert np.allclose(np.concatenate([first, held_amplitude(a[1234:], 250.0, start=first[-1])]), h, rtol=1e-12)
+    assert np.array_equal(held_amplitude(a, 0), a)
+
+
+def test_a_hold_covers_a_decay_the_mean_underestimates_with_a_smaller_scale():
+    # after a burst the measured output decays slower than the predicted mean: the error outlives the
+    # response that caused it. Without a hold only a large scale covers it; with one a small scale does.
+    n = 6000
+    t = np.arange(n) / FS
+    env_model = np.where(t < 2.0, 1.0, np.exp(-(t - 2.0) / 0.1))
+    env_real = np.where(t < 2.0, 1.0, np.exp(-(t - 2.0) / 0.4))
+    mean = env_model * np.sin(2 * np.pi * 20.0 * t)
+    y = env_real * np.sin(2 * np.pi * 20.0 * t)
+    std = np.full(n, 1e-4)
+    run = FreeRun(mean, std, mean - 2.5758 * std, mean + 2.5758 * std, 0.99, 0, "linear")
+    plain = calibrate_scale([("decay", y, run, 0)], 100)
+    held = calibrate_scale([("decay", y, run, 0)], 100, hold=int(0.5 * FS))
+    assert held["reached"] and held["hold"] == 500 and held["scale"] < plain["scale"]
+    assert check_discrepancy(held)["hold"] == 500
+    with pytest.raises(ValueError, match="band_discrepancy.hold"):
+        check_discrepancy({"scale": 0.1, "window": 10, "hold": -3})
+
+
+def test_a_held_trailing_band_in_chunks_is_the_whole_records_band(sdof_model, sdof_data):
+    from gpnarx.model.stream_token import decode_state, encode_state
+
+    model, u = sdof_model, sdof_data["u2"][:1200]
+    model.band_discrepancy_ = {"scale": 0.2, "window": 50, "window_kind": "trailing", "hold": 120}
+    try:
+        whole = model.simulate(u, method="linear")
+        parts, state = [], None
+        for a in range(0, u.size, 250):
+            run = model.simulate(u[a: a + 250], method="linear", state=state, open_end=a + 250 < u.size)
+            state = decode_state(encode_state(run.state, "m", "1"), "m", "1")  # through a token, as served
+            assert state.amp_hold is not None and state.amp_hold.size == 1
+            parts.append(run)
+        for key in ("mean", "std", "lower", "upper"):
+            chunked = np.concatenate([getattr(p, key) for p in parts])
+            assert np.allclose(chunked, getattr(whole, key), rtol=1e-9, atol=1e-12), key
+    finally:
+        model.band_discrepancy_ = None  # the session fixture is shared

@@ -34,6 +34,8 @@ key name below is a contract)::
     band_window = 0.25                # [s] window of its local amplitude
     band_window_kind = "centred"      # "centred" | "trailing": the window ends at each sample (causal: a
                                       # stream's chunks get the whole record's band, docs/api.md)
+    band_hold = 0.0                   # [s] time constant of the held amplitude (0: none): after a large
+                                      # response the band keeps a decaying share of its size
     hyper = "subset"                  # sparse mode: "subset" (exact ML-II on the capped rows) | "vfe"
     fit_backend = "numpy"             # "numpy" | "jax": ML-II and the exact posterior's solves on the JAX
                                       # device (a GPU: exact mode at 10-20 thousand rows; docs/accelerator.md)

@@ -10,7 +10,8 @@ One model per TOML table::
       PhysicsTable            mass [kg] > 0 (optional), input_gain [N per input unit] > 0
       ModelTable              ny, nu >= 1 (optional), kernel, mode, inducing >= 1, max_train_points >= 1,
                               selection, restarts >= 0, seed >= 0, noise_calibration, band_calibration,
-                              band_window [s] in (0, 10], band_window_kind "centred" | "trailing"
+                              band_window [s] in (0, 10], band_window_kind "centred" | "trailing",
+                              band_hold [s] in [0, 60]
       lags                    any key: a lag range LO:HI[:STEP] (parse_range)
       PredictTable            mc_paths >= 1, confidence in (0, 1), method "mc" | "linear"
       NoveltyTable            false_alarm_rate in (0, 1), method (gpnarx.model.novelty.METHODS)
@@ -288,6 +289,9 @@ class ModelTable(_Closed):
     band_window_kind: _choice(BAND_WINDOW_KINDS) = Field(
         "centred", description="where that window lies: centred on each sample, or trailing (ending at it: a "
                                "stream's chunks then get the whole record's band)")
+    band_hold: _number("a number of seconds in [0, 60]", ge=0, le=60) = Field(
+        0.0, description="time constant of the held amplitude [s] (0: none): after a large response the band "
+                         "keeps a share of its size, decaying by e every band_hold seconds")
     ny: Count | None = Field(None, description="output lags (omit when chosen by the lag surface)")
     nu: Count | None = Field(None, description="input lags")
     hyper: _choice(("subset", "vfe")) = Field(

@@ -97,12 +97,14 @@ def calibrate_band_from_config(model: GPNARX, cfg: DatasetConfig, held: list, lo
     predicted (linearised) with its own start rule, as the report predicts it."""
     window = max(1, int(round(float(cfg.model.get("band_window", 0.25)) * cfg.fs)))
     starts = [(r.name, r.u, r.y, "measured" if r.meta.get("initial") == "measured" else "rest") for r in held]
+    hold = max(0, int(round(float(cfg.model.get("band_hold", 0.0)) * cfg.fs)))
     d = model.calibrate_band(starts, window, confidence=float(cfg.predict.get("confidence", 0.99)),
-                             kind=str(cfg.model.get("band_window_kind", "centred")))
+                             kind=str(cfg.model.get("band_window_kind", "centred")), hold=hold)
     worst = min(d["coverage_before"].values()), min(d["coverage_after"].values())
     log = log or (lambda msg: None)
     log(f"band calibrated on {len(held)} held-out 'lags' record(s): discrepancy scale {d['scale']:.4g} of the "
-        f"local amplitude ({window} samples, {d['window_kind']}); worst coverage {100 * worst[0]:.1f} % -> "
+        f"local amplitude ({window} samples, {d['window_kind']}"
+        f"{f', held {hold} samples' if hold else ''}); worst coverage {100 * worst[0]:.1f} % -> "
         f"{100 * worst[1]:.1f} %"
         + ("" if d["reached"] else f" (target {100 * d['target']:.0f} % not reached)"))
     return d

@@ -225,7 +225,7 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
                  "and 20 Hz. At other drive frequencies the model's steady response to a 0.15 V sine (ramped in over "
                  "0.5 s, free run from rest, linearised, the drive-frequency amplitude of the mean over the last 2 s "
                  "of 8 s) is set against the rig's own frequency response, the LMS FRF of the noise run (velocity "
-                 "per volt; the strongest noise run's, the closest in level to the sines). Its first 5 s are training "
+                 "per volt; the strongest noise run's, the closest in level to the sines). Its first seconds are training "
                  "data, so this checks that the model's response "
                  "between the recorded sines is the rig's; 17-20 Hz is left out (there the response depends on the "
                  "amplitude and the noise run's FRF is no reference). `studies/frf_check.py`.\n\n"
