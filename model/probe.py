@@ -17,14 +17,14 @@ for a broadband drive, the RMS of u. Units: the input unit of the bundle (e.g. V
 
 Probe contract (``probe_contract``), from the healthy calibration records::
 
-    {"kind": "sine"|"broadband", "frequency": Hz (median of the records' dominant frequencies),
+    {"kind": "sine"|"broadband", "frequency": Hz (middle of the records' dominant frequencies' range),
      "frequency_tolerance": Hz, "amplitude": [min, max] (input unit), "amplitude_kind":
      "peak"|"rms", "amplitude_tolerance": relative, "start": "measured", "n_records": int}
 
 Matching (``probe_mismatch``): a request does not match when its start rule is not the probe's,
 when its kind differs, when (sine) its
 dominant frequency is off the probe's by more than ``frequency_tolerance`` =
-max(``FREQ_TOL_REL`` x frequency, the calibration records' own frequency spread, half a frequency
+max(``FREQ_TOL_REL`` x frequency, half the calibration records' frequency range, half a frequency
 bin of the request, 0.5 / its duration [Hz], for short records), or when its amplitude lies outside the
 calibrated range widened by ``AMP_TOL_REL`` (20 %) each way. The service then adds ``"probe"`` to
 ``out_of_range`` (see ``model.novelty.verdict`` for what the verdict is then).
@@ -104,11 +104,11 @@ def probe_contract(records, fs: float, start: str = START_RULE) -> dict:
     else:  # a mixed set counts as broadband: compare RMS amplitudes
         amps = [float(np.sqrt(np.mean((np.asarray(u, float) - np.mean(u)) ** 2))) for u in records]
     freqs = [d["frequency"] for d in drives if d["frequency"] is not None]
-    freq = float(np.median(freqs)) if freqs else None
+    # the middle of the calibrated drives' range, so that the contract spans that range and no more
+    freq = 0.5 * (min(freqs) + max(freqs)) if freqs else None
     tol = None
     if freq is not None:
-        spread = max(abs(f - freq) for f in freqs)
-        tol = float(max(FREQ_TOL_REL * freq, spread))
+        tol = float(max(FREQ_TOL_REL * freq, 0.5 * (max(freqs) - min(freqs))))
     return {"kind": kind, "frequency": freq, "frequency_tolerance": tol,
             "amplitude": [float(min(amps)), float(max(amps))], "amplitude_kind": "peak" if kind == "sine" else "rms",
             "amplitude_tolerance": AMP_TOL_REL, "start": start, "n_records": len(drives),

@@ -68,3 +68,49 @@ def test_healthy_records_scored_at_once_give_the_scores_of_one_at_a_time():
     assert [r["name"] for r in two] == ["r0", "r1", "r2"] and two == one
     with pytest.raises(ValueError, match="r0: a healthy record needs its measured output y"):
         score_healthy(bundle, [Record(recs[0].u, None, FS, name="r0"), recs[1]], RMS_METHOD, n_paths=8, jobs=2)
+
+
+def test_grouped_calibration_takes_the_spread_between_recordings():
+    """Windows of two recordings at different score levels (tight within each): the pooled fit sees 20 close draws
+    per level, the grouped fit (``groups``) a spread between recordings, and places the threshold for a new
+    recording's window: exp(mu + z sd), sd^2 = between^2 (1 + 1/G) + within^2."""
+    from scipy.special import ndtri
+
+    from gpnarx.model.novelty import calibrate_threshold
+
+    rng = np.random.default_rng(0)
+    levels = {"a": 0.1, "b": 0.14, "c": 0.4}
+    scores, groups = [], []
+    for g, level in levels.items():
+        scores += list(level * np.exp(0.05 * rng.standard_normal(20)))
+        groups += [g] * 20
+    pooled = calibrate_threshold(scores, 0.01)
+    grouped = calibrate_threshold(scores, 0.01, groups=groups)
+    logs = np.log(scores).reshape(3, 20)
+    within = logs.var(axis=1, ddof=1).mean()
+    between = logs.mean(axis=1).var(ddof=1) - within / 20
+    sd = np.sqrt(between * (1 + 1 / 3) + within)
+    assert grouped["n_groups"] == 3 and grouped["log_std"] == pytest.approx(sd)
+    assert grouped["log_std_within"] == pytest.approx(np.sqrt(within))
+    assert grouped["threshold"] == pytest.approx(np.exp(logs.mean() + ndtri(0.99) * sd))
+    assert grouped["threshold"] > pooled["threshold"] and "n_groups" not in pooled
+    # one group: nothing between recordings to measure, the pooled fit
+    assert calibrate_threshold(scores, 0.01, groups=["x"] * 60) == pooled
+    with pytest.raises(ValueError, match="one label per healthy score"):
+        calibrate_threshold(scores, 0.01, groups=["a", "b"])
+
+
+def test_probe_contract_spans_the_calibrated_drives_and_no_more():
+    """Calibrated on 5, 5.5 and 9.75 Hz sines, the probe is the middle of that range with half of it as tolerance
+    (a median centre would reach down to 0.75 Hz below the lowest drive)."""
+    from gpnarx.model.probe import probe_check, probe_contract
+
+    fs = 1024.0
+    t = np.arange(2048) / fs
+    sines = [0.15 * np.sin(2 * np.pi * f * t) for f in (5.0, 5.5, 9.75)]
+    probe = probe_contract(sines, fs)
+    assert probe["frequency"] == pytest.approx(7.375, abs=0.01)
+    assert probe["frequency_tolerance"] == pytest.approx(2.375, abs=0.01)
+    assert probe_check(0.15 * np.sin(2 * np.pi * 9.0 * t), fs, probe, "measured")["probe_match"] is True
+    for f in (4.25, 17.0):
+        assert probe_check(0.15 * np.sin(2 * np.pi * f * t), fs, probe, "measured")["probe_match"] is False

@@ -28,7 +28,7 @@ def registry(bert_real_registry, tmp_path_factory):
     """bert-real as trained once for the session (conftest), copied, with the monitor derived from it."""
     root = tmp_path_factory.mktemp("reg") / "registry"
     shutil.copytree(bert_real_registry, root)
-    defaults.build_default("bert-real-monitor", root, mc_paths=16)
+    defaults.build_default("bert-real-monitor", root)
     return root
 
 
@@ -44,8 +44,15 @@ def test_monitor_is_the_same_gp_with_a_probe_and_threshold(registry):
     n_windows = sum(int((t1 - t0) // WINDOW_SECONDS) for t0, t1 in CALIBRATION.values())
     assert len(nov["calibration"]["records"]) == n_windows and nov["calibration"]["refit"] is False
     assert nov["method"] == "segment_median_rms" and nov["threshold"] >= max(nov["healthy_scores"])
-    assert 7.5 <= nov["probe"]["frequency"] - nov["probe"]["frequency_tolerance"] \
-        and nov["probe"]["frequency"] + nov["probe"]["frequency_tolerance"] <= 10.0
+    # the threshold's spread is the one between recordings: one group per calibration recording
+    assert nov["n_groups"] == len(CALIBRATION) and sorted(set(nov["calibration"]["groups"])) == sorted(CALIBRATION)
+    assert nov["log_std"] ** 2 >= nov["log_std_between"] ** 2 + nov["log_std_within"] ** 2 - 1e-12
+    # linearised calibration, so the monitor scores linearised by default (a score is compared with its kind)
+    assert nov["calibration"]["propagation"] == "linear" and nov["mc_paths"] == 0
+    assert mon.default_method("novelty") == "linear"
+    lo = nov["probe"]["frequency"] - nov["probe"]["frequency_tolerance"]
+    hi = nov["probe"]["frequency"] + nov["probe"]["frequency_tolerance"]
+    assert 4.5 <= lo <= 5.5 and 9.5 <= hi <= 10.0  # the calibrated drives, 5-9.75 Hz, and no more
     assert src.manifest.get("novelty") is None  # the source model is left as it was
 
 
@@ -60,7 +67,7 @@ def test_monitor_judges_an_unseen_healthy_window_and_refuses_an_off_probe_drive(
     test = windows(DATA, {k: TEST[k] for k in list(TEST)[:1]})[:3]
     for w in test:
         assert probe_check(w.u, w.fs, nov["probe"], "measured")["probe_match"] is True
-        run = mon.model.simulate(w.u, n_paths=16, seed=0, y0=novelty_start(w.y, mon.model.ny))
+        run = mon.model.simulate(w.u, method="linear", y0=novelty_start(w.y, mon.model.ny))
         score = novelty_score(w.y, run.mean, run.std, nov["method"])["score"]
         assert np.isfinite(score) and score < nov["threshold"], (w.name, score, nov["threshold"])
     off = windows(DATA, OFF_PROBE)[0]

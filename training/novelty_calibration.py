@@ -85,24 +85,32 @@ def score_healthy(bundle: Bundle, records, method: str, n_paths: int = 1024, see
 
 def calibrate(bundle: Bundle, records, registry, *, false_alarm_rate: float = 0.01, score_method: str | None = None,
               n_paths: int = 1024, seed: int = 0, propagation: str = "mc", version=None, progress=None,
-              name: str | None = None, jobs: int = 1) -> dict:
+              name: str | None = None, jobs: int = 1, groups=None) -> dict:
     """Write a new version of ``bundle`` calibrated on healthy ``records``; returns its name, version,
     path, the novelty calibration and each record's score and verdict under it. ``name``: write it
     under that model name instead (a monitor derived from a model, same GP). ``jobs``: healthy records
-    scored at once (``score_healthy``; the same scores)."""
+    scored at once (``score_healthy``; the same scores). ``groups``: one label per record (the recording
+    each window was cut from): the threshold is then the grouped fit of ``calibrate_threshold``, whose
+    spread is that of a new recording, not of more windows of the recordings seen."""
     records = list(records)
     if len(records) < 2:
         raise ValueError(f"at least 2 healthy records are needed to calibrate, got {len(records)}")
     old = bundle.manifest.get("novelty") if isinstance(bundle.manifest.get("novelty"), dict) else None
     method = check_method(score_method or (method_of(old) if old else RMS_METHOD))
     scored = score_healthy(bundle, records, method, n_paths, seed, propagation, progress, jobs=jobs)
-    novelty = calibrate_threshold([s["score"] for s in scored], false_alarm_rate)
+    if groups is not None:
+        groups = [str(g) for g in groups]
+        if len(groups) != len(records):
+            raise ValueError(f"groups must give one label per healthy record, got {len(groups)} for {len(records)}")
+    novelty = calibrate_threshold([s["score"] for s in scored], false_alarm_rate, groups=groups)
     novelty["method"] = method
     novelty["mc_paths"] = int(n_paths) if propagation == "mc" else 0
     novelty["envelope"] = record_envelope([(r.u, r.y) for r in records])
     novelty["probe"] = probe_contract([r.u for r in records], bundle.fs, start="measured")
     novelty["calibration"] = {"records": [r.name for r in records], "source_version": bundle.version,
                               "propagation": propagation, "seed": int(seed), "refit": False}
+    if groups is not None:
+        novelty["calibration"]["groups"] = groups
     for s, r in zip(scored, records):
         s["verdict"] = judge(novelty, s["score"], r.u, r.y, r.fs)["verdict"]
     path = derive_bundle(bundle, registry, {"novelty": novelty}, version=version, name=name)
