@@ -202,7 +202,8 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
         "`train` (a training window comes from it), `lags` (took part in a choice: lags, noise and band "
         "calibration), `validate` (held out of every choice), `unseen` (in the data folder, not named by the "
         "config).\n\n"
-        f"Chosen lags: ny={ch['ny']}, nu={ch['nu']} (worst free-run fit over the `lags` records {ch['fit']:.1f} %). "
+        f"Chosen lags: ny={ch['ny']}, nu={ch['nu']} (worst free-run fit over the `lags` records {ch['fit']:.1f} %"
+        f"{', on the lag surface below' if summary.get('lag_surface_note') else ''}). "
         f"Monte Carlo paths of the table: {table.get('mc_paths', summary['mc_paths'])}"
         f"{' (linearised bands only)' if not table.get('mc_paths') else ''}. "
         f"Run wall time: {summary.get('wall_seconds', float('nan')):.0f} s"
@@ -225,8 +226,8 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
                  "and 20 Hz. At other drive frequencies the model's steady response to a 0.15 V sine (ramped in over "
                  "0.5 s, free run from rest, linearised, the drive-frequency amplitude of the mean over the last 2 s "
                  "of 8 s) is set against the rig's own frequency response, the LMS FRF of the noise run (velocity "
-                 "per volt; the strongest noise run's, the closest in level to the sines). Its first seconds are training "
-                 "data, so this checks that the model's response "
+                 "per volt; the strongest noise run's, the closest in level to the sines). Its first seconds are "
+                 "training data, so this checks that the model's response "
                  "between the recorded sines is the rig's; 17-20 Hz is left out (there the response depends on the "
                  "amplitude and the noise run's FRF is no reference). `studies/frf_check.py`.\n\n"
                  + frf_markdown(table["frf_check"]))
@@ -235,7 +236,8 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
         page += ("\n## Lag surface\n\nFree-run fit % (linearised, from rest for whole records, from measured "
                  "outputs for a window that starts inside a record) of a model trained at each (ny, nu) on the `train` "
                  "records, on each `lags` "
-                 "record; the chosen cell has the highest worst-record fit.\n\n"
+                 "record; the chosen cell has the highest worst-record fit."
+                 + (f" {summary['lag_surface_note']}" if summary.get("lag_surface_note") else "") + "\n\n"
                  "| ny | nu | worst | mean | " + " | ".join(names) + " |\n|" + "---|" * (4 + len(names)) + "\n")
         for c in surface["cells"]:
             fits = c.get("fits") or {}
