@@ -53,6 +53,23 @@ def bert_real_registry(_session_cache_root):
     return build_once("bert-real", digest(config, Path(__file__), extra=str(BERT_DATA)), build) / "registry"
 
 
+@pytest.fixture(scope="session")
+def bert_real_model(bert_real_registry):
+    """The model of ``bert_real_registry``, its band calibration checked: on the config's 'lags' records,
+    every one covered at 99 %."""
+    from gpnarx.storage.registry import Registry
+    from gpnarx.training.config import load_config
+    from gpnarx.training.defaults import shipped_config
+
+    cfg = load_config(shipped_config("bert-real"))
+    assert cfg.model["band_calibration"] == "lags"
+    m = Registry(bert_real_registry).scan().get("bert-real").model
+    d = m.band_discrepancy_  # the band calibration on the config's 'lags' records, as trained
+    assert d["records"] == [r.name for r in cfg.records_for("lags")]
+    assert d["reached"] and min(d["coverage_after"].values()) >= 0.99
+    return m
+
+
 def sdof_simulate(u, fs=500.0, f_n=20.0, zeta=0.02, mass=1.0):
     """Linear SDOF oscillator (m=1 kg, k=(2 pi 20 Hz)^2 N/m, 2% damping), exact ZOH discretisation."""
     from scipy import signal

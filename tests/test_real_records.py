@@ -25,22 +25,17 @@ pytestmark = pytest.mark.skipif(not RECORDS, reason=f"real BERT records not foun
 
 
 @pytest.fixture(scope="module")
-def model(bert_real_registry):
-    from gpnarx.storage.registry import Registry
-    from gpnarx.training.config import load_config
-    from gpnarx.training.defaults import shipped_config
-
-    cfg = load_config(shipped_config("bert-real"))
-    assert cfg.model["band_calibration"] == "lags"
-    m = Registry(bert_real_registry).scan().get("bert-real").model
-    d = m.band_discrepancy_  # the band calibration on the config's 'lags' records, as trained
-    assert d["records"] == [r.name for r in cfg.records_for("lags")]
-    assert d["reached"] and min(d["coverage_after"].values()) >= 0.99
-    return m
+def model(bert_real_model):
+    return bert_real_model
 
 
-@pytest.mark.parametrize("folder", RECORDS, ids=[p.name for p in RECORDS])
-def test_whole_record_from_rest_does_not_diverge_and_is_covered(model, folder):
+# every other record here, the rest in tests/test_real_records_more.py: two modules that pytest-xdist's
+# loadscope gives to two workers (the records are a few seconds each of linearised free run)
+HERE = RECORDS[0::2]
+
+
+def check_whole_record(model, folder) -> None:
+    """No divergence and a 99 % band that covers at least 90 % of the measured output, whole, from rest."""
     from gpnarx.model.envelope import assess
     from gpnarx.storage.record_files import read_record
 
@@ -52,6 +47,11 @@ def test_whole_record_from_rest_does_not_diverge_and_is_covered(model, folder):
     assert flags["diverged_paths"] == 0 and "prediction" not in flags["out_of_range"], (folder.name, flags)
     cov = float(np.mean((rec.y >= run.lower) & (rec.y <= run.upper)))
     assert cov >= 0.90, (folder.name, cov)
+
+
+@pytest.mark.parametrize("folder", HERE, ids=[p.name for p in HERE])
+def test_whole_record_from_rest_does_not_diverge_and_is_covered(model, folder):
+    check_whole_record(model, folder)
 
 
 def test_monte_carlo_at_resonance_keeps_every_path(model):
