@@ -21,7 +21,7 @@ one:
 The score is ``segment_median_rms`` (spike-robust for laser records); free runs start from the
 measured outputs (the novelty rule), linearised (``PROPAGATION``): the score's band is dominated by
 the model-discrepancy term, a fraction of the predicted amplitude, so Monte Carlo adds cost (about a
-hundred times the linearised run on the exact posterior) and not information (docs/results-monitoring.md).
+fifty times the linearised run on the exact posterior) and not information (docs/results-monitoring.md).
 """
 from __future__ import annotations
 
