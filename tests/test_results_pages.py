@@ -48,7 +48,7 @@ def test_docs_exact_real_page_is_the_render_of_its_stored_run():
     from studies.exact_study import render
 
     summary = json.loads((DOCS / "runs" / "bert-real-exact" / "summary.json").read_text())
-    shipped = json.loads((DOCS / "runs" / "bert-real" / "summary.json").read_text())
+    shipped = json.loads((DOCS / "runs" / "bert-real-sparse" / "summary.json").read_text())
     split = json.loads((DOCS / "runs" / "bert-real-exact" / "split_study.json").read_text())
     page = (DOCS / "results-bert-real-exact.md").read_text()
     assert page == render(summary, shipped, split), "docs/results-bert-real-exact.md differs from its run's render"
