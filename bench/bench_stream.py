@@ -77,9 +77,9 @@ def run_case(model, u, y, method, chunk, paths, kinds):
     calls = len(parts)
     out = {}
     for name, disc in kinds.items():
-        w, tail, widened = widen_chunk(whole, disc)[0], None, []
+        w, tail, held, widened = widen_chunk(whole, disc)[0], None, None, []
         for k, p in enumerate(parts):
-            r, tail = widen_chunk(p, disc, tail, open_end=k < calls - 1)
+            r, tail, held = widen_chunk(p, disc, tail, open_end=k < calls - 1, hold_start=held)
             widened.append(r)
         out[name] = _diffs(w, widened, y, chunk, int(disc["window"]))
     out["timing"] = {"token_bytes": size, "token_ms": 1e3 * tok_s / calls, "whole_s": t_whole,

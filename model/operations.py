@@ -323,15 +323,21 @@ def _simulate(plan: Plan, req, u: np.ndarray, progress: Callable | None):
             run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=_initial_outputs(plan, req),
                                  confidence=float(req.confidence), method=plan.method, backend=plan.backend,
                                  progress=progress, **extra, **stream)
+    except np.linalg.LinAlgError:  # a factorisation of non-finite numbers (a ValueError too): the run diverged
+        raise OperationError(_diverged(plan), "u") from None
     except ValueError as exc:
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
         raise OperationError(msg, _field_from_message(msg)) from None
     if not (np.all(np.isfinite(run.mean)) and np.all(np.isfinite(run.lower)) and np.all(np.isfinite(run.upper))
             and np.all(np.isfinite(run.std))):
-        raise OperationError(f"the free-run prediction of {plan.bundle.name}:{plan.bundle.version} diverged for "
-                             f"this input (non-finite outputs): u is probably far outside the amplitude or "
-                             f"frequency range the model was trained on", "u")
+        raise OperationError(_diverged(plan), "u")
     return run
+
+
+def _diverged(plan: Plan) -> str:
+    return (f"the free-run prediction of {plan.bundle.name}:{plan.bundle.version} diverged for this input "
+            "(non-finite outputs): u is probably far outside the amplitude or frequency range the model was "
+            "trained on")
 
 
 def _is_stream(plan: Plan, req) -> bool:

@@ -17,12 +17,12 @@ def test_split_moves_the_noise_run_between_train_and_lags(tmp_path):
     from gpnarx.training.defaults import shipped_config
 
     text = shipped_config("bert-real").read_text()
-    moved = split_config_text(text, 7.0)
-    assert "window = [0.0, 7.0]" in moved and "window = [7.0, 16.0]" in moved
+    moved = split_config_text(text, 9.0)
+    assert "window = [0.0, 9.0]" in moved and "window = [9.0, 16.0]" in moved
     path = tmp_path / "bert-real.toml"
     path.write_text(moved)
     cfg = load_config(path)
     noise = {s.name: tuple(s.window) for s in cfg.records if "noise" in s.name and s.window}
-    assert sorted(noise.values()) == [(0.0, 7.0), (7.0, 16.0)]
-    with pytest.raises(ValueError, match="5 s"):
-        split_config_text(moved, 9.0)
+    assert sorted(noise.values()) == [(0.0, 9.0), (9.0, 16.0)]
+    with pytest.raises(ValueError, match="7 s"):
+        split_config_text(moved, 11.0)
