@@ -47,6 +47,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from gpnarx.client.raw import raw_post
+
 MODEL = "bouc-wen"
 FS = 750.0
 BEFORE = {  # the report, measured before the fixes
@@ -214,19 +216,6 @@ def probe_empty_store(moto: Moto, registry: Path, work: Path) -> None:
            ready_not_200=ready_bad[0], held_after_restore=sum(h is not None for h in held))
 
 
-def _raw_post(port: int, path: str, body: bytes, key: str | None = None) -> int:
-    with socket.create_connection(("127.0.0.1", port), timeout=60) as s:
-        head = (f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
-                f"Content-Length: {len(body)}\r\n" + (f"X-API-Key: {key}\r\n" if key else "") + "\r\n")
-        s.sendall(head.encode())
-        try:
-            s.sendall(memoryview(body))
-        except OSError:
-            pass
-        data = s.recv(64)
-    return int(data.split()[1]) if data.startswith(b"HTTP/1.1 ") else 0
-
-
 def probe_flood(registry: Path, work: Path) -> None:
     srv = Server(registry, {"GPNARX_API_KEY": "s3cret"}, work / "p2.log")
     try:
@@ -234,7 +223,7 @@ def probe_flood(registry: Path, work: Path) -> None:
         base = srv.rss_mb()
         statuses, t0 = [], time.perf_counter()
         threads = [threading.Thread(target=lambda: statuses.append(
-            _raw_post(srv.port, f"/v1/models/{MODEL}/predict", junk))) for _ in range(16)]
+            raw_post(srv.port, f"/v1/models/{MODEL}/predict", junk))) for _ in range(16)]
         for t in threads:
             t.start()
         for t in threads:

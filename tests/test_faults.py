@@ -15,6 +15,7 @@ import pytest
 from fastapi.testclient import TestClient
 from test_service_support import FS, LiveServer, built_registry, copy_registry, short_record
 
+from gpnarx.client.raw import raw_post
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
 
@@ -184,21 +185,6 @@ def _rss() -> int:
         return int(f.read().split()[1]) * 4096
 
 
-def _raw_post(port: int, path: str, body: bytes, headers: str = "") -> int:
-    """POST ``body`` on a fresh connection; the answer's status (0 if the server closed first)."""
-    import socket
-
-    with socket.create_connection(("127.0.0.1", port), timeout=60) as s:
-        s.sendall(f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n{headers}"
-                  f"Content-Length: {len(body)}\r\n\r\n".encode())
-        try:
-            s.sendall(memoryview(body))
-        except OSError:
-            pass
-        head = s.recv(64)
-    return int(head.split()[1]) if head.startswith(b"HTTP/1.1 ") else 0
-
-
 def test_missing_key_is_refused_before_the_body_is_read():
     import threading
     import time
@@ -233,7 +219,7 @@ def test_missing_key_is_refused_before_the_body_is_read():
         statuses = []
 
         def flood():  # a raw socket: the client side copies nothing, so the RSS is the server's
-            statuses.append(_raw_post(srv.port, "/v1/models/boucwen/predict", junk))
+            statuses.append(raw_post(srv.port, "/v1/models/boucwen/predict", junk))
 
         w = threading.Thread(target=watch)
         w.start()
@@ -756,7 +742,7 @@ def test_chaos_two_replicas_on_moto_emptied_and_killed_store(tmp_path, monkeypat
         # an unauthenticated flood on replica 0 while both serve
         junk, flood = b"[" * (8 * 1024 * 1024), []
         base = _rss()
-        threads = [threading.Thread(target=lambda: flood.append(_raw_post(replicas[0].port, "/v1/models/bw/predict",
+        threads = [threading.Thread(target=lambda: flood.append(raw_post(replicas[0].port, "/v1/models/bw/predict",
                                                                           junk))) for _ in range(16)]
         for t in threads:
             t.start()
