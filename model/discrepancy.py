@@ -29,6 +29,19 @@ its model (on the real rig the 0.20 V sweep's decay after resonance is 2-3x the 
 a(t) follows the model's own, faster decay. h depends on the past only; a stream's state carries
 its last value. The scale is calibrated with the hold the band will use.
 
+Propagated-band factor (``gp_scale``, dimensionless; 1: eqs. 8-9's band as propagated, the default and
+the factor of bundles calibrated before it existed): the free run's own band is multiplied by it before
+the term is added,
+
+    std_total(t)^2 = (gp_scale * std(t))^2 + (scale * h(t))^2.
+
+The propagated band carries sigma_y^2 fed back through every output lag. A single sigma_y^2 is one
+number for the whole operating range, so at low response (broadband noise, sines away from resonance, a
+free decay) the fed-back noise, amplified by the lightly damped dynamics, can be several times the free
+run's actual error, while at high response the amplitude term dominates. Calibrated with the scale
+(``calibrate_scale(gp_scales=...)``), the pair is the one whose loosest calibration record is the least
+loose (below): neither the quiet records nor the loud ones get a band much wider than they need.
+
 ``scale`` is dimensionless (a fraction of the local amplitude). It is calibrated on records the
 GP was not trained on (the config's ``lags`` records): the smallest value of a geometric grid at
 which every calibration record's band reaches the band's confidence level (the worst record, as
@@ -52,6 +65,9 @@ WINDOW_KINDS = ("centred", "trailing")
 LEGACY_WINDOW_KIND = "centred"
 #: the calibration grid of ``scale``: 0 then geometric from 1e-3 to 1 (a band of +/- the amplitude)
 SCALE_GRID = np.concatenate([[0.0], np.geomspace(1e-3, 1.0, 61)])
+#: the calibration grid of ``gp_scale`` when it is calibrated: geometric from 0.1 to 2 in steps of 10^(1/20)
+#: (about 12 %), 1 included
+GP_SCALE_GRID = 10.0 ** (np.arange(-20, 7) / 20.0)
 
 
 def local_amplitude(mean: np.ndarray, window: int, open_end: bool = False, kind: str = "centred") -> np.ndarray:
@@ -133,12 +149,20 @@ def check_discrepancy(d: dict | None) -> dict | None:
     hold = d.get("hold", 0)
     if isinstance(hold, bool) or not isinstance(hold, int) or hold < 0:
         raise ValueError(f"band_discrepancy.hold must be an integer >= 0 (samples), got {hold!r}")
+    gp = d.get("gp_scale", 1.0)
+    if isinstance(gp, bool) or not isinstance(gp, (int, float)) or not np.isfinite(gp) or not 0.0 < gp <= 10.0:
+        raise ValueError(f"band_discrepancy.gp_scale must be a number in (0, 10], got {gp!r}")
     return d
 
 
-def _widen_pair(mean, lower, upper, extra):
-    lo = mean - np.sqrt((mean - lower) ** 2 + extra**2)
-    hi = mean + np.sqrt((upper - mean) ** 2 + extra**2)
+def gp_scale_of(d: dict | None) -> float:
+    """The propagated band's factor of a stored discrepancy (1 when it names none)."""
+    return float((d or {}).get("gp_scale") or 1.0)
+
+
+def _widen_pair(mean, lower, upper, extra, gp_scale: float = 1.0):
+    lo = mean - np.sqrt((gp_scale * (mean - lower)) ** 2 + extra**2)
+    hi = mean + np.sqrt((gp_scale * (upper - mean)) ** 2 + extra**2)
     return lo, hi
 
 
@@ -153,9 +177,11 @@ def band_amplitude(mean: np.ndarray, window: int, kind: str = "centred", hold: f
 
 
 def widen(run, scale: float, window: int, mean_before=None, open_end: bool = False, kind: str = "centred",
-          hold: float = 0, hold_start: float | None = None, amp: np.ndarray | None = None):
+          hold: float = 0, hold_start: float | None = None, amp: np.ndarray | None = None, gp_scale: float = 1.0):
     """A copy of the free run ``run`` (``freerun.FreeRun``) with the discrepancy term added.
 
+    gp_scale: factor on the run's own band (std, both bands and the latent band) before the term is added
+    in quadrature (dimensionless; 1: unchanged). ``cov_band`` is not scaled.
     scale: fraction of the local amplitude (dimensionless); window: samples of the moving RMS; kind:
     where the window lies (``WINDOW_KINDS``); hold: the held amplitude's time constant (samples, 0:
     none). mean_before: the mean outputs just before ``run`` (a stream's earlier chunks; output units):
@@ -163,17 +189,21 @@ def widen(run, scale: float, window: int, mean_before=None, open_end: bool = Fal
     hold_start: the held amplitude just before ``run``. open_end: the record goes on after ``run``
     (``local_amplitude``). amp: the amplitude already computed (``band_amplitude``), else computed here.
     """
-    if scale <= 0.0:
+    g = float(gp_scale)
+    if scale <= 0.0 and g == 1.0:
         return run
-    if amp is None:
-        amp = band_amplitude(run.mean, window, kind, hold, mean_before, open_end, hold_start)
-    extra_sd = float(scale) * amp
+    if scale <= 0.0:
+        extra_sd = np.zeros_like(np.asarray(run.mean, dtype=float))
+    else:
+        if amp is None:
+            amp = band_amplitude(run.mean, window, kind, hold, mean_before, open_end, hold_start)
+        extra_sd = float(scale) * amp
     z = float(ndtri(0.5 + 0.5 * run.confidence))
-    lo, hi = _widen_pair(run.mean, run.lower, run.upper, z * extra_sd)
-    changes = {"std": np.sqrt(run.std**2 + extra_sd**2), "lower": lo, "upper": hi}
+    lo, hi = _widen_pair(run.mean, run.lower, run.upper, z * extra_sd, g)
+    changes = {"std": np.sqrt((g * run.std) ** 2 + extra_sd**2), "lower": lo, "upper": hi}
     if getattr(run, "latent_lower", None) is not None:
         changes["latent_lower"], changes["latent_upper"] = _widen_pair(
-            run.mean, run.latent_lower, run.latent_upper, z * extra_sd)
+            run.mean, run.latent_lower, run.latent_upper, z * extra_sd, g)
     return replace(run, **changes)
 
 
@@ -190,7 +220,7 @@ def widen_chunk(run, disc: dict, mean_before=None, open_end: bool = False, hold_
     and held value (None: the record starts with ``run``); ``open_end``: more of the record follows."""
     window, kind, hold = int(disc["window"]), window_kind(disc), hold_of(disc)
     amp = band_amplitude(run.mean, window, kind, hold, mean_before, open_end, hold_start)
-    out = widen(run, float(disc["scale"]), window, amp=amp)
+    out = widen(run, float(disc["scale"]), window, amp=amp, gp_scale=gp_scale_of(disc))
     prev = np.zeros(0) if mean_before is None else np.asarray(mean_before, dtype=float).ravel()
     both = np.concatenate([prev, np.asarray(run.mean, dtype=float)])
     last = float(amp[-1]) if hold and amp.size else (hold_start if hold else None)
@@ -198,24 +228,44 @@ def widen_chunk(run, disc: dict, mean_before=None, open_end: bool = False, hold_
 
 
 def coverage_at(y: np.ndarray, run, scale: float, window: int, skip: int = 0, kind: str = "centred",
-                hold: float = 0, amp: np.ndarray | None = None) -> float:
+                hold: float = 0, amp: np.ndarray | None = None, gp_scale: float = 1.0) -> float:
     """Share of samples of the measured ``y`` inside the band widened by ``scale`` (0-1)."""
-    r = widen(run, scale, window, kind=kind, hold=hold, amp=amp)
+    r = widen(run, scale, window, kind=kind, hold=hold, amp=amp, gp_scale=gp_scale)
     y = np.asarray(y, dtype=float)[skip:]
     return float(np.mean((y >= r.lower[skip:]) & (y <= r.upper[skip:])))
 
 
+def band_tightness(y: np.ndarray, run, skip: int = 0) -> float:
+    """How much of its band a record needs: the ``run.confidence`` quantile of |error| / half-width on
+    the error's side (dimensionless; <= 1 when the band covers the record at its confidence, 0.5: the band
+    is twice as wide as the record needed). A zero half-width counts as 0 where the error is 0, else inf."""
+    y = np.asarray(y, dtype=float)[skip:]
+    m = np.asarray(run.mean, dtype=float)[skip:]
+    e = y - m
+    hw = np.where(e >= 0, np.asarray(run.upper, dtype=float)[skip:] - m, m - np.asarray(run.lower, dtype=float)[skip:])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(hw > 0, np.abs(e) / np.where(hw > 0, hw, 1.0), np.where(e == 0, 0.0, np.inf))
+    if ratio.size == 0:
+        return 0.0
+    return float(np.quantile(ratio, run.confidence))
+
+
 def calibrate_scale(runs, window: int, grid: np.ndarray = SCALE_GRID, kind: str = "centred",
-                    hold: int = 0) -> dict:
+                    hold: int = 0, gp_scales=(1.0,)) -> dict:
     """The smallest ``scale`` of ``grid`` at which every run's band reaches its confidence.
 
     runs: list of (name, y_measured, FreeRun, skip) for the held-out calibration records; ``skip``
     samples at the start are the measured initial outputs (not predicted) and are not scored.
     kind: where the amplitude window lies (``WINDOW_KINDS``), stored as ``window_kind``; hold: the held
     amplitude's time constant (samples, 0: none), stored as ``hold``.
-    Returns the ``band_discrepancy`` record: scale, window, window_kind, hold, the target, the calibration
-    coverage of each record before and after, and ``reached`` (False when even the largest scale
-    falls short: the largest is then kept and the shortfall is on record).
+    gp_scales: the factors on the propagated band to try (``GP_SCALE_GRID`` to calibrate it; the default
+    keeps eqs. 8-9's band as propagated). With several, each gets its smallest covering ``scale`` and the
+    pair kept is the one whose loosest record is the least loose: the largest smallest
+    ``band_tightness`` over the records (ties: the narrower mean band), among the pairs that cover
+    every record; none covering, the one with the best worst coverage.
+    Returns the ``band_discrepancy`` record: scale, gp_scale, window, window_kind, hold, the target, the
+    calibration coverage of each record before and after, each record's tightness after, and ``reached``
+    (False when even the largest scale falls short: the largest is then kept and the shortfall is on record).
     """
     if not runs:
         raise ValueError("band calibration needs at least one held-out record")
@@ -224,26 +274,63 @@ def calibrate_scale(runs, window: int, grid: np.ndarray = SCALE_GRID, kind: str 
     hold = int(hold)
     if hold < 0:
         raise ValueError(f"hold must be >= 0 samples, got {hold}")
+    factors = [float(g) for g in np.atleast_1d(np.asarray(gp_scales, dtype=float))]
+    if not factors or not all(np.isfinite(g) and 0.0 < g <= 10.0 for g in factors):
+        raise ValueError(f"gp_scales must be numbers in (0, 10], got {gp_scales!r}")
     target = min(r.confidence for _, _, r, _ in runs)
     amps = {name: band_amplitude(r.mean, window, kind, hold) for name, _, r, _ in runs}  # one per run, any scale
 
-    def coverages(s):
-        return {name: coverage_at(y, r, s, window, skip, kind, amp=amps[name]) for name, y, r, skip in runs}
+    def coverages(s, g):
+        return {name: coverage_at(y, r, s, window, skip, kind, amp=amps[name], gp_scale=g)
+                for name, y, r, skip in runs}
 
-    before = coverages(0.0)
-    chosen, after, reached = float(grid[-1]), None, False
-    for s in grid:
-        cov = coverages(float(s))
-        if min(cov.values()) >= target:
-            chosen, after, reached = float(s), cov, True
-            break
-    if after is None:
-        after = coverages(chosen)
-    return {"method": "amplitude", "scale": chosen, "window": int(window), "window_kind": kind, "hold": hold,
-            "target": float(target), "reached": reached, "criterion": "worst held-out record",
-            "coverage_before": before, "coverage_after": after}
+    def smallest_scale(g):
+        # coverage never falls as the scale grows (the band only widens): bisect the grid
+        lo, hi = -1, len(grid) - 1  # grid[hi] is the smallest known to cover (when any does)
+        top = coverages(float(grid[hi]), g)
+        if min(top.values()) < target:
+            return float(grid[hi]), top, False
+        best = top
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            cov = coverages(float(grid[mid]), g)
+            if min(cov.values()) >= target:
+                hi, best = mid, cov
+            else:
+                lo = mid
+        return float(grid[hi]), best, True
+
+    def tightness(s, g):
+        return {name: band_tightness(y, widen(r, s, window, kind=kind, amp=amps[name], gp_scale=g), skip)
+                for name, y, r, skip in runs}
+
+    def mean_width(s, g):
+        return float(np.mean([np.mean(widen(r, s, window, kind=kind, amp=amps[name], gp_scale=g).upper[skip:]
+                                      - r.mean[skip:]) / max(float(np.std(y[skip:])), 1e-300)
+                              for name, y, r, skip in runs]))
+
+    before = coverages(0.0, 1.0)
+    candidates = []
+    for g in factors:
+        s, cov, ok = smallest_scale(g)
+        tight = tightness(s, g) if len(factors) > 1 else {}
+        key = (ok, min(tight.values()) if tight else 0.0, -mean_width(s, g) if len(factors) > 1 else 0.0,
+               min(cov.values()))
+        if not ok:
+            key = (False, min(cov.values()), 0.0, 0.0)
+        candidates.append((key, g, s, cov, ok, tight))
+    _, g, chosen, after, reached, tight = max(candidates, key=lambda c: c[0])
+    out = {"method": "amplitude", "scale": chosen, "gp_scale": g, "window": int(window), "window_kind": kind,
+           "hold": hold, "target": float(target), "reached": reached, "criterion": "worst held-out record",
+           "coverage_before": before, "coverage_after": after}
+    if len(factors) > 1:
+        out["gp_scale_criterion"] = "largest smallest band_tightness over the records"
+        out["tightness_after"] = tight
+        out["gp_scale_grid"] = factors
+    return out
 
 
-__all__ = ["DEFAULT_WINDOW_SECONDS", "LEGACY_WINDOW_KIND", "SCALE_GRID", "WINDOW_KINDS", "band_amplitude",
-           "calibrate_scale", "check_discrepancy", "coverage_at", "held_amplitude", "hold_of", "local_amplitude",
+__all__ = ["DEFAULT_WINDOW_SECONDS", "GP_SCALE_GRID", "LEGACY_WINDOW_KIND", "SCALE_GRID", "WINDOW_KINDS",
+           "band_amplitude", "band_tightness", "calibrate_scale", "check_discrepancy", "coverage_at", "gp_scale_of",
+           "held_amplitude", "hold_of", "local_amplitude",
            "tail_for", "widen", "widen_chunk", "window_kind"]

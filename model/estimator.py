@@ -313,7 +313,8 @@ class GPNARX(BaseEstimator):
             self.posterior_ = build(s2)
 
     def calibrate_band(self, records, window: int, method: str = "linear", n_paths: int = 256,
-                       confidence: float = 0.99, kind: str = "centred", hold: int = 0) -> dict:
+                       confidence: float = 0.99, kind: str = "centred", hold: int = 0,
+                       gp_scales=(1.0,)) -> dict:
         """Calibrate the band's model-discrepancy term (``model.discrepancy``) on held-out records.
 
         records: (name, u, y, start) tuples of records NOT used by ``fit``; ``start`` is 'rest' or
@@ -324,6 +325,8 @@ class GPNARX(BaseEstimator):
         kind: where the amplitude window lies, ``"centred"`` or ``"trailing"`` (causal: a stream's
             chunks get the whole record's band; ``discrepancy.WINDOW_KINDS``).
         hold: time constant of the held amplitude in samples (``discrepancy.held_amplitude``; 0: none).
+        gp_scales: factors on the propagated band to calibrate with the scale (``discrepancy.GP_SCALE_GRID``;
+            the default keeps eqs. 8-9's band as propagated; ``discrepancy.calibrate_scale``).
         Sets and returns ``band_discrepancy_``.
         """
 
@@ -338,7 +341,7 @@ class GPNARX(BaseEstimator):
             y0 = y[: self.ny] if start == "measured" else None
             run = self.simulate(u, n_paths=n_paths, seed=0, y0=y0, confidence=confidence, method=method)
             runs.append((name, y, run, self.ny if start == "measured" else 0))
-        self.band_discrepancy_ = {**calibrate_scale(runs, int(window), kind=kind, hold=int(hold)),
+        self.band_discrepancy_ = {**calibrate_scale(runs, int(window), kind=kind, hold=int(hold), gp_scales=gp_scales),
                                   "calibration_method": method,
                                   "records": [name for name, *_ in records]}
         return self.band_discrepancy_

@@ -460,7 +460,7 @@ def test_schema_defaults_are_the_documented_ones():
     assert config.MODEL_DEFAULTS == {
         "kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000, "selection": "stride",
         "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none", "band_window": 0.25,
-        "band_window_kind": "centred", "band_hold": 0.0, "hyper": "subset"}
+        "band_window_kind": "centred", "band_hold": 0.0, "band_gp_scale": "fixed", "hyper": "subset"}
     assert config.PREDICT_DEFAULTS == {"mc_paths": 1024, "confidence": 0.99, "method": "mc"}
     assert config.NOVELTY_DEFAULTS == {"false_alarm_rate": 0.01, "method": "rms_standardised_residual"}
     assert config.PHYSICS_DEFAULTS == {"mass": None, "input_gain": 1.0}
@@ -489,6 +489,8 @@ def test_every_table_refuses_unknown_keys_and_the_document_keeps_its_own(tmp_pat
             load_config(_write(tmp_path, text))
     with pytest.raises(ConfigError, match=r"model.hyper: must be one of 'subset', 'vfe', got 'exact'"):
         load_config(_write(tmp_path, "name='x'\n[system]\nfs=750\n[model]\nhyper='exact'\n" + rec))
+    with pytest.raises(ConfigError, match=r"model.band_gp_scale: must be one of 'fixed', 'calibrated', got 'auto'"):
+        load_config(_write(tmp_path, "name='x'\n[system]\nfs=750\n[model]\nband_gp_scale='auto'\n" + rec))
 
 
 def test_simulate_values_are_checked_when_the_record_is_simulated(tmp_path):
@@ -513,7 +515,8 @@ def _shipped_expectation(doc: dict, base: Path) -> dict:
 
     model = {"kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000,
              "selection": "stride", "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none",
-             "band_window": 0.25, "band_window_kind": "centred", "band_hold": 0.0, "hyper": "subset",
+             "band_window": 0.25, "band_window_kind": "centred", "band_hold": 0.0, "band_gp_scale": "fixed",
+             "hyper": "subset",
              **doc.get("model", {})}
     records = [(r["name"], list(r["roles"]), expand_path(r["path"], base) if "path" in r else None,
                 r.get("simulate"), r.get("noise"), tuple(r["window"]) if "window" in r else None, r.get("fs"),

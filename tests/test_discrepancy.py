@@ -174,3 +174,72 @@ def test_a_held_trailing_band_in_chunks_is_the_whole_records_band(sdof_model, sd
             assert np.allclose(chunked, getattr(whole, key), rtol=1e-9, atol=1e-12), key
     finally:
         model.band_discrepancy_ = None  # the session fixture is shared
+
+
+def test_gp_scale_multiplies_the_propagated_band_before_the_term():
+    run = _sine_run(floor=0.02)
+    w = widen(run, 0.05, 100, gp_scale=0.5)
+    a = local_amplitude(run.mean, 100)
+    assert np.allclose(w.std, np.sqrt((0.5 * run.std) ** 2 + (0.05 * a) ** 2))
+    half = np.sqrt((0.5 * 2.5758 * run.std) ** 2 + (2.5758 * 0.05 * a) ** 2)
+    assert np.allclose(w.upper - w.mean, half, rtol=1e-4) and np.allclose(w.mean - w.lower, half, rtol=1e-4)
+    only = widen(run, 0.0, 100, gp_scale=0.5)  # no term: the propagated band alone, halved
+    assert np.allclose(only.upper - only.mean, 0.5 * (run.upper - run.mean))
+    assert np.allclose(only.latent_upper - only.mean, 0.5 * (run.latent_upper - run.mean))
+    assert widen(run, 0.0, 100, gp_scale=1.0) is run
+    assert check_discrepancy({"scale": 0.1, "window": 10, "gp_scale": 0.3})["gp_scale"] == 0.3
+    for bad in (0.0, -1.0, float("inf"), True, "x"):
+        with pytest.raises(ValueError, match="band_discrepancy.gp_scale"):
+            check_discrepancy({"scale": 0.1, "window": 10, "gp_scale": bad})
+
+
+def test_band_tightness_is_the_share_of_the_band_a_record_needs():
+    from gpnarx.model.discrepancy import band_tightness
+
+    run = _sine_run(floor=0.01)
+    hw = 2.5758 * 0.01
+    y = run.mean + 0.5 * hw * np.sign(np.sin(np.arange(run.mean.size)))  # every error half the half-width
+    assert band_tightness(y, run) == pytest.approx(0.5)
+    assert band_tightness(run.mean + 2 * hw, run) == pytest.approx(2.0)  # not covered: above 1
+
+
+def test_a_calibrated_gp_scale_shrinks_a_propagated_band_too_wide_for_quiet_records():
+    """Two records: a loud one whose error grows with the amplitude, a quiet one whose propagated band is
+    four times its error. The fixed factor covers both with the amplitude term alone on top of a band far
+    too wide for the quiet record; calibrated, the factor falls and the quiet record's band tightens, both
+    still covered."""
+    from gpnarx.model.discrepancy import GP_SCALE_GRID, band_tightness
+
+    rng = np.random.default_rng(5)
+    loud = _sine_run(amp=2.0, floor=0.01)
+    y_loud = loud.mean + 0.05 * local_amplitude(loud.mean, 250) * rng.standard_normal(loud.mean.size)
+    quiet = _sine_run(amp=0.01, floor=0.01)
+    y_quiet = quiet.mean + 0.0025 * rng.standard_normal(quiet.mean.size)
+    runs = [("loud", y_loud, loud, 0), ("quiet", y_quiet, quiet, 0)]
+    fixed = calibrate_scale(runs, 250)
+    cal = calibrate_scale(runs, 250, gp_scales=GP_SCALE_GRID)
+    assert fixed["gp_scale"] == 1.0 and "tightness_after" not in fixed
+    assert cal["reached"] and min(cal["coverage_after"].values()) >= 0.99
+    assert cal["gp_scale"] < 0.6
+    t_fixed = band_tightness(y_quiet, widen(quiet, fixed["scale"], 250))
+    t_cal = band_tightness(y_quiet, widen(quiet, cal["scale"], 250, gp_scale=cal["gp_scale"]))
+    assert t_fixed < 0.4 and t_cal > 1.5 * t_fixed
+    assert min(cal["tightness_after"].values()) == pytest.approx(min(t_cal, band_tightness(
+        y_loud, widen(loud, cal["scale"], 250, gp_scale=cal["gp_scale"]))))
+    with pytest.raises(ValueError, match="gp_scales"):
+        calibrate_scale(runs, 250, gp_scales=[0.0])
+
+
+def test_a_calibrated_gp_scale_is_stored_and_used_by_the_model(sdof_model, tmp_path):
+    model = sdof_model
+    rng = np.random.default_rng(8)
+    u = rng.normal(size=800)
+    try:
+        base = model.simulate(u, method="linear")
+        model.band_discrepancy_ = check_discrepancy({"scale": 0.0, "window": 50, "gp_scale": 0.5})
+        half = model.simulate(u, method="linear")
+        assert np.allclose(half.upper - half.mean, 0.5 * (base.upper - base.mean))
+        path = save_bundle(model, tmp_path, "sdof", fs=500.0, units={"u": "N", "y": "m"})
+        assert load_bundle(path).model.band_discrepancy_["gp_scale"] == 0.5
+    finally:
+        model.band_discrepancy_ = None  # the session fixture is shared

@@ -36,6 +36,8 @@ key name below is a contract)::
                                       # stream's chunks get the whole record's band, docs/api.md)
     band_hold = 0.0                   # [s] time constant of the held amplitude (0: none): after a large
                                       # response the band keeps a decaying share of its size
+    band_gp_scale = "fixed"           # "fixed" | "calibrated": multiply the propagated band by a factor
+                                      # calibrated with the scale on the 'lags' records (model.discrepancy)
     hyper = "subset"                  # sparse mode: "subset" (exact ML-II on the capped rows) | "vfe"
     fit_backend = "numpy"             # "numpy" | "jax": ML-II and the exact posterior's solves on the JAX
                                       # device (a GPU: exact mode at 10-20 thousand rows; docs/accelerator.md)

@@ -11,7 +11,7 @@ One model per TOML table::
       ModelTable              ny, nu >= 1 (optional), kernel, mode, inducing >= 1, max_train_points >= 1,
                               selection, restarts >= 0, seed >= 0, noise_calibration, band_calibration,
                               band_window [s] in (0, 10], band_window_kind "centred" | "trailing",
-                              band_hold [s] in [0, 60]
+                              band_hold [s] in [0, 60], band_gp_scale "fixed" | "calibrated"
       lags                    any key: a lag range LO:HI[:STEP] (parse_range)
       PredictTable            mc_paths >= 1, confidence in (0, 1), method "mc" | "linear"
       NoveltyTable            false_alarm_rate in (0, 1), method (gpnarx.model.novelty.METHODS)
@@ -69,6 +69,7 @@ SELECTIONS = ("stride", "random", "resonance")
 OUTPUTS = ("displacement", "velocity")
 NOISE_CALIBRATIONS = ("none", "lags")
 BAND_CALIBRATIONS = ("none", "lags")
+BAND_GP_SCALES = ("fixed", "calibrated")
 PREDICT_METHODS = ("mc", "linear")
 SIM_SYSTEMS = specs.SYSTEMS
 SIM_EXCITATIONS = specs.EXCITATIONS
@@ -292,6 +293,9 @@ class ModelTable(_Closed):
     band_hold: _number("a number of seconds in [0, 60]", ge=0, le=60) = Field(
         0.0, description="time constant of the held amplitude [s] (0: none): after a large response the band "
                          "keeps a share of its size, decaying by e every band_hold seconds")
+    band_gp_scale: _choice(BAND_GP_SCALES) = Field(
+        "fixed", description="the propagated band (eqs. 8-9) as it is (fixed), or multiplied by a factor "
+                             "calibrated with the discrepancy scale on the 'lags' records (calibrated)")
     ny: Count | None = Field(None, description="output lags (omit when chosen by the lag surface)")
     nu: Count | None = Field(None, description="input lags")
     hyper: _choice(("subset", "vfe")) = Field(

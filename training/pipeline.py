@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gpnarx._progress import progress_bar
+from gpnarx.model.discrepancy import GP_SCALE_GRID
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.metrics import summary
 from gpnarx.model.novelty import (
@@ -98,11 +99,14 @@ def calibrate_band_from_config(model: GPNARX, cfg: DatasetConfig, held: list, lo
     window = max(1, int(round(float(cfg.model.get("band_window", 0.25)) * cfg.fs)))
     starts = [(r.name, r.u, r.y, "measured" if r.meta.get("initial") == "measured" else "rest") for r in held]
     hold = max(0, int(round(float(cfg.model.get("band_hold", 0.0)) * cfg.fs)))
+    gp_scales = GP_SCALE_GRID if cfg.model.get("band_gp_scale", "fixed") == "calibrated" else (1.0,)
     d = model.calibrate_band(starts, window, confidence=float(cfg.predict.get("confidence", 0.99)),
-                             kind=str(cfg.model.get("band_window_kind", "centred")), hold=hold)
+                             kind=str(cfg.model.get("band_window_kind", "centred")), hold=hold, gp_scales=gp_scales)
     worst = min(d["coverage_before"].values()), min(d["coverage_after"].values())
     log = log or (lambda msg: None)
-    log(f"band calibrated on {len(held)} held-out 'lags' record(s): discrepancy scale {d['scale']:.4g} of the "
+    log(f"band calibrated on {len(held)} held-out 'lags' record(s): "
+        + (f"propagated band x {d['gp_scale']:.3g}, " if len(gp_scales) > 1 else "")
+        + f"discrepancy scale {d['scale']:.4g} of the "
         f"local amplitude ({window} samples, {d['window_kind']}"
         f"{f', held {hold} samples' if hold else ''}); worst coverage {100 * worst[0]:.1f} % -> "
         f"{100 * worst[1]:.1f} %"
