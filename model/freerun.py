@@ -25,6 +25,8 @@ All arrays are in the record's output units (e.g. m or m/s).
 from __future__ import annotations
 
 import math
+import queue
+import threading
 import time
 
 import numpy as np
@@ -43,7 +45,7 @@ from .freerun_core import (
     start_index,
 )
 from .freerun_reference import simulate_linear_reference
-from .gp import LocalModel, has_local_model
+from .gp import LocalModel, has_local_model, two_cpus
 from .kernels import LinearisableKernel, require
 from .posterior import Posterior
 
@@ -248,6 +250,7 @@ def simulate_linear(
     progress=None,
     cov_window: int = 0,
     state: FreeRunState | None = None,
+    workers: int | None = None,
 ) -> FreeRun:
     """First-order (linearised) propagation of mean and covariance through the lagged outputs.
 
@@ -264,7 +267,11 @@ def simulate_linear(
     1. the mean recursion alone (eq. 8 at the mean regressor): it does not depend on the variances,
        and one step is a few numpy calls on (M,) vectors (``_MeanRecursion``);
     2. sigma_f^2 (eq. 9) and J at every mean regressor of the record in row blocks (BLAS-3, the
-       posterior's ``mean_var_grad``);
+       posterior's ``mean_var_grad``), each chunk of pass 1's steps as soon as pass 1 has finished it:
+       with ``workers`` threads (default: one where this process may use two or more CPUs, none
+       otherwise; 0: none) while pass 1 goes on, the rest by the calling thread too once pass 1 ends
+       (BLAS without the GIL, ``gp.lower_times_rows``). Same rows, same blocks: the same numbers, bit
+       for bit, with any number of workers;
     3. the covariance recursion (ny x ny per step).
     Anything else than a ``posterior.Posterior`` whose kernel gives ``MeanTerms`` (e.g. an object with
     only ``mean_grad`` and ``noise_var``) takes the reference loop.
@@ -276,6 +283,8 @@ def simulate_linear(
     larger one is cut. ``FreeRun.state`` is where this run ended.
     """
     fast = _MeanRecursion.build(posterior, x_scaler, ny, nu)
+    if workers is not None and int(workers) < 0:
+        raise ValueError(f"workers must be >= 0 (0: no worker thread), got {workers}")
     if state is not None:
         check_state(state, "linear", ny, nu, y0)
         if fast is None:
@@ -298,7 +307,26 @@ def simulate_linear(
         hist[ny: 2 * ny] = y0v
     elif state is not None:
         hist[:ny] = state.mean_tail
-    fast.run(hist, Ulag, i0, n, ym, ys, progress)
+    # pass 2 of the steps k0 <= i - i0 < k1, once pass 1 has finished them: the mean regressors
+    # (standardised, clipped as in pass 1), sigma_f^2 and the mean's gradient, in rows of X blocked from
+    # i0 as ``mean_var_grad`` blocks them (so any split in multiples of the chunk gives the same numbers)
+    rows = max(n - i0, 0)
+    X = np.empty((rows, ny + nu))
+    var_f = np.empty(rows)
+    grad = np.empty((rows, ny + nu))
+    win = np.lib.stride_tricks.sliding_window_view(hist, ny)[:, ::-1]  # row i: [y_{i-1}, ..., y_{i-ny}]
+
+    def pass2(k0: int, k1: int) -> None:
+        Xb = X[k0:k1]
+        np.subtract(win[i0 + k0: i0 + k1], xm[:ny], out=Xb[:, :ny])
+        Xb[:, :ny] /= xs[:ny]
+        np.clip(Xb[:, :ny], -LAG_CLIP, LAG_CLIP, out=Xb[:, :ny])
+        Xb[:, ny:] = Ulag[i0 + k0: i0 + k1]
+        _, var_f[k0:k1], grad[k0:k1] = posterior.mean_var_grad(Xb)
+
+    with _Workers(pass2, _linear_workers(workers, rows, _PASS1_CHUNK)) as pool:
+        fast.run(hist, Ulag, i0, n, ym, ys, progress, chunk=_PASS1_CHUNK,
+                 on_chunk=lambda c0, c1: pool.submit(c0 - i0, c1 - i0))
     mean = hist[ny:].copy()
     std = np.zeros(n)
     lstd = np.zeros(n)  # latent std: var(y_i) without the reporting step's sigma_y^2
@@ -306,14 +334,6 @@ def simulate_linear(
     band = np.zeros((n, L)) if L > ny else None
     S_end = None if state is None else _resize(np.asarray(state.cov, dtype=float), L)
     if n > i0:
-        # pass 2: the mean regressors of every step (standardised, clipped as in pass 1)
-        win = np.lib.stride_tricks.sliding_window_view(hist, ny)[i0:n, ::-1]  # [y_{i-1}, ..., y_{i-ny}]
-        X = np.empty((n - i0, ny + nu))
-        np.subtract(win, xm[:ny], out=X[:, :ny])
-        X[:, :ny] /= xs[:ny]
-        np.clip(X[:, :ny], -LAG_CLIP, LAG_CLIP, out=X[:, :ny])
-        X[:, ny:] = Ulag[i0:]
-        _, var_f, grad = posterior.mean_var_grad(X)
         noise = posterior.noise_var if include_noise else 0.0
         q = (var_f + noise) * (ys * ys)  # sigma_f^2 + sigma_y^2 in output units
         Jall = grad[:, :ny] * (ys / xs[:ny])  # d mu_out / d y_lag (output units)
@@ -332,6 +352,73 @@ def simulate_linear(
     return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
                    time.perf_counter() - t_start, n - i0, cov_band=band,
                    latent_lower=mean - z * lstd, latent_upper=mean + z * lstd, state=end)
+
+
+_PASS1_CHUNK = 1024  # steps of pass 1 per chunk: pass 2's unit of work (a multiple of mean_var_grad's block)
+
+
+def _linear_workers(workers: int | None, rows: int, chunk: int) -> int:
+    """Worker threads for pass 2 of ``simulate_linear``: ``workers`` when given, else one where this
+    process may run on two or more CPUs and the run has more than one chunk; none otherwise."""
+    if workers is not None:
+        return int(workers)
+    return 1 if rows > chunk and two_cpus() else 0
+
+
+class _Workers:
+    """Runs ``fn(*task)`` for every submitted task: on ``n`` worker threads while the caller goes on,
+    and, on leaving the ``with`` block, on the calling thread too until none is left (n = 0: at once,
+    on the caller). The first error a task raises is raised on leaving the block."""
+
+    def __init__(self, fn, n: int):
+        self.fn, self.n = fn, int(n)
+        self.tasks: queue.SimpleQueue = queue.SimpleQueue()
+        self.errors: list[BaseException] = []
+        self.threads = [threading.Thread(target=self._work, daemon=True, name=f"gpnarx-pass2-{k}")
+                        for k in range(self.n)]
+
+    def __enter__(self):
+        for t in self.threads:
+            t.start()
+        return self
+
+    def submit(self, *task) -> None:
+        if self.n:
+            self.tasks.put(task)
+        else:
+            self.fn(*task)
+
+    def _work(self) -> None:
+        while True:
+            task = self.tasks.get()
+            if task is None:
+                return
+            self._run(task)
+
+    def _run(self, task) -> None:
+        if self.errors:
+            return
+        try:
+            self.fn(*task)
+        except BaseException as e:  # raised again on the calling thread
+            self.errors.append(e)
+
+    def __exit__(self, exc_type, exc, tb):
+        if self.n:
+            while True:  # the caller helps with what is left
+                try:
+                    task = self.tasks.get_nowait()
+                except queue.Empty:
+                    break
+                if exc_type is None:
+                    self._run(task)
+            for _ in self.threads:
+                self.tasks.put(None)
+            for t in self.threads:
+                t.join()
+        if exc_type is None and self.errors:
+            raise self.errors[0]
+        return False
 
 
 def _resize(S: np.ndarray, L: int) -> np.ndarray:
@@ -438,15 +525,15 @@ class _MeanRecursion:
         return cls(np.ascontiguousarray(posterior.points, dtype=float), terms, w, ny, nu,
                    np.asarray(x_scaler.mean_, float), np.asarray(x_scaler.scale_, float))
 
-    def run(self, hist, Ulag, i0, n, ym, ys, progress=None, chunk=1024):
-        """Fill hist[ny + i] with the mean output of every step i0 <= i < n (output units)."""
+    def run(self, hist, Ulag, i0, n, ym, ys, progress=None, chunk=1024, on_chunk=None):
+        """Fill hist[ny + i] with the mean output of every step i0 <= i < n (output units), ``chunk``
+        steps at a time; ``on_chunk(c0, c1)`` after the steps c0 <= i < c1 are final."""
         ny = self.ny
         M = self.Z.shape[0]
         F = np.zeros((self.n_rows, M))
         g, g2, g3 = F[0], F[1], F[2]
-        GG = np.empty(2 * M)  # [Z_y x_y; -2 Z_y x_y] from one product
-        gy, gy2 = GG[:M], GG[M:]
-        Zy2 = np.vstack([self.Zy_rev, -2.0 * self.Zy_rev])
+        gy, gy2 = np.empty(M), np.empty(M)  # Z_y x_y and -2 Z_y x_y (scaling by -2 is exact: the same
+        Zy = self.Zy_rev  # numbers as a product with -2 Z_y, at half the matrix's size in cache)
         r = np.empty(M)
         xy = np.empty(ny)
         wv = self.w
@@ -480,9 +567,10 @@ class _MeanRecursion:
                 xy *= inv_r
                 if i <= clip_until:
                     np.clip(xy, -LAG_CLIP, LAG_CLIP, out=xy)
-                dot(Zy2, xy, out=GG)
+                dot(Zy, xy, out=gy)
                 add(gy, GU[j], out=g)
                 if profiles:
+                    multiply(gy, -2.0, out=gy2)
                     add(gy2, R0[j], out=r)
                     r += float(dot(xy, xy))
                     maximum(r, 0.0, out=r)
@@ -501,3 +589,5 @@ class _MeanRecursion:
                     clip_until = i + ny
                 if progress is not None and (i % 4096 == 0):
                     progress(i + 1, n)
+            if on_chunk is not None:
+                on_chunk(c0, c1_)

@@ -7,6 +7,8 @@ free runs and ``local_model`` read.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from scipy import linalg
 
@@ -14,6 +16,80 @@ from .kernels import Kernel, LocalKernel
 from .kernels.base import _r2_from_gram
 from .linalg import chol_inverse, cholesky_jitter
 from .posterior import Posterior
+
+
+def _fortran_dtrmm():
+    """LAPACK's dtrmm as scipy's Cython BLAS exports it, called through ctypes (which releases the GIL
+    for the call), or None where that export is missing. ``scipy.linalg.blas.dtrmm`` holds the GIL for
+    the whole product, so a free run's worker thread (``freerun.simulate_linear``) would stall the
+    Python loop running beside it; the arithmetic is the same routine's."""
+    try:
+        import ctypes
+
+        from scipy.linalg import cython_blas
+
+        cap = cython_blas.__pyx_capi__["dtrmm"]
+        api = ctypes.pythonapi
+        api.PyCapsule_GetName.restype = ctypes.c_char_p
+        api.PyCapsule_GetName.argtypes = [ctypes.py_object]
+        api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+        api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+        ptr = api.PyCapsule_GetPointer(cap, api.PyCapsule_GetName(cap))
+        c, i = ctypes.c_char_p, ctypes.POINTER(ctypes.c_int)
+        d, v = ctypes.POINTER(ctypes.c_double), ctypes.c_void_p
+        return ctypes.CFUNCTYPE(None, c, c, c, c, i, i, d, v, i, v, i)(ptr)
+    except Exception:  # pragma: no cover - a scipy without the export: scipy.linalg.blas below
+        return None
+
+
+_DTRMM = _fortran_dtrmm()
+
+
+_HELPER = []  # one lazily started helper thread for ``lower_times_rows(..., split=True)``
+
+
+def two_cpus() -> bool:
+    """Whether this process may run on two or more CPUs (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0)) >= 2
+    except AttributeError:  # pragma: no cover - no sched_getaffinity (macOS, Windows)
+        return (os.cpu_count() or 1) >= 2
+
+
+def lower_times_rows(L: np.ndarray, Ks: np.ndarray, split: bool = False) -> np.ndarray:
+    """(L Ks^T)^T for a lower-triangular C-ordered L (N, N) and rows Ks (rows, N), float64: row j is
+    L k_j. BLAS dtrmm (P N^2 flops, half a dense product) on a C-ordered copy of Ks, without the GIL
+    where scipy exports it (``_fortran_dtrmm``), so other Python threads keep running. ``split``: where
+    the process may use two CPUs, the first half of the rows on a helper thread while this thread does
+    the second (each row's arithmetic is the same)."""
+    L = np.ascontiguousarray(L, dtype=np.float64)
+    B = np.array(Ks, dtype=np.float64, order="C", copy=True)  # C (rows, N) = Fortran (N, rows): B^T
+    rows, N = B.shape
+    if _DTRMM is None or rows == 0 or N == 0:
+        return linalg.blas.dtrmm(1.0, L.T, B.T, side=0, lower=0, trans_a=1, overwrite_b=1).T
+    if split and rows >= 8 and two_cpus():
+        if not _HELPER:
+            from concurrent.futures import ThreadPoolExecutor
+
+            _HELPER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="gpnarx-trmm"))
+        h = rows // 2
+        first = _HELPER[0].submit(_dtrmm_rows, L, B[:h])
+        _dtrmm_rows(L, B[h:])
+        first.result()
+    else:
+        _dtrmm_rows(L, B)
+    return B
+
+
+def _dtrmm_rows(L: np.ndarray, B: np.ndarray) -> None:
+    """B[j] := L B[j] for every row of the C-ordered block B (rows, N) (``lower_times_rows``)."""
+    import ctypes
+
+    rows, N = B.shape
+    n, m, one = ctypes.c_int(N), ctypes.c_int(rows), ctypes.c_double(1.0)
+    # Fortran view: A = C-ordered L read column-major = L^T (upper); B^T := op(A) B^T with op(A) = A^T = L
+    _DTRMM(b"L", b"U", b"T", b"N", ctypes.byref(n), ctypes.byref(m), ctypes.byref(one), L.ctypes.data,
+           ctypes.byref(n), B.ctypes.data, ctypes.byref(n))
 
 
 class _Posterior:
@@ -137,11 +213,9 @@ class ExactPosterior(_Posterior):
 
     def reduction_rows(self, Ks: np.ndarray) -> np.ndarray:
         """|Linv k|^2 per row of Ks (eq. 9), float64; Ks is overwritten."""
-        # a triangular product: dtrmm computes Linv Ks^T in place in P N^2 flops (half the dense
-        # Ks @ Linv.T). Ks.T and Linv.T are F-ordered views of the C-ordered arrays, so BLAS needs no
-        # copy; Linv = (Linv.T)^T, hence trans_a=1, lower=0.
-        V = linalg.blas.dtrmm(1.0, self.Linv.T, np.ascontiguousarray(Ks).T, side=0, lower=0, trans_a=1,
-                              overwrite_b=1).T
+        # a triangular product: dtrmm computes Linv Ks^T in P N^2 flops (half the dense Ks @ Linv.T),
+        # without holding the GIL (``lower_times_rows``)
+        V = lower_times_rows(self.Linv, Ks)
         return np.einsum("ij,ij->i", V, V)
 
     def _reduction_one(self, k: np.ndarray) -> float:
@@ -241,6 +315,10 @@ class LocalModel:
         w = np.asarray(post.mean_weights, dtype=float)
         self.FW = np.vstack([F, w[None, :]])  # one product gives F B and w^T B
         self.FT = self.FW[:-1].T
+        # a lower-triangular F (the exact posterior's Linv): F B by dtrmm (half the flops), w^T B apart
+        self.F_lower = (F.shape[0] == F.shape[1] and not np.any(np.triu(F, 1)))
+        self.F = np.ascontiguousarray(F, dtype=float) if self.F_lower else None
+        self.w = w
         self.shift = float(post.mean_shift)
         M, D = self.Z.shape
         self.D = np.empty((M, D))
@@ -293,9 +371,13 @@ class LocalModel:
         else:
             J[:] = 0.0
         B[:, 1 + ny:] = prof.k[1:].T
-        FWB = self.FW @ B
-        mw = FWB[M]
-        FB = FWB[:M]
+        if self.F_lower:
+            FB = lower_times_rows(self.F, B.T, split=True).T
+            mw = self.w @ B
+        else:
+            FWB = self.FW @ B
+            mw = FWB[M]
+            FB = FWB[:M]
         FkJ = FB[:, : 1 + ny]
         Gr = FkJ.T @ FkJ  # [Fk | FJ]^T [Fk | FJ]
         beta = self.beta

@@ -215,3 +215,59 @@ def test_local_model_matches_posterior_at_its_centre(sparse_model, exact_model):
         assert np.allclose(mc, mu[1:], rtol=1e-9, atol=1e-12) and np.allclose(vc, var[1:], rtol=1e-6)
         _, _, g = post.mean_var_grad(x[None])
         assert np.allclose(gm, g[0, : m.ny], rtol=1e-8, atol=1e-12)
+
+
+def test_linear_pass2_workers_give_the_same_numbers(exact_model, sdof_data):
+    # pass 2 on worker threads while pass 1 runs (more than one chunk of steps): the serial run's numbers,
+    # bit for bit, and the reference loop's to round-off
+    m = exact_model
+    u = sdof_data["u2"][: 2 * freerun._PASS1_CHUNK + 300]
+    runs = [freerun.simulate_linear(*_args(m, u), workers=k, cov_window=9) for k in (0, 1, 2)]
+    for r in runs[1:]:
+        for a in ("mean", "std", "lower", "upper", "latent_lower", "latent_upper", "cov_band"):
+            assert np.array_equal(getattr(r, a), getattr(runs[0], a)), a
+    ref = freerun_reference.simulate_linear_reference(*_args(m, u), cov_window=9)
+    scale = np.abs(ref.mean).max()
+    assert np.allclose(runs[1].mean, ref.mean, rtol=0, atol=1e-9 * scale)
+    assert np.allclose(runs[1].std, ref.std, rtol=1e-7, atol=1e-12 * scale)
+    with pytest.raises(ValueError, match="workers"):
+        freerun.simulate_linear(*_args(m, u), workers=-1)
+
+
+def test_linear_pass2_worker_error_reaches_the_caller(exact_model, sdof_data):
+    m = exact_model
+
+    class Failing(type(m.posterior_)):
+        def mean_var_grad(self, Xs, block=256):
+            raise FloatingPointError("pass 2 failed")
+
+    post = m.posterior_
+    bad = Failing(post.kernel, post.noise_var, post.X_train, post.alpha, post.Linv)
+    u = sdof_data["u2"][: freerun._PASS1_CHUNK + 50]
+    with pytest.raises(FloatingPointError, match="pass 2 failed"):
+        freerun.simulate_linear(bad, m.x_scaler_, m.y_scaler_, m.ny, m.nu, u, workers=1)
+
+
+def test_lower_times_rows_and_triangular_local_model(exact_model):
+    from scipy.linalg import blas
+
+    from gpnarx.model.gp import LocalModel, lower_times_rows
+
+    rng = np.random.default_rng(3)
+    L = np.tril(rng.normal(size=(90, 90)))
+    K = rng.normal(size=(21, 90))
+    want = blas.dtrmm(1.0, L.T, np.ascontiguousarray(K).T, side=0, lower=0, trans_a=1).T
+    assert np.array_equal(lower_times_rows(L, K), want)  # the same BLAS routine, without the GIL
+    # rows in two halves: BLAS may block a smaller product otherwise, so the same rows to round-off
+    assert np.allclose(lower_times_rows(L, K, split=True), want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
+    assert np.allclose(want, K @ L.T, rtol=1e-12, atol=1e-12 * np.abs(K @ L.T).max())
+    # the exact posterior's lower-triangular factor takes dtrmm in the local model: the dense product's numbers
+    post = exact_model.posterior_
+    tri, dense = LocalModel(post, exact_model.ny), LocalModel(post, exact_model.ny)
+    assert tri.F_lower
+    dense.F_lower = False
+    x = post.points[3] + 0.01
+    Xc = post.points[:5] + 0.02
+    (Ht, mt, vt), (Hd, md, vd) = tri(x, Xc), dense(x, Xc)
+    assert np.allclose(Ht, Hd, rtol=1e-9, atol=1e-12 * np.abs(Hd).max())
+    assert np.allclose(mt, md, rtol=1e-9, atol=1e-12) and np.allclose(vt, vd, rtol=1e-9)
