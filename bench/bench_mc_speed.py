@@ -15,7 +15,8 @@ at 20 s (steady state) and at 51 s (the drive stops and the structure decays: th
 falls below the noise there while the paths are still spread, the hardest case for the local model);
 then (unless ``--sine-only``) the held-out 0.10 V sweep from rest at 0 s and from measured outputs at
 3 s (crossing the resonance), and the 0.10 V noise run at 0 s and 5 s. ``--whole``: instead, the whole
-0.10 V sweep and the 0.10 V and 0.25 V noise runs from rest (16 s each).
+0.10 V sweep and the 0.10 V and 0.25 V noise runs from rest (16 s each); ``--seconds S`` with it: their
+first S seconds (from rest), for a bundle whose whole records take too long (the exact posterior).
 
 Product: ``model.freerun.simulate_mc`` (default ``local=True``): each step a second-order model of
 eq. 8-9 around the paths' mean regressor in the output-lag coordinates (``gp.LocalModel``), checked
@@ -36,7 +37,8 @@ band edges against the previous code (round-off), in the same units. ``--whole``
 reference out (about 10 minutes a record) and takes the standard error from the previous code at
 seeds 0 and 1.
 
-    python bench/bench_mc_speed.py [--quick] [--whole] [--registry R] [--record PATH] [--reps N] [--threads N]
+    python bench/bench_mc_speed.py [--quick] [--whole [--seconds S]] [--registry R] [--record PATH] [--reps N]
+                                   [--threads N]
 
 Without --registry a bundle is trained from configs/bert-real.toml into a cache (about 10 minutes;
 bench_realtime.py shares the cache). --quick: a small Bouc-Wen sparse model (M=64, fixed
@@ -67,7 +69,7 @@ def quick_model():
 WHOLE = (("Chirp/Chirp0to40Hz/Chirp0p10", "sweep"), ("Rand/Rand0p10", "noise"), ("Rand/Rand0p25", "noise"))
 
 
-def bert_model(registry, record, classes=True, whole=False):
+def bert_model(registry, record, classes=True, whole=False, seconds=None):
     import bench_realtime as R
 
     from gpnarx.storage.record_files import read_record
@@ -80,7 +82,9 @@ def bert_model(registry, record, classes=True, whole=False):
         segs = []
         for sub, cls in WHOLE:
             rec = read_record(str(R.bert_data() / sub), fs_default=b.fs)
-            segs.append((f"{Path(sub).name} whole from rest", rec.u, rec.y, None, cls))
+            n = rec.u.size if seconds is None else int(round(seconds * rec.fs))
+            what = "whole" if n >= rec.u.size else f"first {n / rec.fs:g} s"
+            segs.append((f"{Path(sub).name} {what} from rest", rec.u[:n], rec.y[:n], None, cls))
         return b.model, segs, f"{note}; {b.name}:{b.version}", rec.fs
     path = Path(record) if record else R.bert_data() / "Sine" / "Sine_20Hz"
     rec = read_record(str(path), fs_default=b.fs)
@@ -118,13 +122,17 @@ def main():
                         help="only the sine record's segments (default: also a sweep and a noise run)")
         ap.add_argument("--whole", action="store_true",
                         help="the whole 0.10 V sweep and 0.10 / 0.25 V noise runs instead of segments")
+        ap.add_argument("--seconds", type=float, default=None,
+                        help="with --whole: only the first SECONDS of each record (from rest)")
 
     args = C.parse_args(__doc__, extra)
     q = args.quick
     P = 256 if q else 1024
     reps = args.reps or (2 if q else 3)
+    if args.seconds is not None and not (args.whole and args.seconds > 0):
+        raise SystemExit("--seconds needs --whole and a positive number of seconds")
     model, segs, note, fs = quick_model() if q else bert_model(args.registry, args.record, not args.sine_only,
-                                                                args.whole)
+                                                                args.whole, args.seconds)
     post = model.posterior_
 
     def run(fn, seg, seed=0):

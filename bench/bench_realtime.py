@@ -15,7 +15,11 @@ change: one ``posterior.mean_grad`` call per step), then runs the same CLI entry
 arguments: same bundle, record, tuning and output. Product and baseline processes alternate
 (A, B, A, B, ...); ratio = median over repetitions of baseline wall / product wall.
 
-Accuracy (in this process, same bundle): on 4 s windows of the record (from rest at 0 s, and from
+Also timed in the same alternation (``serial_ratio=``): the product's code with pass 2 (eq. 9 and the
+mean gradient) on the calling thread only (``simulate_linear(workers=0)``), to show what its worker
+thread beside the mean recursion buys on the cores this process gets.
+
+Accuracy (in this process, same bundle): on 4 s windows (``--window``) of the record (from rest at 0 s, and from
 the measured outputs at 20 s) the linearised band against the 1024-path Monte Carlo band
 (``freerun_reference.simulate_mc_reference``: eq. 8-9 exactly at every path, seed 0; seed 1 shows its own Monte Carlo
 spread): coverage of the measured output by each band (points), and the mean width ratio linear /
@@ -23,7 +27,7 @@ MC. Also a faster Monte Carlo as a candidate default: 128 paths on the same
 windows (coverage, width) and its real-time factor extrapolated from the window's simulate time
 (the MC step cost does not depend on the position in the record).
 
-    python bench/bench_realtime.py [--quick] [--registry R] [--record PATH] [--reps N] [--threads N]
+    python bench/bench_realtime.py [--quick] [--registry R] [--record PATH] [--reps N] [--window S] [--threads N]
 
 Without --registry a bundle is trained from configs/bert-real.toml into a cache (about 10 minutes).
 --quick: a tiny Bouc-Wen model and a 2031-sample simulated sweep (bench_predict_e2e's quick
@@ -46,6 +50,12 @@ import _common as C
 BASELINE_CODE = (
     "import sys; import gpnarx.model.freerun as F; import gpnarx.model.freerun_reference as R; "
     "F.simulate_linear = R.simulate_linear_reference; "
+    "from gpnarx.cli.main import main; sys.argv = ['gpnarx'] + sys.argv[1:]; sys.exit(main())"
+)
+# the product's code with pass 2 on the calling thread only (no worker thread beside the mean recursion)
+SERIAL_CODE = (
+    "import sys, functools; import gpnarx.model.freerun as F; "
+    "F.simulate_linear = functools.partial(F.simulate_linear, workers=0); "
     "from gpnarx.cli.main import main; sys.argv = ['gpnarx'] + sys.argv[1:]; sys.exit(main())"
 )
 
@@ -107,7 +117,7 @@ def band_stats(y, run) -> tuple[float, float]:
     return 100.0 * float(np.mean(inside)), float(np.mean(run.upper - run.lower))
 
 
-def accuracy(registry: Path, name: str, record: Path, quick: bool) -> dict:
+def accuracy(registry: Path, name: str, record: Path, quick: bool, window: float = 4.0) -> dict:
     """Linearised and few-path MC bands against the reference MC on 4 s windows (quick: 300 samples)."""
     from gpnarx.runtime import tune_for_free_run
     from gpnarx.storage.record_files import read_record
@@ -124,7 +134,7 @@ def accuracy(registry: Path, name: str, record: Path, quick: bool) -> dict:
     disc = getattr(model, "band_discrepancy_", None)
     P_ref = 256 if quick else 1024
     P_few = 64 if quick else 128
-    win = int(round(4.0 * rec.fs)) if not quick else 300
+    win = int(round(window * rec.fs)) if not quick else 300
     starts = [0] if quick else [0, int(round(20.0 * rec.fs))]
     out = {"windows": [], "discrepancy": bool(disc)}
     for s0 in starts:
@@ -155,9 +165,14 @@ def main():
         ap.add_argument("--registry", default=None, help="registry holding bert-real (default: train into a cache)")
         ap.add_argument("--record", default=None, help="64 s record (default: BERT Sine_20Hz)")
         ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; 2 with --quick)")
+        ap.add_argument("--window", type=float, default=4.0,
+                        help="seconds of each accuracy window (default 4; the exact posterior's 1024-path "
+                             "reference takes about a minute per second of record)")
 
     args = C.parse_args(__doc__, extra)
     q = args.quick
+    if not args.window > 0:
+        raise SystemExit("--window must be a positive number of seconds")
     reps = args.reps or (2 if q else 3)
     with tempfile.TemporaryDirectory(prefix="gpnarx-rt-") as tmp:
         tmp = Path(tmp)
@@ -176,15 +191,17 @@ def main():
                 "--out", str(out)]
         product = [sys.executable, "-m", "gpnarx", *argv]
         baseline = [sys.executable, "-c", BASELINE_CODE, *argv]
+        serial = [sys.executable, "-c", SERIAL_CODE, *argv]
         timed(product)  # warm the page cache (record, bundle, libraries) for both sides
         load0 = C.load()
-        walls = {"product": [], "baseline": []}
-        cpus = {"product": [], "baseline": []}
+        walls = {"product": [], "baseline": [], "serial": []}
+        cpus = {"product": [], "baseline": [], "serial": []}
         for _ in range(reps):
             walls["product"].append(timed(product, cpus["product"]))
             walls["baseline"].append(timed(baseline, cpus["baseline"]))
+            walls["serial"].append(timed(serial, cpus["serial"]))
         load1 = C.load()
-        acc = accuracy(reg, name, record, q)
+        acc = accuracy(reg, name, record, q, args.window)
 
     ratio = C.median_ratio(walls["baseline"], walls["product"])
     wall = C.median(walls["product"])
@@ -192,14 +209,16 @@ def main():
     rt = duration / wall
     print(f"bench_realtime: {name}, {Path(record).name}: {rec.n} samples = {duration:.1f} s; {note}; "
           f"{reps} interleaved reps; load {load0:.1f} -> {load1:.1f}")
-    print(f"  {'rep':>3} {'product s':>10} {'baseline s':>11} {'ratio':>6} {'product cpu s':>13} "
-          f"{'baseline cpu s':>14}")
+    print(f"  {'rep':>3} {'product s':>10} {'baseline s':>11} {'ratio':>6} {'serial s':>9} {'product cpu s':>13} "
+          f"{'baseline cpu s':>14} {'serial cpu s':>12}")
     for r in range(reps):
-        p, b = walls["product"][r], walls["baseline"][r]
-        print(f"  {r:>3} {p:10.2f} {b:11.2f} {b / p:6.2f} {cpus['product'][r]:13.2f} {cpus['baseline'][r]:14.2f}")
+        p, b, sr = walls["product"][r], walls["baseline"][r], walls["serial"][r]
+        print(f"  {r:>3} {p:10.2f} {b:11.2f} {b / p:6.2f} {sr:9.2f} {cpus['product'][r]:13.2f} "
+              f"{cpus['baseline'][r]:14.2f} {cpus['serial'][r]:12.2f}")
     cpu = C.median(cpus["product"])
     print(f"  real-time factor (whole process, --method linear): product {rt:.1f}x, "
-          f"baseline {duration / base_wall:.1f}x (wall, at the load above); on CPU time (what one free core "
+          f"baseline {duration / base_wall:.1f}x, pass 2 serial {duration / C.median(walls['serial']):.1f}x "
+          f"(wall, at the load above); on CPU time (what one free core "
           f"gives): product {duration / cpu:.1f}x, baseline {duration / C.median(cpus['baseline']):.1f}x")
     for w in acc["windows"]:
         print(f"  window at {w['t0']:.0f} s ({w['n']} samples) from {w['start']}: coverage of measured y: "
@@ -217,6 +236,8 @@ def main():
     few_rt = min(w["few_steps_per_s"] for w in ws) / rec.fs
     C.result(rt_factor=rt, baseline=duration / base_wall, baseline_what="same-cli-process-reference-linear-loop",
              ratio=ratio, wall_s=wall, baseline_wall_s=base_wall, record_s=duration, cpu_s=cpu,
+             serial_wall_s=C.median(walls["serial"]), serial_ratio=C.median_ratio(walls["serial"], walls["product"]),
+             serial_cpu_s=C.median(cpus["serial"]), window_s=ws[0]["n"] / rec.fs,
              rt_factor_cpu=duration / cpu, baseline_cpu_s=C.median(cpus["baseline"]),
              cov_mc_seed_gap=max(abs(w["cov_mc_seed1"] - w["cov_mc"]) for w in ws),
              cov_gap_points=cov_gap, width_ratio_min=min(w["width_ratio_lin"] for w in ws),
