@@ -98,7 +98,19 @@ def sdof_data():
 
 
 @pytest.fixture(scope="session")
-def sdof_model(sdof_data):
+def sdof_model(sdof_data, _session_cache_root):
+    """GPNARX (ny = nu = 16, 1500 ML-II rows) fitted on ``sdof_data``'s noisy record, once per session for
+    every pytest-xdist worker (tests/session_cache.py: pickled by the first worker, each worker unpickles
+    its own copy, the same numbers as a fit of its own)."""
+    import pickle
+
+    from session_cache import build_once, digest
+
     from gpnarx.model.estimator import GPNARX
 
-    return GPNARX(ny=16, nu=16, max_train_points=1500, n_restarts=0).fit([(sdof_data["u"], sdof_data["yn"])])
+    def build(folder: Path) -> None:
+        model = GPNARX(ny=16, nu=16, max_train_points=1500, n_restarts=0).fit([(sdof_data["u"], sdof_data["yn"])])
+        (folder / "model.pkl").write_bytes(pickle.dumps(model))
+
+    folder = build_once("sdof-model", digest(Path(__file__)), build)
+    return pickle.loads((folder / "model.pkl").read_bytes())
