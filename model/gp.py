@@ -56,40 +56,41 @@ def two_cpus() -> bool:
         return (os.cpu_count() or 1) >= 2
 
 
-def lower_times_rows(L: np.ndarray, Ks: np.ndarray, split: bool = False) -> np.ndarray:
+def lower_times_rows(L: np.ndarray, Ks: np.ndarray, split: bool = False, transpose: bool = False) -> np.ndarray:
     """(L Ks^T)^T for a lower-triangular C-ordered L (N, N) and rows Ks (rows, N), float64: row j is
-    L k_j. BLAS dtrmm (P N^2 flops, half a dense product) on a C-ordered copy of Ks, without the GIL
-    where scipy exports it (``_fortran_dtrmm``), so other Python threads keep running. ``split``: where
-    the process may use two CPUs, the first half of the rows on a helper thread while this thread does
-    the second (each row's arithmetic is the same)."""
+    L k_j (``transpose``: L^T k_j). BLAS dtrmm (P N^2 flops, half a dense product) on a C-ordered copy of
+    Ks, without the GIL where scipy exports it (``_fortran_dtrmm``), so other Python threads keep running.
+    ``split``: where the process may use two CPUs, the first half of the rows on a helper thread while
+    this thread does the second."""
     L = np.ascontiguousarray(L, dtype=np.float64)
     B = np.array(Ks, dtype=np.float64, order="C", copy=True)  # C (rows, N) = Fortran (N, rows): B^T
     rows, N = B.shape
     if _DTRMM is None or rows == 0 or N == 0:
-        return linalg.blas.dtrmm(1.0, L.T, B.T, side=0, lower=0, trans_a=1, overwrite_b=1).T
+        return linalg.blas.dtrmm(1.0, L.T, B.T, side=0, lower=0, trans_a=0 if transpose else 1, overwrite_b=1).T
     if split and rows >= 8 and two_cpus():
         if not _HELPER:
             from concurrent.futures import ThreadPoolExecutor
 
             _HELPER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="gpnarx-trmm"))
         h = rows // 2
-        first = _HELPER[0].submit(_dtrmm_rows, L, B[:h])
-        _dtrmm_rows(L, B[h:])
+        first = _HELPER[0].submit(_dtrmm_rows, L, B[:h], transpose)
+        _dtrmm_rows(L, B[h:], transpose)
         first.result()
     else:
-        _dtrmm_rows(L, B)
+        _dtrmm_rows(L, B, transpose)
     return B
 
 
-def _dtrmm_rows(L: np.ndarray, B: np.ndarray) -> None:
-    """B[j] := L B[j] for every row of the C-ordered block B (rows, N) (``lower_times_rows``)."""
+def _dtrmm_rows(L: np.ndarray, B: np.ndarray, transpose: bool = False) -> None:
+    """B[j] := L B[j] (``transpose``: L^T B[j]) for every row of the C-ordered block B (rows, N)."""
     import ctypes
 
     rows, N = B.shape
     n, m, one = ctypes.c_int(N), ctypes.c_int(rows), ctypes.c_double(1.0)
     # Fortran view: A = C-ordered L read column-major = L^T (upper); B^T := op(A) B^T with op(A) = A^T = L
-    _DTRMM(b"L", b"U", b"T", b"N", ctypes.byref(n), ctypes.byref(m), ctypes.byref(one), L.ctypes.data,
-           ctypes.byref(n), B.ctypes.data, ctypes.byref(n))
+    # (or op(A) = A = L^T)
+    _DTRMM(b"L", b"U", b"N" if transpose else b"T", b"N", ctypes.byref(n), ctypes.byref(m), ctypes.byref(one),
+           L.ctypes.data, ctypes.byref(n), B.ctypes.data, ctypes.byref(n))
 
 
 class _Posterior:
@@ -381,7 +382,10 @@ class LocalModel:
         FkJ = FB[:, : 1 + ny]
         Gr = FkJ.T @ FkJ  # [Fk | FJ]^T [Fk | FJ]
         beta = self.beta
-        beta[:, 1] = self.FT @ FB[:, 0]
+        if self.F_lower:  # F^T (F k): the upper triangle only
+            beta[:, 1] = lower_times_rows(self.F, FB[:, 0][None, :], transpose=True)[0]
+        else:
+            beta[:, 1] = self.FT @ FB[:, 0]
         # [hess(w) | hess(F^T F k)] = C^T diag(weights) C for both weights in one product, + the q terms
         Wt = self.Wt
         for half, coef in ((Wt[:M], prof.p), (Wt[M:], prof.t)):

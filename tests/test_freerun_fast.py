@@ -261,6 +261,7 @@ def test_lower_times_rows_and_triangular_local_model(exact_model):
     # rows in two halves: BLAS may block a smaller product otherwise, so the same rows to round-off
     assert np.allclose(lower_times_rows(L, K, split=True), want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
     assert np.allclose(want, K @ L.T, rtol=1e-12, atol=1e-12 * np.abs(K @ L.T).max())
+    assert np.allclose(lower_times_rows(L, K, transpose=True), K @ L, rtol=1e-12, atol=1e-12 * np.abs(K @ L).max())
     # the exact posterior's lower-triangular factor takes dtrmm in the local model: the dense product's numbers
     post = exact_model.posterior_
     tri, dense = LocalModel(post, exact_model.ny), LocalModel(post, exact_model.ny)
