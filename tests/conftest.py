@@ -23,6 +23,30 @@ from gpnarx.training.datapaths import bert_data_dir  # noqa: E402
 
 BERT_DATA = bert_data_dir()
 
+# The modules that take longest, longest first. pytest-xdist's loadscope hands whole modules to the workers
+# in collection order (with its reordering by test count off, pytest_configure below: that put these
+# few-test modules last), so the long ones start first and the short ones fill in at the end. The module
+# building the session's bert-real registry comes well before the other two that read it, so no worker
+# waits on the build.
+LONGEST_FIRST = ("test_reproduce_more.py", "test_reproduce.py", "test_estimator.py", "test_bench_smoke.py",
+                 "test_bench_smoke_more.py", "test_real_records.py", "test_pipeline.py", "test_wheel.py",
+                 "test_dask_cluster.py", "test_first_start.py", "test_deploy.py", "test_faults.py",
+                 "test_real_records_more.py", "test_real_monitor.py")
+
+
+def pytest_configure(config):
+    """Under pytest-xdist's loadscope, hand out modules in collection order (``LONGEST_FIRST``), not
+    reordered by their number of tests (``--loadscope-reorder``, pytest-xdist's default since 3.6)."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(config, items):
+    """Run the modules of ``LONGEST_FIRST`` first, in its order; every other module after them in collection
+    order, and each module's tests in their own order (a stable sort)."""
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
 
 @pytest.fixture(scope="session", autouse=True)
 def _session_cache_root(tmp_path_factory):
