@@ -31,7 +31,8 @@ BERT_DATA = bert_data_dir()
 LONGEST_FIRST = ("test_reproduce_more.py", "test_reproduce.py", "test_estimator.py", "test_bench_smoke.py",
                  "test_bench_smoke_more.py", "test_real_records.py", "test_pipeline.py", "test_wheel.py",
                  "test_dask_cluster.py", "test_first_start.py", "test_deploy.py", "test_faults.py",
-                 "test_real_records_more.py", "test_real_monitor.py")
+                 "test_real_records_more.py", "test_real_monitor.py", "test_registry_remote.py",
+                 "test_service_fuzz.py", "test_ui_browser.py", "test_stream.py")
 
 
 def pytest_configure(config):
