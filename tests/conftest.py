@@ -26,10 +26,10 @@ BERT_DATA = bert_data_dir()
 # The modules that take longest, longest first. pytest-xdist's loadscope hands whole modules to the workers
 # in collection order (with its reordering by test count off, pytest_configure below: that put these
 # few-test modules last), so the long ones start first and the short ones fill in at the end. The module
-# building the session's bert-real registry comes well before the other two that read it, so no worker
-# waits on the build.
-LONGEST_FIRST = ("test_reproduce_more.py", "test_reproduce.py", "test_estimator.py", "test_bench_smoke.py",
-                 "test_bench_smoke_more.py", "test_real_records.py", "test_pipeline.py", "test_wheel.py",
+# building the session's bert-real registry (bert_real_registry, the longest single build) comes first and
+# the other two that read it well after it, so no worker waits on the build.
+LONGEST_FIRST = ("test_real_records.py", "test_reproduce_more.py", "test_reproduce.py", "test_estimator.py",
+                 "test_bench_smoke.py", "test_bench_smoke_more.py", "test_pipeline.py", "test_wheel.py",
                  "test_dask_cluster.py", "test_first_start.py", "test_deploy.py", "test_faults.py",
                  "test_real_records_more.py", "test_real_monitor.py", "test_registry_remote.py",
                  "test_service_fuzz.py", "test_ui_browser.py", "test_stream.py")
