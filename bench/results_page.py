@@ -21,6 +21,8 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/first_start.txt", "First start: the default build on an empty registry", None),
            ("bench/mc_speed.txt", "Monte Carlo with the checked local model on 2 cores (bench_mc_speed.py)", None),
            ("bench/pinned2.txt", "Two cores of a quiet machine (bench_realtime.py, bench_mc_speed.py --whole)", None),
+           ("bench/exact_2core.txt", "The exact bert-real on the shared 2-core machine (bench_realtime.py, "
+            "bench_mc_speed.py --whole --seconds 2)", None),
            ("bench/wire.txt", "One 64 s predict answer as JSON, gzip JSON and NPZ (bench_wire.py)", None),
            ("bench/stream.txt", "A real 64 s record in 1 s chunks against the record whole (bench_stream.py)", None),
            ("accelerator/bench_gpu.txt", "GPU run, H100 (results: [results-accelerator.md](results-accelerator.md))",
