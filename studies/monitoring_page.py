@@ -184,6 +184,7 @@ def torque_section(t: dict | None, bundles: dict) -> str:
 REAL_MONITOR_RUNS = (("real_monitor-sparse.json", "earlier split"),
                      ("real_monitor-sparse-linear.json", "earlier split"),
                      ("real_monitor-before.json", "earlier split"),
+                     ("real_monitor-gp1.json", "grouped split, propagated band as is"),
                      ("real_monitor.json", "**grouped split (the default build)**"))
 
 
@@ -229,7 +230,9 @@ def real_monitor_section(m: dict | None, bundles: dict, runs: dict | None = None
               f"bert-real` writes: ny = {b['lags']['ny']}, nu = {b['lags']['nu']}, {b.get('mode')}"
               + (f" M = {b['n_inducing']}" if b.get("n_inducing") else "") + f", {b.get('n_train')} training rows"
               + (f"; band discrepancy scale {_g(b['band_scale'], 3)} of the local amplitude"
-                 if b.get("band_scale") else "") + ".\n\n" if b.get("lags") else "\n\n")
+                 if b.get("band_scale") else "")
+              + (f", propagated band x {_g(b['band_gp_scale'], 3)}" if b.get("band_gp_scale", 1.0) != 1.0 else "")
+              + ".\n\n" if b.get("lags") else "\n\n")
            + "| split | recordings | windows | scores | verdicts |\n|---|---|---|---|---|\n"
            f"| calibration | {len(cal)} recordings, {', '.join(cal)}, each "
            f"{'-'.join(f'{v:g}' for v in next(iter(cal.values())))} s | {m['n_calibration']} | "
@@ -258,7 +261,12 @@ def real_monitor_section(m: dict | None, bundles: dict, runs: dict | None = None
     out += ("- **Detection:** how well it detects loosening on the rig cannot be measured with these records; the "
             f"threshold sits {_g(m['threshold'] / float(np.median(cal_scores)), 2)} times the median healthy "
             "calibration score, the price of one threshold over drives whose healthy levels differ.\n")
-    return out + before_after(m, bundles, runs or {}) + mc_check(m)
+    checked = m if m.get("mc_check") else next(
+        (r for f, _ in reversed(REAL_MONITOR_RUNS[:-1]) if (r := (runs or {}).get(f)) and r.get("mc_check")), None)
+    where = next((f for f, _ in REAL_MONITOR_RUNS if (runs or {}).get(f) is checked), None)
+    note = "" if checked is m or where is None else (
+        f" This check ran on the stored run `{where}` (its bundle and band are in the table above).")
+    return out + before_after(m, bundles, runs or {}) + (mc_check(checked, note) if checked else "")
 
 
 def before_after(m: dict, bundles: dict, runs: dict) -> str:
@@ -280,10 +288,13 @@ def before_after(m: dict, bundles: dict, runs: dict) -> str:
         out += (f"| {label} | {b.get('mode', 'n/a')} bert-real:{r['source_version']} | {_how(r)} | "
                 f"{r['n_calibration']} ({len(r['split']['calibration'])}) | {_g(r['threshold'], 3)} | "
                 f"**{r['false_alarms']} of {r['n_test']}** | {_g(r['calibration_s'], 3)} s, {load} |\n")
-    same = [r for r, _ in rows[:-1] if r.get("source_version") == m.get("source_version")
-            and _bundle_of(r, bundles).get("created") == _bundle_of(m, bundles).get("created")]
+    def key(r):
+        return r.get("source_version"), _bundle_of(r, bundles).get("created")
+
+    grouped = [r for r, label in rows if label.startswith(("grouped", "**grouped"))]
+    same = [(r, g) for r, label in rows if label == "earlier split" for g in grouped if key(r) == key(g)]
     if same:
-        e = same[-1]
+        e, m = same[-1]
         levels = {}
         for w, sc in zip(e.get("calibration_windows") or [], e["calibration_scores"]):
             levels.setdefault(w.rsplit("_", 1)[0], []).append(sc)
@@ -297,7 +308,7 @@ def before_after(m: dict, bundles: dict, runs: dict) -> str:
     return out + "\n"
 
 
-def mc_check(m: dict) -> str:
+def mc_check(m: dict, note: str = "") -> str:
     """Linearised against Monte Carlo scores of a few windows (``--mc-check``)."""
     c = m.get("mc_check")
     if not c:
@@ -305,7 +316,7 @@ def mc_check(m: dict) -> str:
     out = (f"### Linearised or Monte Carlo\n\nThe score's band is dominated by the model-discrepancy term (a "
            f"fraction of the predicted amplitude), so a Monte Carlo free run ({c['mc_paths']} paths, two seeds) "
            "changes the score little and costs far more on the exact posterior (`--mc-check`; 1-minute load "
-           f"{_g(c['load_average'], 2)} at its end):\n\n| window | linearised | Monte Carlo, seed 0 | seed 1 | "
+           f"{_g(c['load_average'], 2)} at its end).{note}\n\n| window | linearised | Monte Carlo, seed 0 | seed 1 | "
            "wall time linearised / Monte Carlo |\n|---|---|---|---|---|\n")
     for w in c["windows"]:
         out += (f"| {w['window']} | {_g(w['linear'], 3)} | {_g(w['mc_seed0'], 3)} | {_g(w['mc_seed1'], 3)} | "

@@ -88,7 +88,7 @@ def _bundle_facts(bundle) -> dict:
     return {"name": m["name"], "version": m["version"], "created": m.get("created"), "mode": m.get("mode"),
             "lags": m.get("lags"), "n_train": m.get("n_train") or (m.get("training") or {}).get("n_train"),
             "band_scale": disc.get("scale"), "band_window_kind": disc.get("window_kind"),
-            "band_hold": disc.get("hold")}
+            "band_hold": disc.get("hold"), "band_gp_scale": disc.get("gp_scale", 1.0)}
 
 
 def mc_check(bundle, data: Path, mc: int, width: float) -> list[dict]:

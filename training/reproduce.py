@@ -118,6 +118,7 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
         "bundle": res["path"],
         "records": {k: v for k, v in res["metrics"]["records"].items()},
         "baselines": res["metrics"].get("baselines"), "units": dict(cfg.units),
+        "band_discrepancy": getattr(res["model"], "band_discrepancy_", None),
     }
     if system == "bert-standin":
         summary["oracle"] = standin_oracle(cfg, summary["records"])
@@ -187,6 +188,18 @@ def results_page(summary: dict, surface: dict | None = None) -> str:
     return real_page(summary, surface)
 
 
+def _band_sentence(d: dict | None) -> str:
+    """What the run's bundle adds to eqs. 8-9's band (its ``band_discrepancy``), one sentence; '' without."""
+    if not d:
+        return ""
+    g = float(d.get("gp_scale", 1.0))
+    hold = int(d.get("hold") or 0)
+    return ("Band: " + (f"the propagated band x {g:.3g} (calibrated with the scale), " if g != 1.0 else "")
+            + f"a discrepancy term of {float(d['scale']):.3g} x the local amplitude ({d.get('window_kind', 'centred')} "
+            f"window of {int(d['window'])} samples" + (f", held {hold} samples" if hold else "")
+            + "), calibrated on the `lags` records ([numerics.md](numerics.md) section 5). ")
+
+
 def real_page(summary: dict, surface: dict | None = None) -> str:
     """docs/results-bert-real.md from one run's figures only (``summary.json`` and ``lag_surface.json``); its
     tables are rendered by ``studies.real_table`` and ``studies.frf_check`` (a checkout's)."""
@@ -206,6 +219,7 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
         f"{', on the lag surface below' if summary.get('lag_surface_note') else ''}). "
         f"Monte Carlo paths of the table: {table.get('mc_paths', summary['mc_paths'])}"
         f"{' (linearised bands only)' if not table.get('mc_paths') else ''}. "
+        + _band_sentence(summary.get("band_discrepancy")) +
         f"Run wall time: {summary.get('wall_seconds', float('nan')):.0f} s"
         f"{' (quick mode: whole records cut to their first seconds)' if summary.get('quick') else ''}.\n\n"
         "## Every real record, by excitation class\n\n"
