@@ -390,8 +390,9 @@ class ModelDetail(BaseModel):
                           "units) or null when the bundle keeps ML-II's value.")
     band_discrepancy: dict[str, Any] | None = Field(
         None, description="The free-run band's model-discrepancy term (method, scale: fraction of the local "
-                          "amplitude, window [samples], target, reached, records, coverage_before, coverage_after) "
-                          "or null when the band is eq. 9's alone.")
+                          "amplitude, window [samples], window_kind, hold [samples], gp_scale: the factor on the "
+                          "propagated band (1 when absent), target, reached, records, coverage_before, "
+                          "coverage_after) or null when the band is eq. 9's alone.")
     default_method: dict[str, Literal["mc", "linear"]] = Field(
         ..., description="The propagation each operation (predict, loops, novelty) uses when a request names no "
                          "`method`.")
