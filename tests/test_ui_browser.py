@@ -34,7 +34,7 @@ from gpnarx.storage.record_files import write_record
 CHROMIUM = os.environ.get("GPNARX_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
 API_KEY = "s3cret-key"
 LOOPBACK = {"127.0.0.1", "localhost", "::1"}
-RUN_TIMEOUT_MS = 120_000
+RUN_TIMEOUT_MS = 300_000  # a hang guard for a page's runs, not a speed limit (timings are in bench/)
 
 
 def _playwright():
