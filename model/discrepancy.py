@@ -300,30 +300,31 @@ def calibrate_scale(runs, window: int, grid: np.ndarray = SCALE_GRID, kind: str 
                 lo = mid
         return float(grid[hi]), best, True
 
-    def tightness(s, g):
-        return {name: band_tightness(y, widen(r, s, window, kind=kind, amp=amps[name], gp_scale=g), skip)
-                for name, y, r, skip in runs}
-
-    def mean_width(s, g):
-        return float(np.mean([np.mean(widen(r, s, window, kind=kind, amp=amps[name], gp_scale=g).upper[skip:]
-                                      - r.mean[skip:]) / max(float(np.std(y[skip:])), 1e-300)
-                              for name, y, r, skip in runs]))
+    def pair_figures(s, g):
+        """Each record's ``band_tightness`` and the records' mean band half-width over their std, at (s, g)."""
+        tight, widths = {}, []
+        for name, y, r, skip in runs:
+            w = widen(r, s, window, kind=kind, amp=amps[name], gp_scale=g)
+            tight[name] = band_tightness(y, w, skip)
+            widths.append(np.mean(w.upper[skip:] - r.mean[skip:]) / max(float(np.std(y[skip:])), 1e-300))
+        return tight, float(np.mean(widths))
 
     before = coverages(0.0, 1.0)
+    several = len(factors) > 1
     candidates = []
     for g in factors:
         s, cov, ok = smallest_scale(g)
-        tight = tightness(s, g) if len(factors) > 1 else {}
-        key = (ok, min(tight.values()) if tight else 0.0, -mean_width(s, g) if len(factors) > 1 else 0.0,
-               min(cov.values()))
-        if not ok:
-            key = (False, min(cov.values()), 0.0, 0.0)
+        tight, width = pair_figures(s, g) if several else ({}, 0.0)
+        # covering pairs first, by their loosest record's tightness, then the narrower band; else the best
+        # worst coverage
+        key = (True, min(tight.values(), default=0.0), -width, min(cov.values())) if ok else \
+            (False, min(cov.values()), 0.0, 0.0)
         candidates.append((key, g, s, cov, ok, tight))
     _, g, chosen, after, reached, tight = max(candidates, key=lambda c: c[0])
     out = {"method": "amplitude", "scale": chosen, "gp_scale": g, "window": int(window), "window_kind": kind,
            "hold": hold, "target": float(target), "reached": reached, "criterion": "worst held-out record",
            "coverage_before": before, "coverage_after": after}
-    if len(factors) > 1:
+    if several:
         out["gp_scale_criterion"] = "largest smallest band_tightness over the records"
         out["tightness_after"] = tight
         out["gp_scale_grid"] = factors

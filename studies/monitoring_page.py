@@ -294,7 +294,7 @@ def before_after(m: dict, bundles: dict, runs: dict) -> str:
     grouped = [r for r, label in rows if label.startswith(("grouped", "**grouped"))]
     same = [(r, g) for r, label in rows if label == "earlier split" for g in grouped if key(r) == key(g)]
     if same:
-        e, m = same[-1]
+        e, g = same[-1]  # an earlier-split run and the grouped run on its bundle
         levels = {}
         for w, sc in zip(e.get("calibration_windows") or [], e["calibration_scores"]):
             levels.setdefault(w.rsplit("_", 1)[0], []).append(sc)
@@ -302,7 +302,7 @@ def before_after(m: dict, bundles: dict, runs: dict) -> str:
         out += ("\nWith two recordings the pooled fit's spread is whatever lies between those two: on this bundle "
                 + ", ".join(f"{k} scores a median {_g(v, 2)}" for k, v in med.items())
                 + f", so the earlier split's threshold ({_g(e['threshold'], 3)}) is "
-                f"{_g(e['threshold'] / m['threshold'], 2)} times the grouped one and raises {e['false_alarms']} "
+                f"{_g(e['threshold'] / g['threshold'], 2)} times the grouped one and raises {e['false_alarms']} "
                 f"false alarms; on the sparse bundle the two lay close together and the threshold fell below the "
                 "unseen recordings' level. The grouped split measures that spread over eight recordings.\n")
     return out + "\n"

@@ -14,14 +14,15 @@ def test_whole_record_from_rest_does_not_diverge_and_is_covered(bert_real_model,
     check_whole_record(bert_real_model, folder)
 
 
+NOISE_FOLDERS = [p for p in RECORDS if p.parent.name == "Rand"]  # the data folder's noise runs
+NOISE = [p.name for p in NOISE_FOLDERS]
+
+
 def _noise_runs() -> dict:
-    """The noise runs of the data folder (its ``Rand`` folder), read."""
+    """The noise runs of the data folder, read."""
     from gpnarx.storage.record_files import read_record
 
-    return {p.name: read_record(p) for p in RECORDS if p.parent.name == "Rand"}
-
-
-NOISE = [p.name for p in RECORDS if p.parent.name == "Rand"]
+    return {p.name: read_record(p) for p in NOISE_FOLDERS}
 
 
 @pytest.mark.parametrize("name", NOISE, ids=NOISE)

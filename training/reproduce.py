@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gpnarx.model.discrepancy import gp_scale_of, hold_of
 from gpnarx.model.metrics import fit_percent
 from gpnarx.model.novelty import RMS_METHOD, calibrate_threshold, novelty_score, novelty_start
 from gpnarx.storage.bundle import load_bundle
@@ -192,8 +193,7 @@ def _band_sentence(d: dict | None) -> str:
     """What the run's bundle adds to eqs. 8-9's band (its ``band_discrepancy``), one sentence; '' without."""
     if not d:
         return ""
-    g = float(d.get("gp_scale", 1.0))
-    hold = int(d.get("hold") or 0)
+    g, hold = gp_scale_of(d), hold_of(d)
     return ("Band: " + (f"the propagated band x {g:.3g} (calibrated with the scale), " if g != 1.0 else "")
             + f"a discrepancy term of {float(d['scale']):.3g} x the local amplitude ({d.get('window_kind', 'centred')} "
             f"window of {int(d['window'])} samples" + (f", held {hold} samples" if hold else "")
