@@ -155,7 +155,8 @@ def add_mc_rows(model, table: dict, data_dir, names, mc_paths: int, seed: int = 
         if log:
             log(f"  {name}: {mc_paths}-path Monte Carlo fit {_fmt(g['fit'])} %, coverage {g['coverage']:.1f} %, "
                 f"{g['seconds']:.0f} s")
-    table["mc_paths"], table["mc_records"] = int(mc_paths), list(names)
+    table["mc_paths"] = int(mc_paths)
+    table["mc_records"] = list(dict.fromkeys([*table.get("mc_records", []), *names]))  # earlier rows kept
     return table
 
 
