@@ -8,7 +8,8 @@ Each record class on its own (``pss_sine=``, ``pss_sweep=``, ``pss_noise=``, the
 depends least on the machine's load): on spread paths (start-ups, sweeps, noise) the local model falls
 back to exact evaluation, so the speed depends on the record.
 
-Model: the ``bert-real`` bundle (sparse, M=256 inducing points), on three
+Model: the ``bert-real`` bundle as its shipped config trains it (``configs/bert-real.toml``: the exact
+posterior on its training rows, or a sparse one where the config says so), on three
 segments of 1024 steps of a 64 s real record (default the 20 Hz sine, the held-out record nearest
 the first resonance): from rest at 0 s (the start-up towards resonance), from the measured outputs
 at 20 s (steady state) and at 51 s (the drive stops and the structure decays: the latent variance

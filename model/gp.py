@@ -56,18 +56,39 @@ def two_cpus() -> bool:
         return (os.cpu_count() or 1) >= 2
 
 
+_BLAS_LIBS = []  # threadpoolctl's controllers of the BLAS libraries scipy's dtrmm may run on (found once)
+
+
+def blas_threads() -> int:
+    """Threads the BLAS under scipy's dtrmm uses now (scipy's own BLAS where threadpoolctl finds it, else the
+    most of any BLAS it finds; 1 where it finds none). The libraries are looked up once; each call asks their
+    current thread count (so ``threadpoolctl.threadpool_limits`` blocks take effect)."""
+    if not _BLAS_LIBS:
+        try:
+            from threadpoolctl import ThreadpoolController
+
+            libs = ThreadpoolController().select(user_api="blas").lib_controllers
+        except Exception:  # pragma: no cover - threadpoolctl comes with scikit-learn
+            libs = []
+        own = [c for c in libs if "scipy" in os.path.basename(str(getattr(c, "filepath", "")))]
+        _BLAS_LIBS.append(own or libs)
+    counts = [int(c.num_threads) for c in _BLAS_LIBS[0]]
+    return max(counts) if counts else 1
+
+
 def lower_times_rows(L: np.ndarray, Ks: np.ndarray, split: bool = False, transpose: bool = False) -> np.ndarray:
     """(L Ks^T)^T for a lower-triangular C-ordered L (N, N) and rows Ks (rows, N), float64: row j is
     L k_j (``transpose``: L^T k_j). BLAS dtrmm (P N^2 flops, half a dense product) on a C-ordered copy of
     Ks, without the GIL where scipy exports it (``_fortran_dtrmm``), so other Python threads keep running.
-    ``split``: where the process may use two CPUs, the first half of the rows on a helper thread while
-    this thread does the second."""
+    ``split``: where the process may use two CPUs and the BLAS runs on one thread, the first half of the rows
+    on a helper thread while this thread does the second (with a multi-threaded BLAS, one call: two calls at
+    once on its shared thread pool run several times slower than either alone)."""
     L = np.ascontiguousarray(L, dtype=np.float64)
     B = np.array(Ks, dtype=np.float64, order="C", copy=True)  # C (rows, N) = Fortran (N, rows): B^T
     rows, N = B.shape
     if _DTRMM is None or rows == 0 or N == 0:
         return linalg.blas.dtrmm(1.0, L.T, B.T, side=0, lower=0, trans_a=0 if transpose else 1, overwrite_b=1).T
-    if split and rows >= 8 and two_cpus():
+    if split and rows >= 8 and two_cpus() and blas_threads() == 1:
         if not _HELPER:
             from concurrent.futures import ThreadPoolExecutor
 
@@ -372,7 +393,10 @@ class LocalModel:
         else:
             J[:] = 0.0
         B[:, 1 + ny:] = prof.k[1:].T
-        if self.F_lower:
+        # the triangular product runs on scipy's BLAS, the rest of the step on numpy's: with more than one BLAS
+        # thread the two libraries' thread pools take the cores from each other, so then numpy's dense product
+        tri = self.F_lower and blas_threads() == 1
+        if tri:
             FB = lower_times_rows(self.F, B.T, split=True).T
             mw = self.w @ B
         else:
@@ -382,7 +406,7 @@ class LocalModel:
         FkJ = FB[:, : 1 + ny]
         Gr = FkJ.T @ FkJ  # [Fk | FJ]^T [Fk | FJ]
         beta = self.beta
-        if self.F_lower:  # F^T (F k): the upper triangle only
+        if tri:  # F^T (F k): the upper triangle only
             beta[:, 1] = lower_times_rows(self.F, FB[:, 0][None, :], transpose=True)[0]
         else:
             beta[:, 1] = self.FT @ FB[:, 0]

@@ -248,9 +248,11 @@ def test_linear_pass2_worker_error_reaches_the_caller(exact_model, sdof_data):
         freerun.simulate_linear(bad, m.x_scaler_, m.y_scaler_, m.ny, m.nu, u, workers=1)
 
 
-def test_lower_times_rows_and_triangular_local_model(exact_model):
+def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
     from scipy.linalg import blas
+    from threadpoolctl import threadpool_limits
 
+    from gpnarx.model import gp as gpmod
     from gpnarx.model.gp import LocalModel, lower_times_rows
 
     rng = np.random.default_rng(3)
@@ -269,6 +271,20 @@ def test_lower_times_rows_and_triangular_local_model(exact_model):
     dense.F_lower = False
     x = post.points[3] + 0.01
     Xc = post.points[:5] + 0.02
-    (Ht, mt, vt), (Hd, md, vd) = tri(x, Xc), dense(x, Xc)
+    calls = []
+    monkeypatch.setattr(gpmod, "lower_times_rows", lambda *a, **kw: calls.append(kw) or lower_times_rows(*a, **kw))
+    with threadpool_limits(limits=1, user_api="blas"):
+        assert gpmod.blas_threads() == 1
+        (Ht, mt, vt), (Hd, md, vd) = tri(x, Xc), dense(x, Xc)
+    assert len(calls) == 2 and calls[0] == {"split": True}  # F B and F^T (F k) by dtrmm on one BLAS thread
     assert np.allclose(Ht, Hd, rtol=1e-9, atol=1e-12 * np.abs(Hd).max())
     assert np.allclose(mt, md, rtol=1e-9, atol=1e-12) and np.allclose(vt, vd, rtol=1e-9)
+    # with a multi-threaded BLAS, numpy's dense product (scipy's and numpy's thread pools would take the cores
+    # from each other): no dtrmm, the same numbers
+    calls.clear()
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert gpmod.blas_threads() == 2
+        H2, m2, v2 = tri(x, Xc)
+    assert not calls
+    assert np.allclose(H2, Ht, rtol=1e-9, atol=1e-12 * np.abs(Ht).max())
+    assert np.allclose(m2, mt, rtol=1e-9, atol=1e-12) and np.allclose(v2, vt, rtol=1e-9)
