@@ -23,6 +23,8 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/pinned2.txt", "Two cores of a quiet machine (bench_realtime.py, bench_mc_speed.py --whole)", None),
            ("bench/exact_2core.txt", "The exact bert-real on the shared 2-core machine (bench_realtime.py, "
             "bench_mc_speed.py --whole --seconds 2)", None),
+           ("bench/exact_2core_quiet.txt", "The exact bert-real on the quiet 2-core machine (bench_realtime.py, "
+            "bench_mc_speed.py --whole --seconds 2 at 1 and 2 BLAS threads)", None),
            ("bench/wire.txt", "One 64 s predict answer as JSON, gzip JSON and NPZ (bench_wire.py)", None),
            ("bench/stream.txt", "A real 64 s record in 1 s chunks against the record whole (bench_stream.py)", None),
            ("accelerator/bench_gpu.txt", "GPU run, H100 (results: [results-accelerator.md](results-accelerator.md))",
