@@ -157,6 +157,11 @@ def test_docs_real_paper_page_is_the_render_of_its_stored_run():
     assert summary["system"] == "bert-real-paper" and not summary["quick"] and summary["mc_paths"] == 4096
     assert (docs / "results-bert-real-paper.md").read_text() == results_page(summary, surface)
     assert (run / "receptance.png").stat().st_size > 1000
+    # the stored figures are a working model's: no record's Monte Carlo mean below the linear ARX fitted on the
+    # same training records (a run whose paths diverged scores far below it), and the run's lags are the config's
+    for name, rec in summary["records"].items():
+        assert rec["fit"] >= summary["baselines"][name]["linear ARX"]["fit"], name
+    assert summary["config_lags"] == {k: summary["chosen_lags"][k] for k in ("ny", "nu")}
 
 
 def _full(tmp_path_factory, system, *extra):
