@@ -310,4 +310,7 @@ def markdown(table: dict, checks: dict) -> str:
                      f"{', '.join(m['below_better_arx']) or 'none'}; lowest held-out coverage by class: {covs}; "
                      f"noise sharpness at most {_fmt(m['max_noise_sharpness'], 2)} (target 1.5); "
                      f"targets {'met' if m['met'] else 'NOT met'}.")
+    if table.get("mc_note"):  # where some Monte Carlo rows came from (add_mc_rows on another run's bundle)
+        lines.append("")
+        lines.append(str(table["mc_note"]))
     return "\n".join(lines) + "\n"

@@ -382,6 +382,12 @@ def test_docs_real_results_page_is_the_render_of_its_stored_run():
 
     n_shared = len(find_records(BERT_DATA)) if BERT_DATA.is_dir() else 18
     assert checks["diverged"] == [] and checks["n_records"] == n_shared
+    # every Monte Carlo row the table holds is counted by its checks, and where they came from is on the page
+    table = summary["real_table"]
+    with_mc = sorted(n for n, r in table["records"].items() if "whole_mc" in r)
+    assert sorted(table["mc_records"]) == with_mc and checks["methods"]["whole_mc"]["n_scored"] == len(with_mc)
+    if table.get("mc_note"):
+        assert table["mc_note"] in (docs / "results-bert-real.md").read_text()
 
 
 def test_reproduce_runs_a_study_of_the_checkout(tmp_path):
