@@ -56,22 +56,20 @@ def two_cpus() -> bool:
         return (os.cpu_count() or 1) >= 2
 
 
-_BLAS_LIBS = []  # threadpoolctl's controllers of the BLAS libraries scipy's dtrmm may run on (found once)
+_BLAS_LIBS = []  # threadpoolctl's controllers of the loaded BLAS libraries (numpy's and scipy's; found once)
 
 
 def blas_threads() -> int:
-    """Threads the BLAS under scipy's dtrmm uses now (scipy's own BLAS where threadpoolctl finds it, else the
-    most of any BLAS it finds; 1 where it finds none). The libraries are looked up once; each call asks their
-    current thread count (so ``threadpoolctl.threadpool_limits`` blocks take effect)."""
+    """The most threads any loaded BLAS (numpy's, scipy's) uses now; 1 where threadpoolctl finds none. The
+    libraries are looked up once; each call asks their current thread count (so
+    ``threadpoolctl.threadpool_limits`` blocks take effect)."""
     if not _BLAS_LIBS:
         try:
             from threadpoolctl import ThreadpoolController
 
-            libs = ThreadpoolController().select(user_api="blas").lib_controllers
+            _BLAS_LIBS.append(ThreadpoolController().select(user_api="blas").lib_controllers)
         except Exception:  # pragma: no cover - threadpoolctl comes with scikit-learn
-            libs = []
-        own = [c for c in libs if "scipy" in os.path.basename(str(getattr(c, "filepath", "")))]
-        _BLAS_LIBS.append(own or libs)
+            _BLAS_LIBS.append([])
     counts = [int(c.num_threads) for c in _BLAS_LIBS[0]]
     return max(counts) if counts else 1
 
