@@ -39,6 +39,7 @@ from gpnarx.model.probe import drive_of
 from gpnarx.model.record import Record
 from gpnarx.storage.record_files import read_record
 from gpnarx.training.baselines import LinearARX, arx_lag_search
+from gpnarx.training.checkout import call_study
 from studies.frf_check import RESONANCE_BAND, frf_check
 
 CLASSES = ("sine near resonance", "sine away from resonance", "sweep", "noise")
@@ -199,8 +200,8 @@ def real_table(model, cfg, data_dir, *, mc_paths: int = 1024, seed: int = 0, max
     todo = [(f, role_of(roles.get(str(f.resolve()), []))) for f in folders]
     rows = {}
     gen = Parallel(n_jobs=jobs, return_as="generator")(
-        delayed(_row)(model, search["model"], class_arx[f.name], f, recs[f.name], role, classes[f.name], mc_paths,
-                      seed, max_seconds) for f, role in todo)
+        delayed(call_study)("real_table", "_row", model, search["model"], class_arx[f.name], f, recs[f.name], role,
+                            classes[f.name], mc_paths, seed, max_seconds) for f, role in todo)
     for (folder, role), row in zip(todo, gen):
         rows[folder.name] = row
         g = row.get("whole_mc", row["whole_linear"])

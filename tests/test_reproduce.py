@@ -417,3 +417,26 @@ def test_reproduce_says_a_study_needs_a_checkout(monkeypatch, capsys):
     assert "studies/ folder" in err and "checkout" in err and "Traceback" not in err
     with pytest.raises(checkout.CheckoutRequired):
         checkout.load_study("real_table")
+
+
+def test_a_study_task_runs_in_worker_processes_started_without_the_checkout(tmp_path):
+    """The `gpnarx` command has no checkout on its path: a study's function sent to joblib workers that were
+    started before any study was loaded (as the lag surface's are) is named through ``call_study``, which the
+    workers can unpickle; the study's function itself could not be (ModuleNotFoundError: 'studies')."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import sys
+        from pathlib import Path
+        from joblib import Parallel, delayed
+        from gpnarx.training.checkout import call_study
+        assert not any(Path(p or ".").resolve().joinpath("studies").is_dir() for p in sys.path)
+        Parallel(n_jobs=2)(delayed(abs)(-i) for i in range(4))
+        roles = (["lags"], [], ["validate"])
+        print(Parallel(n_jobs=2)(delayed(call_study)("real_table", "role_of", r) for r in roles))
+        """)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "['lags', 'unseen', 'validate']"

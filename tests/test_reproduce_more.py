@@ -62,6 +62,10 @@ def test_reproduce_bert_real_quick(tmp_path, capsys):
     again = json.loads((tmp_path / "summary.json").read_text())
     assert again["bundle"] == res["bundle"] and again["real_table"]["mc_paths"] == 3
     assert again["real_table"]["records"]["Sine_20Hz"]["whole_mc"]["fit"] is not None
+    # with the run's own ARX lag search (its grid and rule), not one at the GP's lags only
+    kept = ("criterion", "ny", "nu", "fit")
+    assert {k: again["real_table"]["arx_search"][k] for k in kept} == {k: table["arx_search"][k] for k in kept}
+    assert len(again["real_table"]["arx_search"]["cells"]) == len(table["arx_search"]["cells"]) == 4
     assert "Monte Carlo paths of the table: 3." in (tmp_path / "mc.md").read_text()
 
 

@@ -51,6 +51,13 @@ def load_study(module: str) -> ModuleType:
     return importlib.import_module(f"studies.{module}")
 
 
+def call_study(module: str, function: str, *args, **kwargs):
+    """``studies.MODULE.FUNCTION(*args, **kwargs)``, as a task for a worker process: the task names this
+    package's function and the study by strings, so a worker started without the checkout on its path
+    (a joblib/loky worker of the ``gpnarx`` command) can unpickle it; ``load_study`` finds the checkout there."""
+    return getattr(load_study(module), function)(*args, **kwargs)
+
+
 def run_study(name: str, argv: list[str]) -> int:
     """Run the study ``name`` (a key of STUDIES) with its own command-line arguments; its exit code."""
     return int(load_study(STUDIES[name]).main(list(argv)) or 0)
