@@ -259,7 +259,7 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
         names = sorted({k for c in surface["cells"] for k in (c.get("fits") or {})})
         page += ("\n## Lag surface\n\nFree-run fit % (linearised, from rest for whole records, from measured "
                  "outputs for a window that starts inside a record) of a model trained at each (ny, nu) on the `train` "
-                 "records, on each `lags` "
+                 f"records {_surface_settings_words(surface.get('settings') or {})}, on each `lags` "
                  "record; the chosen cell has the highest worst-record fit."
                  + (f" {summary['lag_surface_note']}" if summary.get("lag_surface_note") else "") + "\n\n"
                  "| ny | nu | worst | mean | " + " | ".join(names) + " |\n|" + "---|" * (4 + len(names)) + "\n")
@@ -271,6 +271,15 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
             page += (f"| {c['ny']} | {c['nu']} | {cell(worst)} | {cell(c.get('fit'))} | "
                      + " | ".join(cell(v) for v in vals) + " |\n")
     return page
+
+
+def _surface_settings_words(settings: dict) -> str:
+    """How a surface's cells were trained, for its page: the config's own model or the reduced settings."""
+    reduced = {k: v for k, v in settings.items() if k not in ("score_clean", "max_seconds")}
+    if not reduced:
+        return "with the config's own `[model]` settings (those of the model shipped)"
+    words = {"mode": "posterior {}", "max_train_points": "{} rows", "inducing": "M = {}"}
+    return "with reduced settings (" + ", ".join(words.get(k, k + " {}").format(v) for k, v in reduced.items()) + ")"
 
 
 def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=None) -> dict:
