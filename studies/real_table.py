@@ -219,7 +219,8 @@ def real_table(model, cfg, data_dir, *, mc_paths: int = 1024, seed: int = 0, max
             f"{max(r['ratio'] for r in frf['rows']):.3f} off resonance")
     arx_search = {k: v for k, v in search.items() if k != "model"}
     return {"records": rows, "arx_search": arx_search, "class_arx_lags": list(CLASS_ARX_LAGS),
-            "mc_paths": int(mc_paths), "max_seconds": max_seconds, "seconds": time.perf_counter() - t0,
+            "mc_paths": int(mc_paths), "mc_records": [n for n, r in rows.items() if "whole_mc" in r],
+            "max_seconds": max_seconds, "seconds": time.perf_counter() - t0,
             "frf_check": frf, "targets": dict(TARGETS)}
 
 

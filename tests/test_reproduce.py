@@ -388,6 +388,18 @@ def test_docs_real_results_page_is_the_render_of_its_stored_run():
     assert sorted(table["mc_records"]) == with_mc and checks["methods"]["whole_mc"]["n_scored"] == len(with_mc)
     if table.get("mc_note"):
         assert table["mc_note"] in (docs / "results-bert-real.md").read_text()
+    # the shipped lags are the stored surface's choice, judged with the shipped model's own settings
+    from gpnarx.training.config import load_config
+    from gpnarx.training.defaults import shipped_config
+    from gpnarx.training.reproduce import surface_settings
+
+    shipped = load_config(shipped_config("bert-real")).model
+    assert summary["config_lags"] == {k: summary["chosen_lags"][k] for k in ("ny", "nu")}
+    assert summary["config_lags"] == {k: shipped[k] for k in ("ny", "nu")}
+    assert {k: surface["settings"].get(k) for k in ("mode", "max_train_points")} == {"mode": None,
+                                                                                    "max_train_points": None}
+    assert surface["settings"] == surface_settings("bert-real")
+    assert "with the config's own `[model]` settings" in (docs / "results-bert-real.md").read_text()
 
 
 def test_reproduce_runs_a_study_of_the_checkout(tmp_path):

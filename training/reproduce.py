@@ -231,7 +231,9 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
         f"{' (linearised bands only)' if not table.get('mc_paths') else ''}. "
         + _band_sentence(summary.get("band_discrepancy")) +
         f"Run wall time: {summary.get('wall_seconds', float('nan')):.0f} s"
-        f"{' (quick mode: whole records cut to their first seconds)' if summary.get('quick') else ''}.\n\n"
+        f"{' (quick mode: whole records cut to their first seconds)' if summary.get('quick') else ''}"
+        + (f"; the table re-scored by `--table-only` in {table['rescored_seconds']:.0f} s"
+           if table.get("rescored_seconds") else "") + ".\n\n"
         "## Every real record, by excitation class\n\n"
         "Each record whole, free-run from rest (start-up, steady state or sweep, free decay after the drive "
         "stops), by the default (linearised) method and by Monte Carlo. Class: `sine near resonance` (a sine at "
