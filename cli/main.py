@@ -7,12 +7,16 @@ one JSON object on stdout when ``--json`` is given (else a short human summary);
 (argparse, ``UsageError``: the command line itself is wrong), 1 for a runtime error (``CLIError``,
 ``ValueError``, ``OSError``, ``KeyError``, ``LookupError``, ``ImportError`` raised by a command: unknown
 model, unreadable record, an optional package of an extra not installed, ...), each one line on stderr.
-``gpnarx --version`` prints the package version.
+``gpnarx --version`` prints the package version. Ctrl-C ends a command with exit code 130 and SIGTERM (a
+scheduler or ``kill``) with 143, each raised in the command like an interrupt, so what it started stops with it
+(joblib's worker processes are ended, not left computing their current task).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import signal
 import sys
 
 import numpy as np
@@ -35,6 +39,27 @@ COMMAND_MODULES = [
     "gpnarx.cli.cmd_build",
     "gpnarx.cli.cmd_reproduce",
 ]
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM during a command, raised in it like Ctrl-C so that what it runs unwinds and cleans up."""
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM raises ``Terminated`` in the main thread while the block runs (elsewhere: signals untouched)."""
+    def raise_terminated(signum, frame):
+        raise Terminated()
+
+    try:
+        previous = signal.signal(signal.SIGTERM, raise_terminated)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -83,7 +108,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
     try:
-        result = args.func(args)
+        with _terminate_as_interrupt():
+            result = args.func(args)
+    except Terminated:
+        print("gpnarx: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("gpnarx: interrupted", file=sys.stderr)
         return 130

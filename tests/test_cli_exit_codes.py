@@ -1,6 +1,7 @@
 """`gpnarx --version` and the CLI's exit codes: 1 for a runtime error, 2 for a usage error."""
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -75,3 +76,96 @@ def test_unreadable_record_is_a_runtime_error(tmp_path, capsys):
     np.savez(good, u=u[:50], fs=500.0)
     assert main(["predict", "--registry", str(reg), "--model", "m", str(good), "--mc", "0"]) == 2  # usage
     assert main(["predict", "--registry", str(reg), "--model", "m", str(good), "--mc", "4"]) == 0
+
+
+_SPINNING_COMMAND = '''
+import sys, time, types
+from joblib import Parallel, delayed
+import gpnarx.cli.main as M
+
+def spin(i):
+    t = time.time()
+    while time.time() - t < 120:
+        pass
+    return i
+
+def add_parser(sub):
+    p = sub.add_parser("spin")
+    p.set_defaults(func=lambda a: {"done": list(Parallel(n_jobs=2, return_as="generator")(
+        delayed(spin)(i) for i in range(4)))})
+
+mod = types.ModuleType("spin_command")
+mod.add_parser = add_parser
+sys.modules["spin_command"] = mod
+M.COMMAND_MODULES.append("spin_command")
+sys.exit(M.main(["spin"]))
+'''
+
+
+def _children(pid: int) -> set[int]:
+    """Live processes whose parent is ``pid`` (Linux /proc), zombies left out."""
+    out = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.add(int(stat.parent.name))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_sigterm_ends_a_command_and_its_worker_processes():
+    """SIGTERM (a scheduler stopping a job) ends a command with exit code 143 and one line on stderr, and the
+    joblib workers it started end with it instead of computing their current task on (the default SIGTERM
+    death left them running)."""
+    import contextlib
+    import os
+    import signal
+    import tempfile
+    import time
+
+    workers: set[int] = set()
+    with tempfile.TemporaryFile("w+") as errfile:  # a file, not a pipe: workers left running would hold a pipe open
+        proc = subprocess.Popen([sys.executable, "-c", _SPINNING_COMMAND], stderr=errfile, text=True)
+        try:
+            deadline = time.time() + 120
+            while time.time() < deadline:  # both loky workers up (resource trackers are children too)
+                workers = {c for c in _children(proc.pid) if b"popen_loky" in _cmdline(c)}
+                if len(workers) >= 2:
+                    break
+                time.sleep(0.2)
+            assert len(workers) >= 2, "the command's worker processes did not start"
+            time.sleep(1.0)  # the workers are inside their 120 s tasks
+            os.kill(proc.pid, signal.SIGTERM)
+            rc = proc.wait(timeout=60)
+            deadline = time.time() + 30
+            while time.time() < deadline and any(_alive(w) for w in workers):
+                time.sleep(0.2)
+            left = [w for w in workers if _alive(w)]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            for w in workers:  # never leave a spinning worker behind, whatever the outcome
+                with contextlib.suppress(OSError):
+                    os.kill(w, signal.SIGKILL)
+        errfile.seek(0)
+        err = errfile.read()
+    assert rc == 143 and "gpnarx: terminated" in err and "Traceback" not in err, (rc, err[-2000:])
+    assert not left, "worker processes still running after SIGTERM"
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
