@@ -150,10 +150,7 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
             f"linearised and {n_paths if table_mc is None else table_mc}-path Monte Carlo (0: linearised only), next "
             f"to an ARX chosen by the same lag search and an ARX fitted on each record's class")
         table_paths = n_paths if table_mc is None else int(table_mc)
-        rt = load_study("real_table")
-        table = rt.real_table(res["model"], cfg, bert_data_dir(), mc_paths=table_paths, max_seconds=max_seconds,
-                           jobs=jobs, lag_grid=grid, lag_criterion=LAG_CRITERION[system], log=log)
-        table["checks"] = rt.table_checks(table)
+        table = every_record_table(res["model"], cfg, quick=quick, mc_paths=table_paths, jobs=jobs, log=log)
         summary["real_table"] = table
         c = table["checks"]
         for key, m in c["methods"].items():
@@ -284,6 +281,19 @@ def _surface_settings_words(settings: dict) -> str:
     return "with reduced settings (" + ", ".join(words.get(k, k + " {}").format(v) for k, v in reduced.items()) + ")"
 
 
+def every_record_table(model, cfg, *, quick: bool, mc_paths: int, jobs: int = -1, log=None) -> dict:
+    """bert-real's every-record table (``studies.real_table``) with its checks: the ARX baseline searched on the
+    protocol's own lag grid by its own rule, records cut to their first seconds in quick mode. The run and
+    ``--table-only`` both score through here, so the re-scored table is the run's with other paths."""
+    rt = load_study("real_table")
+    table = rt.real_table(model, cfg, bert_data_dir(), mc_paths=int(mc_paths),
+                          max_seconds=QUICK["max_seconds"] if quick else None, jobs=jobs, log=log,
+                          lag_grid=QUICK["grid"] if quick else GRIDS["bert-real"],
+                          lag_criterion=LAG_CRITERION["bert-real"])
+    table["checks"] = rt.table_checks(table)
+    return table
+
+
 def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=None) -> dict:
     """bert-real: score the finished run's own bundle on every real record again with ``table_mc``
     Monte Carlo paths (0: linearised only), replace the table in OUT/summary.json and re-render the
@@ -295,14 +305,8 @@ def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=No
     t0 = time.perf_counter()
     bundle = load_bundle(summary["bundle"])
     cfg = load_config(shipped_config("bert-real"))
-    rt = load_study("real_table")
-    quick = bool(summary.get("quick"))
-    # the same ARX lag search as the run's own table: its grid and choice rule
-    table = rt.real_table(bundle.model, cfg, bert_data_dir(), mc_paths=int(table_mc),
-                          max_seconds=QUICK["max_seconds"] if quick else None, jobs=jobs, log=log,
-                          lag_grid=QUICK["grid"] if quick else GRIDS["bert-real"],
-                          lag_criterion=LAG_CRITERION["bert-real"])
-    table["checks"] = rt.table_checks(table)
+    table = every_record_table(bundle.model, cfg, quick=bool(summary.get("quick")), mc_paths=int(table_mc),
+                               jobs=jobs, log=log)
     table["rescored_seconds"] = time.perf_counter() - t0
     summary["real_table"] = to_json_safe(table)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
