@@ -9,7 +9,8 @@ one JSON object on stdout when ``--json`` is given (else a short human summary);
 model, unreadable record, an optional package of an extra not installed, ...), each one line on stderr.
 ``gpnarx --version`` prints the package version. Ctrl-C ends a command with exit code 130 and SIGTERM (a
 scheduler or ``kill``) with 143, each raised in the command like an interrupt, so what it started stops with it
-(joblib's worker processes are ended, not left computing their current task).
+(joblib's worker processes are ended, not left computing their current task). SIGTERM is handled so only where
+``main`` is the process's entry point (called without ``argv``); ``main([...])`` called in-process leaves it alone.
 """
 from __future__ import annotations
 
@@ -91,6 +92,9 @@ def _print_human(result: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # SIGTERM is the process's: taken over only where main is its entry point (the console script and
+    # ``python -m gpnarx`` call it without argv), not when a program or a test calls main([...]) in-process
+    entry_point = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     # accept --json anywhere on the line
     as_json = "--json" in argv
@@ -108,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
     try:
-        with _terminate_as_interrupt():
+        with _terminate_as_interrupt() if entry_point else contextlib.nullcontext():
             result = args.func(args)
     except Terminated:
         print("gpnarx: terminated", file=sys.stderr)

@@ -98,7 +98,8 @@ mod = types.ModuleType("spin_command")
 mod.add_parser = add_parser
 sys.modules["spin_command"] = mod
 M.COMMAND_MODULES.append("spin_command")
-sys.exit(M.main(["spin"]))
+sys.argv = ["gpnarx", "spin"]
+sys.exit(M.main())  # as the console script calls it: the process's entry point
 '''
 
 
@@ -154,6 +155,26 @@ def test_sigterm_ends_a_command_and_its_worker_processes():
         err = errfile.read()
     assert rc == 143 and "gpnarx: terminated" in err and "Traceback" not in err, (rc, err[-2000:])
     assert not left, "worker processes still running after SIGTERM"
+
+
+def test_main_called_in_process_leaves_the_process_sigterm_alone(monkeypatch):
+    """main([...]) called by a program or a test is not the process's entry point: during its command SIGTERM
+    keeps the handler the process had (a scheduler's SIGTERM still ends the whole process, not one call)."""
+    import signal
+    import types
+
+    import gpnarx.cli.main as M
+
+    seen = []
+
+    def add_parser(sub):
+        sub.add_parser("probe-signal").set_defaults(func=lambda a: seen.append(signal.getsignal(signal.SIGTERM)))
+
+    monkeypatch.setitem(sys.modules, "probe_signal_command", types.SimpleNamespace(add_parser=add_parser))
+    monkeypatch.setattr(M, "COMMAND_MODULES", [*M.COMMAND_MODULES, "probe_signal_command"])
+    before = signal.getsignal(signal.SIGTERM)
+    assert M.main(["probe-signal"]) == 0
+    assert seen == [before] and signal.getsignal(signal.SIGTERM) is before
 
 
 def _cmdline(pid: int) -> bytes:
