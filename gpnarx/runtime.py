@@ -63,6 +63,11 @@ def limit_blas(n: int) -> bool:
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - threadpoolctl is a declared dependency
         return False
+    # threadpoolctl limits the libraries loaded now: load numpy's and scipy's BLAS (separate OpenBLAS builds,
+    # both used by free runs) first, so a limit set before the model is imported holds for both
+    import numpy  # noqa: F401
+    import scipy.linalg  # noqa: F401
+
     _LIMITERS.append(threadpool_limits(limits=int(n), user_api="blas"))
     return True
 

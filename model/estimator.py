@@ -1,14 +1,14 @@
 """The GP-NARX estimator (scikit-learn style; a worked example is in ``GPNARX``'s docstring).
 
-A scikit-learn estimator (``BaseEstimator``): keyword-only parameters set in ``__init__``,
-learned attributes ending in ``_``.
+A scikit-learn estimator (its parameter protocol, ``params.ParamsMixin``: ``sklearn.base.clone`` and
+``get_params`` / ``set_params`` work without this module importing scikit-learn): keyword-only parameters
+set in ``__init__``, learned attributes ending in ``_``.
 """
 from __future__ import annotations
 
 import time
 
 import numpy as np
-from sklearn.base import BaseEstimator
 
 from . import freerun
 from .backend import check_backend
@@ -17,6 +17,7 @@ from .envelope import check_envelope, divergence_limit, training_envelope
 from .gp import ExactPosterior, SparsePosterior, choose_inducing
 from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, kernel_from_dict, make_kernel
 from .ml2 import default_warm_start_subset, fit_ml2
+from .params import ParamsMixin
 from .record import Record, RecordError
 from .regressors import check_lags, first_index, narx_regressors, stack_regressors
 from .scaling import Standardizer
@@ -80,7 +81,7 @@ def _as_input(u, name: str = "u") -> np.ndarray:
     return arr
 
 
-class GPNARX(BaseEstimator):
+class GPNARX(ParamsMixin):
     """GP-NARX model of eqs. (1)-(3) with the kernel of eq. (12) by default.
 
     A scikit-learn estimator: parameters are keyword-only and set in ``__init__`` (so

@@ -14,7 +14,6 @@ broadband noise run next to many periodic sine windows, whose rows repeat every 
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import maximum_filter1d
 
 SELECTIONS = ("stride", "random", "resonance")
 
@@ -44,6 +43,8 @@ def select_rows(Y: np.ndarray, record_index: np.ndarray, cap: int | None, method
     if method == "random":
         return np.sort(rng.choice(n, cap, replace=False))
     # resonance: envelope ranking within each record, pooled
+    from scipy.ndimage import maximum_filter1d  # here: only training's resonance selection needs scipy.ndimage
+
     env = np.empty(n)
     for k in np.unique(record_index):
         rows = np.flatnonzero(record_index == k)

@@ -169,3 +169,23 @@ def test_cli_predict_json_flags_a_far_record(tmp_path, capsys):
                  "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["out_of_range"][:2] == ["u", "y"] and isinstance(out["diverged_paths"], int), out
+
+
+@pytest.mark.parametrize("n", [1, 1023, 1024, 1025, 1536, 5000, 65536 + 7])
+def test_band_strengths_stft_is_scipys(n):
+    """The frequency check's STFT (numpy's FFT, so a CLI start does not import scipy.signal) is
+    scipy.signal.stft's: Hann frames, half overlap, zero-padded ends, spectrum scaling."""
+    from scipy.signal import stft
+
+    from gpnarx.model.envelope import BAND_BINS, FRAME, _stft, band_strengths
+
+    u = np.random.default_rng(n).normal(size=n)
+    padded = np.pad(u, (0, max(FRAME - n, 0)))
+    _, _, z = stft(padded, nperseg=FRAME, noverlap=FRAME // 2, window="hann", detrend=False)
+    mine = _stft(padded)
+    assert mine.shape == z.shape
+    np.testing.assert_allclose(np.abs(mine), np.abs(z), rtol=0, atol=1e-12 * np.abs(z).max())
+    p = np.abs(z) ** 2
+    p = np.pad(p, ((0, -p.shape[0] % BAND_BINS), (0, 0)))
+    np.testing.assert_allclose(band_strengths(u), np.sqrt(p.reshape(-1, BAND_BINS, p.shape[1]).sum(axis=1)),
+                               rtol=1e-10, atol=1e-14)

@@ -466,11 +466,15 @@ def test_latent_band_leaves_out_the_noise_term(sdof_data, latent_runs, method):
 
 
 def test_scikit_learn_estimator_api():
-    """GPNARX is a scikit-learn estimator: keyword-only parameters, get_params/set_params, clone."""
+    """GPNARX is a scikit-learn estimator: keyword-only parameters, get_params/set_params, clone (the
+    protocol itself, ``model.params``: the product does not import scikit-learn)."""
     from sklearn.base import BaseEstimator, clone
 
-    m = GPNARX(ny=3, nu=4, mode="sparse", n_inducing=32, max_train_points=150, n_restarts=0, seed=7)
-    assert isinstance(m, BaseEstimator)
+    kw = dict(ny=3, nu=4, mode="sparse", n_inducing=32, max_train_points=150, n_restarts=0, seed=7)
+    m = GPNARX(**kw)
+    # the same parameters as scikit-learn's own BaseEstimator finds for the same __init__
+    mirror = type("Mirror", (BaseEstimator,), {"__init__": GPNARX.__init__})(**kw)
+    assert m.get_params() == mirror.get_params() and m.get_params(deep=False) == mirror.get_params(deep=False)
     params = m.get_params()
     assert params["ny"] == 3 and params["nu"] == 4 and params["mode"] == "sparse" and params["seed"] == 7
     assert set(params) == {"ny", "nu", "kernel", "mode", "n_inducing", "max_train_points", "selection",
@@ -486,8 +490,9 @@ def test_scikit_learn_estimator_api():
     assert not hasattr(c, "posterior_") and hasattr(m, "posterior_")  # fitted attributes are not cloned
     assert all(k.endswith("_") for k in vars(m) if k not in params)
     assert c.set_params(ny=5, mode="exact") is c and c.ny == 5 and c.mode == "exact"
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="not_a_parameter.*valid parameters are"):
         c.set_params(not_a_parameter=1)
+    assert c.set_params() is c
     mean = clone(m).fit([(u, y)]).predict_one_step([(u, y)], return_std=False)
     np.testing.assert_allclose(mean, m.predict_one_step([(u, y)], return_std=False))
 
