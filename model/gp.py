@@ -86,18 +86,62 @@ def lower_times_rows(L: np.ndarray, Ks: np.ndarray, split: bool = False, transpo
     rows, N = B.shape
     if _DTRMM is None or rows == 0 or N == 0:
         return linalg.blas.dtrmm(1.0, L.T, B.T, side=0, lower=0, trans_a=0 if transpose else 1, overwrite_b=1).T
-    if split and rows >= 8 and two_cpus() and blas_threads() == 1:
-        if not _HELPER:
-            from concurrent.futures import ThreadPoolExecutor
-
-            _HELPER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="gpnarx-trmm"))
+    if split and rows >= 8 and _two_threads():
         h = rows // 2
-        first = _HELPER[0].submit(_dtrmm_rows, L, B[:h], transpose)
+        first = _helper().submit(_dtrmm_rows, L, B[:h], transpose)
         _dtrmm_rows(L, B[h:], transpose)
         first.result()
     else:
         _dtrmm_rows(L, B, transpose)
     return B
+
+
+def lower_times_rows_and_back(L: np.ndarray, Ks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``lower_times_rows(L, Ks)`` and L^T (L k_0) for its first row k_0, float64 (the local model's F [k | ...]
+    and F^T F k). A product with one vector streams all of L for a few flops, so where the process may use
+    two CPUs and the BLAS runs on one thread, the helper thread takes row 0, then L^T of it, then a share of
+    the other rows that evens the two threads' work (one row alone costs about as much as a dozen in one
+    call), while this thread does the rest; otherwise one call, then the second product."""
+    L = np.ascontiguousarray(L, dtype=np.float64)
+    B = np.array(Ks, dtype=np.float64, order="C", copy=True)
+    rows, N = B.shape
+    back = np.empty((1, N))
+    if _DTRMM is None or rows == 0 or N == 0:
+        B = lower_times_rows(L, B)
+        return B, lower_times_rows(L, B[:1], transpose=True)[0]
+    if rows < 8 or not _two_threads():
+        _dtrmm_rows(L, B)
+        back[0] = B[0]
+        _dtrmm_rows(L, back, transpose=True)
+        return B, back[0]
+    extra = max(0, (rows - 13) // 2)  # the helper's share of the other rows: 8 of 28
+
+    def first():
+        _dtrmm_rows(L, B[:1])
+        back[0] = B[0]
+        _dtrmm_rows(L, back, transpose=True)
+        if extra:
+            _dtrmm_rows(L, B[1: 1 + extra])
+
+    job = _helper().submit(first)
+    _dtrmm_rows(L, B[1 + extra:])
+    job.result()
+    return B, back[0]
+
+
+def _two_threads() -> bool:
+    """Whether a product may be split over this thread and the helper: two CPUs, one BLAS thread (with more,
+    two calls at once on the BLAS's shared thread pool run several times slower than either alone)."""
+    return two_cpus() and blas_threads() == 1
+
+
+def _helper():
+    """The one helper thread of the split products (started on first use)."""
+    if not _HELPER:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _HELPER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="gpnarx-trmm"))
+    return _HELPER[0]
 
 
 def _dtrmm_rows(L: np.ndarray, B: np.ndarray, transpose: bool = False) -> None:
@@ -395,7 +439,8 @@ class LocalModel:
         # thread the two libraries' thread pools take the cores from each other, so then numpy's dense product
         tri = self.F_lower and blas_threads() == 1
         if tri:
-            FB = lower_times_rows(self.F, B.T, split=True).T
+            FBt, Fback = lower_times_rows_and_back(self.F, B.T)  # F [k | J | Kc] and F^T F k
+            FB = FBt.T
             mw = self.w @ B
         else:
             FWB = self.FW @ B
@@ -404,8 +449,8 @@ class LocalModel:
         FkJ = FB[:, : 1 + ny]
         Gr = FkJ.T @ FkJ  # [Fk | FJ]^T [Fk | FJ]
         beta = self.beta
-        if tri:  # F^T (F k): the upper triangle only
-            beta[:, 1] = lower_times_rows(self.F, FB[:, 0][None, :], transpose=True)[0]
+        if tri:
+            beta[:, 1] = Fback
         else:
             beta[:, 1] = self.FT @ FB[:, 0]
         # [hess(w) | hess(F^T F k)] = C^T diag(weights) C for both weights in one product, + the q terms

@@ -264,6 +264,16 @@ def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
     assert np.allclose(lower_times_rows(L, K, split=True), want, rtol=1e-13, atol=1e-13 * np.abs(want).max())
     assert np.allclose(want, K @ L.T, rtol=1e-12, atol=1e-12 * np.abs(K @ L.T).max())
     assert np.allclose(lower_times_rows(L, K, transpose=True), K @ L, rtol=1e-12, atol=1e-12 * np.abs(K @ L).max())
+    # the local model's pair F [k | ...] and F^T F k: split over the helper thread (two CPUs) or in one thread
+    back_want = L.T @ (L @ K[0])
+    for two in (True, False):
+        monkeypatch.setattr(gpmod, "_two_threads", lambda two=two: two)
+        for rows in (1, 7, 21, 29):
+            FB, back = gpmod.lower_times_rows_and_back(L, K[:rows] if rows <= 21 else np.vstack([K, K[:8]]))
+            ref = want[:rows] if rows <= 21 else np.vstack([want, want[:8]])
+            assert np.allclose(FB, ref, rtol=1e-13, atol=1e-13 * np.abs(ref).max())
+            assert np.allclose(back, back_want, rtol=1e-12, atol=1e-12 * np.abs(back_want).max())
+    monkeypatch.undo()
     # the exact posterior's lower-triangular factor takes dtrmm in the local model: the dense product's numbers
     post = exact_model.posterior_
     tri, dense = LocalModel(post, exact_model.ny), LocalModel(post, exact_model.ny)
@@ -272,11 +282,12 @@ def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
     x = post.points[3] + 0.01
     Xc = post.points[:5] + 0.02
     calls = []
-    monkeypatch.setattr(gpmod, "lower_times_rows", lambda *a, **kw: calls.append(kw) or lower_times_rows(*a, **kw))
+    pair = gpmod.lower_times_rows_and_back
+    monkeypatch.setattr(gpmod, "lower_times_rows_and_back", lambda *a: calls.append(a) or pair(*a))
     with threadpool_limits(limits=1, user_api="blas"):
         assert gpmod.blas_threads() == 1
         (Ht, mt, vt), (Hd, md, vd) = tri(x, Xc), dense(x, Xc)
-    assert len(calls) == 2 and calls[0] == {"split": True}  # F B and F^T (F k) by dtrmm on one BLAS thread
+    assert len(calls) == 1  # F B and F^T (F k) by dtrmm on one BLAS thread
     assert np.allclose(Ht, Hd, rtol=1e-9, atol=1e-12 * np.abs(Hd).max())
     assert np.allclose(mt, md, rtol=1e-9, atol=1e-12) and np.allclose(vt, vd, rtol=1e-9)
     # with a multi-threaded BLAS, numpy's dense product (scipy's and numpy's thread pools would take the cores
