@@ -6,6 +6,8 @@ Product: the whole ``python -m gpnarx predict --registry R --model bert-real REC
 Test.Lab record, the linearised free run from rest over the whole record, the envelope checks and
 metrics, writing OUT.npz), on a 64 s real BERT record (65,536 samples at 1024 Hz; default the 20 Hz
 sine, the held-out record nearest the first resonance). Real-time factor = record duration / wall.
+Where the product's time goes: ``free_run_s=`` is the free run itself (the ``seconds:`` line the command
+prints), ``outside_s=`` the rest of the process's wall time (interpreter, imports, reading, checks, output).
 ``--method linear`` is what the shipped bert-real config names for whole records
 (``[predict] method``); the CLI's own default is Monte Carlo (see the notes printed below).
 
@@ -73,8 +75,9 @@ def _env():
     return e
 
 
-def timed(cmd: list, cpu: list | None = None) -> float:
-    """Wall seconds of a subprocess; its CPU seconds (user + system) appended to ``cpu``."""
+def timed(cmd: list, cpu: list | None = None, free_run: list | None = None) -> float:
+    """Wall seconds of a subprocess; its CPU seconds (user + system) appended to ``cpu``, and the free run's own
+    seconds (the ``seconds:`` line ``gpnarx predict`` prints) to ``free_run``."""
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=C.ROOT, env=_env(), capture_output=True, text=True, timeout=3600)
@@ -84,6 +87,11 @@ def timed(cmd: list, cpu: list | None = None) -> float:
         raise SystemExit(f"{' '.join(map(str, cmd[:4]))} ... failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
     if cpu is not None:
         cpu.append((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime))
+    if free_run is not None:
+        found = [ln.split(":", 1)[1] for ln in proc.stdout.splitlines() if ln.startswith("seconds:")]
+        if not found:
+            raise SystemExit(f"{' '.join(map(str, cmd[:4]))} ... printed no 'seconds:' line")
+        free_run.append(float(found[0]))
     return dt
 
 
@@ -196,8 +204,9 @@ def main():
         load0 = C.load()
         walls = {"product": [], "baseline": [], "serial": []}
         cpus = {"product": [], "baseline": [], "serial": []}
+        free_runs = []  # the product's free run alone (the recursion), from its own output
         for _ in range(reps):
-            walls["product"].append(timed(product, cpus["product"]))
+            walls["product"].append(timed(product, cpus["product"], free_runs))
             walls["baseline"].append(timed(baseline, cpus["baseline"]))
             walls["serial"].append(timed(serial, cpus["serial"]))
         load1 = C.load()
@@ -216,6 +225,10 @@ def main():
         print(f"  {r:>3} {p:10.2f} {b:11.2f} {b / p:6.2f} {sr:9.2f} {cpus['product'][r]:13.2f} "
               f"{cpus['baseline'][r]:14.2f} {cpus['serial'][r]:12.2f}")
     cpu = C.median(cpus["product"])
+    free_run = C.median(free_runs)
+    print(f"  product's time: the free run itself {free_run:.2f} s ({duration / free_run:.1f}x real time), "
+          f"everything else (interpreter, imports, reading the bundle and the record, the envelope check, "
+          f"writing the answer) {wall - free_run:.2f} s")
     print(f"  real-time factor (whole process, --method linear): product {rt:.1f}x, "
           f"baseline {duration / base_wall:.1f}x, pass 2 serial {duration / C.median(walls['serial']):.1f}x "
           f"(wall, at the load above); on CPU time (what one free core "
@@ -236,6 +249,7 @@ def main():
     few_rt = min(w["few_steps_per_s"] for w in ws) / rec.fs
     C.result(rt_factor=rt, baseline=duration / base_wall, baseline_what="same-cli-process-reference-linear-loop",
              ratio=ratio, wall_s=wall, baseline_wall_s=base_wall, record_s=duration, cpu_s=cpu,
+             free_run_s=free_run, outside_s=wall - free_run, rt_factor_free_run=duration / free_run,
              serial_wall_s=C.median(walls["serial"]), serial_ratio=C.median_ratio(walls["serial"], walls["product"]),
              serial_cpu_s=C.median(cpus["serial"]), window_s=ws[0]["n"] / rec.fs,
              rt_factor_cpu=duration / cpu, baseline_cpu_s=C.median(cpus["baseline"]),
