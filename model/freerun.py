@@ -272,7 +272,9 @@ def simulate_linear(
        otherwise; 0: none) while pass 1 goes on, the rest by the calling thread too once pass 1 ends
        (BLAS without the GIL, ``gp.lower_times_rows``). Same rows, same blocks: the same numbers, bit
        for bit, with any number of workers;
-    3. the covariance recursion (ny x ny per step).
+    3. the covariance recursion (ny x ny per step), chunk by chunk in order as pass 2 finishes them, on the
+       calling thread once pass 1 has ended (between its own pass-2 chunks), so that it overlaps the
+       worker's pass 2 instead of following it.
     Anything else than a ``posterior.Posterior`` whose kernel gives ``MeanTerms`` (e.g. an object with
     only ``mean_grad`` and ``noise_var``) takes the reference loop.
 
@@ -324,21 +326,28 @@ def simulate_linear(
         Xb[:, ny:] = Ulag[i0 + k0: i0 + k1]
         _, var_f[k0:k1], grad[k0:k1] = posterior.mean_var_grad(Xb)
 
-    with _Workers(pass2, _linear_workers(workers, rows, _PASS1_CHUNK)) as pool:
+    L = max(ny, int(cov_window or 0))
+    band = np.zeros((n, L)) if L > ny else None
+    S_end = None if state is None else _resize(np.asarray(state.cov, dtype=float), L)
+    noise = posterior.noise_var if include_noise else 0.0
+    q = np.empty(rows)  # sigma_f^2 + sigma_y^2 in output units
+    Jall = np.empty((rows, ny))  # d mu_out / d y_lag (output units)
+    cov = _CovarianceRecursion(rows, ny, L, ys, band, i0, S_end)
+
+    def pass3(k0: int, k1: int) -> None:
+        np.add(var_f[k0:k1], noise, out=q[k0:k1])
+        q[k0:k1] *= ys * ys
+        np.multiply(grad[k0:k1, :ny], ys / xs[:ny], out=Jall[k0:k1])
+        cov.advance(q[k0:k1], Jall[k0:k1])
+
+    with _Workers(pass2, _linear_workers(workers, rows, _PASS1_CHUNK), then=pass3) as pool:
         fast.run(hist, Ulag, i0, n, ym, ys, progress, chunk=_PASS1_CHUNK,
                  on_chunk=lambda c0, c1: pool.submit(c0 - i0, c1 - i0))
     mean = hist[ny:].copy()
     std = np.zeros(n)
     lstd = np.zeros(n)  # latent std: var(y_i) without the reporting step's sigma_y^2
-    L = max(ny, int(cov_window or 0))
-    band = np.zeros((n, L)) if L > ny else None
-    S_end = None if state is None else _resize(np.asarray(state.cov, dtype=float), L)
     if n > i0:
-        noise = posterior.noise_var if include_noise else 0.0
-        q = (var_f + noise) * (ys * ys)  # sigma_f^2 + sigma_y^2 in output units
-        Jall = grad[:, :ny] * (ys / xs[:ny])  # d mu_out / d y_lag (output units)
-        # pass 3: covariance recursion
-        var_y, prop, S_end = _covariance_recursion(q, Jall, L, ys, band, i0, S_end)
+        var_y, prop, S_end = cov.out, cov.prop, cov.state()
         std[i0:] = np.sqrt(np.maximum(var_y, 0.0))
         # latent: var(y_i) without the reporting step's sigma_y^2 (as the reference loop)
         var_lat = var_f * (ys * ys) + prop
@@ -368,12 +377,17 @@ def _linear_workers(workers: int | None, rows: int, chunk: int) -> int:
 class _Workers:
     """Runs ``fn(*task)`` for every submitted task: on ``n`` worker threads while the caller goes on,
     and, on leaving the ``with`` block, on the calling thread too until none is left (n = 0: at once,
-    on the caller). The first error a task raises is raised on leaving the block."""
+    on the caller). ``then(*task)``, when given, runs on the calling thread for every task after ``fn`` has
+    finished it, in the order the tasks were submitted: on leaving the block, between the caller's own
+    tasks (n = 0: right after ``fn``). The first error a task raises is raised on leaving the block."""
 
-    def __init__(self, fn, n: int):
-        self.fn, self.n = fn, int(n)
+    def __init__(self, fn, n: int, then=None):
+        self.fn, self.n, self.then = fn, int(n), then
         self.tasks: queue.SimpleQueue = queue.SimpleQueue()
         self.errors: list[BaseException] = []
+        self.order: list[tuple] = []  # submitted tasks, in order
+        self.finished: set[tuple] = set()  # tasks fn has finished
+        self.cond = threading.Condition()
         self.threads = [threading.Thread(target=self._work, daemon=True, name=f"gpnarx-pass2-{k}")
                         for k in range(self.n)]
 
@@ -384,9 +398,12 @@ class _Workers:
 
     def submit(self, *task) -> None:
         if self.n:
+            self.order.append(task)
             self.tasks.put(task)
         else:
             self.fn(*task)
+            if self.then is not None:
+                self.then(*task)
 
     def _work(self) -> None:
         while True:
@@ -402,16 +419,19 @@ class _Workers:
             self.fn(*task)
         except BaseException as e:  # raised again on the calling thread
             self.errors.append(e)
+        with self.cond:
+            self.finished.add(task)
+            self.cond.notify_all()
 
     def __exit__(self, exc_type, exc, tb):
         if self.n:
-            while True:  # the caller helps with what is left
+            if exc_type is None:
+                self._drain()
+            while True:  # what is left after an error: dropped
                 try:
-                    task = self.tasks.get_nowait()
+                    self.tasks.get_nowait()
                 except queue.Empty:
                     break
-                if exc_type is None:
-                    self._run(task)
             for _ in self.threads:
                 self.tasks.put(None)
             for t in self.threads:
@@ -419,6 +439,26 @@ class _Workers:
         if exc_type is None and self.errors:
             raise self.errors[0]
         return False
+
+    def _drain(self) -> None:
+        """The calling thread: ``then`` for each finished task in order, else a queued task, else waits for a
+        worker, until every task is done and followed (or one failed)."""
+        done = 0  # tasks followed by ``then``
+        while not self.errors:
+            while done < len(self.order) and self.order[done] in self.finished:
+                if self.then is not None:
+                    self.then(*self.order[done])
+                done += 1
+            try:
+                task = self.tasks.get_nowait()
+            except queue.Empty:
+                if done == len(self.order):
+                    return
+                want = self.order[done]
+                with self.cond:
+                    self.cond.wait_for(lambda want=want: want in self.finished or bool(self.errors))
+                continue
+            self._run(task)
 
 
 def _resize(S: np.ndarray, L: int) -> np.ndarray:
@@ -431,57 +471,71 @@ def _resize(S: np.ndarray, L: int) -> np.ndarray:
     return out
 
 
-def _covariance_recursion(q: np.ndarray, Jall: np.ndarray, L: int, ys: float, band, i0: int,
-                          S0: np.ndarray | None = None):
-    """var(y_i) for every step of the linearised propagation and its propagated part J S J^T (two
-    arrays), and cov(y_i, y_{i-k}) into ``band``.
+class _CovarianceRecursion:
+    """Pass 3 of ``simulate_linear``: var(y_i) for every step of the linearised propagation (``out``) and its
+    propagated part J S J^T (``prop``), and cov(y_i, y_{i-k}) into ``band``, ``advance``d chunk by chunk in
+    order.
 
     S (L x L, output units) is the covariance of [y_{i-1}, ..., y_{i-L}]; one step is
     SJ = S[:, :ny] J, var_y = q_i + J . SJ[:ny], then S shifts down the diagonal with [var_y, SJ]
     as its new first row and column. The shift costs nothing: S is a moving diagonal window of a
     larger buffer (rebased every ``block`` steps). Same caps as the reference loop. ``S0``: the
-    covariance to start from (zeros: at rest or at known outputs). Returns also S after the last step.
+    covariance to start from (None: zeros, at rest or at known outputs). ``state()``: S after the steps done.
     """
-    ny = Jall.shape[1]
-    steps = q.size
-    cap = VAR_CAP * ys * ys
-    out = np.empty(steps)
-    prop = np.empty(steps)
+
     block = 512
-    B = np.zeros((L + block, L + block))
-    o = block  # S = B[o:o+L, o:o+L]
-    if S0 is not None:
-        B[o:o + L, o:o + L] = S0
-    isfinite = math.isfinite
-    dot = np.dot
-    safe = 0.25 * cap
-    for k in range(steps):
-        if o == 0:  # rebase: move S to the bottom-right corner
-            B[block:, block:] = B[:L, :L]
-            o = block
-        S = B[o: o + L, o: o + L]
-        J = Jall[k]
-        SJ = dot(S[:, :ny], J)
-        t = float(dot(J, SJ[:ny]))  # J S J^T
-        if not (isfinite(t) and -safe < t < safe):
-            # the reference loop's guards. Otherwise they change nothing: S is a covariance with
-            # diagonal <= cap, so |(S J)_a| <= sqrt(S_aa J S J^T) < cap / 2 (Cauchy-Schwarz)
-            if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
-                SJ = np.nan_to_num(SJ, nan=cap, posinf=cap, neginf=-cap)
-            np.clip(SJ, -cap, cap, out=SJ)
-            t = float(dot(J, SJ[:ny]))
-        prop[k] = t
-        v = q[k] + t
-        v = min(v, cap) if isfinite(v) else cap
-        out[k] = v
-        o -= 1
-        B[o, o] = v
-        B[o, o + 1: o + L] = SJ[:-1]
-        B[o + 1: o + L, o] = SJ[:-1]
-        if band is not None:
-            band[i0 + k, 0] = v
-            band[i0 + k, 1:] = SJ[:-1]
-    return out, prop, B[o: o + L, o: o + L].copy()
+
+    def __init__(self, steps: int, ny: int, L: int, ys: float, band, i0: int, S0: np.ndarray | None = None):
+        self.ny, self.L, self.band, self.i0 = ny, L, band, i0
+        self.cap = VAR_CAP * ys * ys
+        self.out = np.empty(steps)
+        self.prop = np.empty(steps)
+        self.k = 0  # steps done
+        self.B = np.zeros((L + self.block, L + self.block))
+        self.o = self.block  # S = B[o:o+L, o:o+L]
+        if S0 is not None:
+            self.B[self.o:self.o + L, self.o:self.o + L] = S0
+
+    def advance(self, q: np.ndarray, Jall: np.ndarray) -> None:
+        """The next q.size steps: q = sigma_f^2 + sigma_y^2 and Jall (steps, ny) = d mu / d y_lag of each."""
+        ny, L, band, i0, cap = self.ny, self.L, self.band, self.i0, self.cap
+        B, o, block, out, prop = self.B, self.o, self.block, self.out, self.prop
+        isfinite = math.isfinite
+        dot = np.dot
+        safe = 0.25 * cap
+        for j in range(q.size):
+            k = self.k + j
+            if o == 0:  # rebase: move S to the bottom-right corner
+                B[block:, block:] = B[:L, :L]
+                o = block
+            S = B[o: o + L, o: o + L]
+            J = Jall[j]
+            SJ = dot(S[:, :ny], J)
+            t = float(dot(J, SJ[:ny]))  # J S J^T
+            if not (isfinite(t) and -safe < t < safe):
+                # the reference loop's guards. Otherwise they change nothing: S is a covariance with
+                # diagonal <= cap, so |(S J)_a| <= sqrt(S_aa J S J^T) < cap / 2 (Cauchy-Schwarz)
+                if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
+                    SJ = np.nan_to_num(SJ, nan=cap, posinf=cap, neginf=-cap)
+                np.clip(SJ, -cap, cap, out=SJ)
+                t = float(dot(J, SJ[:ny]))
+            prop[k] = t
+            v = q[j] + t
+            v = min(v, cap) if isfinite(v) else cap
+            out[k] = v
+            o -= 1
+            B[o, o] = v
+            B[o, o + 1: o + L] = SJ[:-1]
+            B[o + 1: o + L, o] = SJ[:-1]
+            if band is not None:
+                band[i0 + k, 0] = v
+                band[i0 + k, 1:] = SJ[:-1]
+        self.o = o
+        self.k += q.size
+
+    def state(self) -> np.ndarray:
+        """S after the steps done (L x L)."""
+        return self.B[self.o: self.o + self.L, self.o: self.o + self.L].copy()
 
 
 class _MeanRecursion:

@@ -299,3 +299,48 @@ def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
     assert not calls
     assert np.allclose(H2, Ht, rtol=1e-9, atol=1e-12 * np.abs(Ht).max())
     assert np.allclose(m2, mt, rtol=1e-9, atol=1e-12) and np.allclose(v2, vt, rtol=1e-9)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2])
+def test_workers_follow_each_task_in_submission_order(n):
+    """``freerun._Workers``' ``then`` (the linearised run's pass 3) runs on the calling thread, after ``fn`` has
+    finished each task, in the order the tasks were submitted, however the workers finish them."""
+    import threading
+    import time
+
+    events = []
+    lock = threading.Lock()
+    delays = np.random.default_rng(n).uniform(0, 0.004, 24)
+
+    def fn(k):
+        time.sleep(delays[k])
+        with lock:
+            events.append(("fn", k))
+
+    def then(k):
+        assert threading.current_thread() is threading.main_thread()
+        with lock:
+            events.append(("then", k))
+
+    with freerun._Workers(fn, n, then=then) as pool:
+        for k in range(24):
+            pool.submit(k)
+            time.sleep(0.001)
+    follows = [k for kind, k in events if kind == "then"]
+    assert follows == list(range(24))
+    assert all(events.index(("fn", k)) < events.index(("then", k)) for k in range(24))
+
+
+def test_workers_stop_following_at_a_failed_task():
+    """A task that raises: its error is raised on leaving the block, and no task from it on is followed."""
+    followed = []
+
+    def fn(k):
+        if k == 5:
+            raise FloatingPointError("task 5")
+
+    with pytest.raises(FloatingPointError, match="task 5"):
+        with freerun._Workers(fn, 1, then=followed.append) as pool:
+            for k in range(12):
+                pool.submit(k)
+    assert followed == list(range(len(followed))) and len(followed) <= 5
