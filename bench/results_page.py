@@ -27,6 +27,8 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
             "bench_mc_speed.py --whole --seconds 2 at 1 and 2 BLAS threads)", None),
            ("bench/exact_2core_quiet_ny16.txt", "The exact bert-real at ny = 16, nu = 20 on the quiet 2-core machine "
             "(bench_realtime.py, bench_mc_speed.py --whole --seconds 2 at 1 and 2 BLAS threads)", None),
+           ("bench/exact_2core_quiet_startup.txt", "The exact bert-real on the quiet 2-core machine, lighter start-up "
+            "(bench_realtime.py with the free run's own time, bench_mc_speed.py --whole --seconds 2)", None),
            ("bench/wire.txt", "One 64 s predict answer as JSON, gzip JSON and NPZ (bench_wire.py)", None),
            ("bench/stream.txt", "A real 64 s record in 1 s chunks against the record whole (bench_stream.py)", None),
            ("accelerator/bench_gpu.txt", "GPU run, H100 (results: [results-accelerator.md](results-accelerator.md))",
