@@ -8,6 +8,10 @@ metrics, writing OUT.npz), on a 64 s real BERT record (65,536 samples at 1024 Hz
 sine, the held-out record nearest the first resonance). Real-time factor = record duration / wall.
 Where the product's time goes: ``free_run_s=`` is the free run itself (the ``seconds:`` line the command
 prints), ``outside_s=`` the rest of the process's wall time (interpreter, imports, reading, checks, output).
+Each pass of the free run timed alone on one thread in this process (``pass1_s=``, ``pass2_s=`` with the
+triangular products of eq. 9 inside it, ``trmm_s=`` at ``trmm_gflops=``, ``pass3_s=``): half their sum plus
+``outside_s=`` is the least wall time two cores can give the whole process (``two_core_floor_s=``,
+``rt_factor_floor=``), however the passes overlap.
 ``--method linear`` is what the shipped bert-real config names for whole records
 (``[predict] method``); the CLI's own default is Monte Carlo (see the notes printed below).
 
@@ -168,6 +172,57 @@ def accuracy(registry: Path, name: str, record: Path, quick: bool, window: float
     return out
 
 
+def pass_profile(registry: Path, name: str, record: Path) -> dict:
+    """Each pass of the linearised free run timed on its own, in this process, on the whole record with pass 2 on
+    the calling thread (``simulate_linear(workers=0)``: one thread, so each pass's wall time is its CPU time):
+    pass 1 (the mean recursion), pass 2 (eq. 9 and the mean gradient at every step) and, inside it, the
+    triangular products |Linv k|^2 (rows x N^2 flops, the exact posterior; 0 for another posterior), and pass 3
+    (the covariance recursion). Their sum over two cores is the least wall time two cores can give the free run
+    (perfect overlap), whatever the scheduling."""
+    from gpnarx.model import freerun
+    from gpnarx.model import gp as gpmod
+    from gpnarx.runtime import tune_for_free_run
+    from gpnarx.storage.record_files import read_record
+    from gpnarx.storage.registry import Registry
+
+    tune_for_free_run(None)
+    model = Registry(registry).scan().get(name).model
+    rec = read_record(str(record), fs_default=None)
+    post = model.posterior_
+    spent = {"pass1": 0.0, "pass2": 0.0, "trmm": 0.0, "pass3": 0.0}
+    trmm_flops = [0.0]
+
+    def timed_call(key, fn, flops=None):
+        def wrapper(*a, **kw):
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **kw)
+            finally:
+                spent[key] += time.perf_counter() - t0
+                if flops is not None:
+                    trmm_flops[0] += flops(*a)
+        return wrapper
+
+    saved = (freerun._MeanRecursion.run, freerun._CovarianceRecursion.advance, gpmod._dtrmm_rows)
+    freerun._MeanRecursion.run = timed_call("pass1", saved[0])
+    freerun._CovarianceRecursion.advance = timed_call("pass3", saved[1])
+    gpmod._dtrmm_rows = timed_call("trmm", saved[2], lambda L, B, *_: float(B.shape[0]) * L.shape[0] ** 2)
+    post.mean_var_grad = timed_call("pass2", post.mean_var_grad)
+    try:
+        args = (post, model.x_scaler_, model.y_scaler_, model.ny, model.nu, rec.u)
+        freerun.simulate_linear(*args[:5], rec.u[:2048], workers=0)  # warm-up
+        for k in spent:
+            spent[k] = 0.0
+        trmm_flops[0] = 0.0
+        t0 = time.perf_counter()
+        freerun.simulate_linear(*args, workers=0)
+        total = time.perf_counter() - t0
+    finally:
+        freerun._MeanRecursion.run, freerun._CovarianceRecursion.advance, gpmod._dtrmm_rows = saved
+        del post.mean_var_grad
+    return {"serial_s": total, **spent, "trmm_gflops": trmm_flops[0] / spent["trmm"] / 1e9 if spent["trmm"] else 0.0}
+
+
 def main():
     def extra(ap):
         ap.add_argument("--registry", default=None, help="registry holding bert-real (default: train into a cache)")
@@ -210,6 +265,7 @@ def main():
             walls["baseline"].append(timed(baseline, cpus["baseline"]))
             walls["serial"].append(timed(serial, cpus["serial"]))
         load1 = C.load()
+        prof = pass_profile(reg, name, record)
         acc = accuracy(reg, name, record, q, args.window)
 
     ratio = C.median_ratio(walls["baseline"], walls["product"])
@@ -229,6 +285,13 @@ def main():
     print(f"  product's time: the free run itself {free_run:.2f} s ({duration / free_run:.1f}x real time), "
           f"everything else (interpreter, imports, reading the bundle and the record, the envelope check, "
           f"writing the answer) {wall - free_run:.2f} s")
+    work = prof["pass1"] + prof["pass2"] + prof["pass3"]
+    floor = work / 2.0 + (wall - free_run)
+    print(f"  each pass alone (one thread, in this process): pass 1 {prof['pass1']:.2f} s, "
+          f"pass 2 {prof['pass2']:.2f} s "
+          f"(of which the triangular products {prof['trmm']:.2f} s at {prof['trmm_gflops']:.1f} GFLOPS), pass 3 "
+          f"{prof['pass3']:.2f} s; over two cores at best {work / 2:.2f} s, so the whole process at best "
+          f"{floor:.2f} s = {duration / floor:.1f}x real time")
     print(f"  real-time factor (whole process, --method linear): product {rt:.1f}x, "
           f"baseline {duration / base_wall:.1f}x, pass 2 serial {duration / C.median(walls['serial']):.1f}x "
           f"(wall, at the load above); on CPU time (what one free core "
@@ -250,6 +313,8 @@ def main():
     C.result(rt_factor=rt, baseline=duration / base_wall, baseline_what="same-cli-process-reference-linear-loop",
              ratio=ratio, wall_s=wall, baseline_wall_s=base_wall, record_s=duration, cpu_s=cpu,
              free_run_s=free_run, outside_s=wall - free_run, rt_factor_free_run=duration / free_run,
+             pass1_s=prof["pass1"], pass2_s=prof["pass2"], trmm_s=prof["trmm"], trmm_gflops=prof["trmm_gflops"],
+             pass3_s=prof["pass3"], two_core_floor_s=floor, rt_factor_floor=duration / floor,
              serial_wall_s=C.median(walls["serial"]), serial_ratio=C.median_ratio(walls["serial"], walls["product"]),
              serial_cpu_s=C.median(cpus["serial"]), window_s=ws[0]["n"] / rec.fs,
              rt_factor_cpu=duration / cpu, baseline_cpu_s=C.median(cpus["baseline"]),
