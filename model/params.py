@@ -51,6 +51,9 @@ class ParamsMixin:
                 raise ValueError(f"invalid parameter {name!r} for estimator {type(self).__name__}; valid "
                                  f"parameters are: {sorted(self._param_names())}")
             if sep:
+                if not hasattr(valid[name], "set_params"):
+                    raise ValueError(f"invalid parameter {key!r} for estimator {type(self).__name__}: {name} "
+                                     f"({type(valid[name]).__name__}) has no parameters of its own")
                 nested.setdefault(name, {})[sub] = value
             else:
                 setattr(self, name, value)

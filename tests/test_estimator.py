@@ -493,6 +493,8 @@ def test_scikit_learn_estimator_api():
     with pytest.raises(ValueError, match="not_a_parameter.*valid parameters are"):
         c.set_params(not_a_parameter=1)
     assert c.set_params() is c
+    with pytest.raises(ValueError, match="kernel__scale.*has no parameters"):
+        c.set_params(kernel__scale=2.0)  # the kernel here is a name, not an estimator
     mean = clone(m).fit([(u, y)]).predict_one_step([(u, y)], return_std=False)
     np.testing.assert_allclose(mean, m.predict_one_step([(u, y)], return_std=False))
 
