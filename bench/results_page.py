@@ -128,6 +128,11 @@ METHOD_ROWS = (
      'Monte Carlo free run with the checked local model',
      'the previous product code of the same algorithm (`bench/mc_baseline.py`), same posterior, paths and seed, '
      'interleaved; `ratio_exact=`: `freerun_reference.simulate_mc_reference` (eqs. 8-9 at every path), timed once'),
+    ('`bench_local_check.py`',
+     'the Monte Carlo local model against eqs. 8-9 at every path, every step its check passed (errors in '
+     'tolerance units; `exceed_steps=`: the check\'s misses)',
+     'the largest error the check itself sees, at the 6 farthest paths of the same steps; ratio = largest error at '
+     'any path / that (1: the farthest paths held the worst error)'),
     ('`bench_realtime.py`',
      'the whole `gpnarx predict --method linear` process: real-time factor',
      'the same process with the reference linearised loop, alternating'),

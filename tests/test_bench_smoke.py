@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py",
            "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
            "bench_sparse_accuracy.py", "bench_sparse_variance.py", "bench_mc_speed.py", "bench_realtime.py",
-           "bench_gpu.py", "bench_gpu_steps.py", "bench_wire.py", "bench_stream.py"]
+           "bench_gpu.py", "bench_gpu_steps.py", "bench_wire.py", "bench_stream.py", "bench_local_check.py"]
 # fields of some RESULT lines that must be finite positive numbers (besides ratio and baseline)
 FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_extrapolated", "user_ratio"),
           "bench_predict_e2e.py": ("wall_s", "baseline_wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s",
@@ -30,7 +30,8 @@ FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_e
           "bench_gpu.py": ("pss", "realtime", "pss_segment", "band_median_se", "numpy_seeds_band_median_se"),
           "bench_gpu_steps.py": ("product_us", "split_us_p64", "joint_us_p64", "product_us_p64"),
           "bench_wire.py": ("json_bytes", "gzip_bytes", "npz_bytes", "json_ms", "gzip_ms", "npz_ms"),
-          "bench_stream.py": ("linear_token_bytes", "mc_token_bytes", "mc_token_ms", "ratio")}
+          "bench_stream.py": ("linear_token_bytes", "mc_token_bytes", "mc_token_ms", "ratio"),
+          "bench_local_check.py": ("max_err_all", "baseline")}
 # the baselines' numerics agree with the product's (same model on both sides of ratio=)
 MATCH = {"bench_freerun.py": "max_mean_diff", "bench_modes.py": "max_mean_diff",
          "bench_bert_scale.py": "ref_max_mean_diff", "bench_predict_e2e.py": "ref_max_mean_diff"}
@@ -78,6 +79,9 @@ def run_quick(script: str) -> None:
         assert float(kv["linear_max_band_diff_inner"]) < 1e-9 and float(kv["mc_max_band_diff_inner"]) < 1e-9, kv
     if script in MATCH:
         assert float(kv[MATCH[script]]) < 1e-8, kv
+    if script == "bench_local_check.py":  # steps were audited, and no path was beyond the check's tolerance
+        assert int(kv["audited_steps"]) > 0 and int(kv["exceed_steps"]) == 0, kv
+        assert float(kv["ratio"]) >= 1.0 and 0.0 <= float(kv["argmax_far12"]) <= 100.0, kv
     if script == "bench_mc_speed.py":  # same draws: the bands agree far inside their Monte Carlo error
         assert float(kv["max_edge_diff_se"]) < 0.5 and float(kv["cov_gap_points"]) <= 1.0, kv
 
