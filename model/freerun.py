@@ -425,17 +425,19 @@ class _Workers:
 
     def __exit__(self, exc_type, exc, tb):
         if self.n:
-            if exc_type is None:
-                self._drain()
-            while True:  # what is left after an error: dropped
-                try:
-                    self.tasks.get_nowait()
-                except queue.Empty:
-                    break
-            for _ in self.threads:
-                self.tasks.put(None)
-            for t in self.threads:
-                t.join()
+            try:
+                if exc_type is None:
+                    self._drain()
+            finally:  # also when ``then`` raises: the workers stop
+                while True:  # what is left after an error: dropped
+                    try:
+                        self.tasks.get_nowait()
+                    except queue.Empty:
+                        break
+                for _ in self.threads:
+                    self.tasks.put(None)
+                for t in self.threads:
+                    t.join()
         if exc_type is None and self.errors:
             raise self.errors[0]
         return False

@@ -344,3 +344,19 @@ def test_workers_stop_following_at_a_failed_task():
             for k in range(12):
                 pool.submit(k)
     assert followed == list(range(len(followed))) and len(followed) <= 5
+
+
+def test_workers_stop_when_the_follow_up_raises():
+    """``then`` raising on the calling thread: its error comes out of the block and the worker threads end."""
+    import threading
+
+    def then(k):
+        if k == 3:
+            raise ValueError("follow-up 3")
+
+    before = threading.active_count()
+    with pytest.raises(ValueError, match="follow-up 3"):
+        with freerun._Workers(lambda k: None, 2, then=then) as pool:
+            for k in range(10):
+                pool.submit(k)
+    assert threading.active_count() == before
