@@ -129,16 +129,19 @@ def band_stats(y, run) -> tuple[float, float]:
     return 100.0 * float(np.mean(inside)), float(np.mean(run.upper - run.lower))
 
 
-def accuracy(registry: Path, name: str, record: Path, quick: bool, window: float = 4.0) -> dict:
-    """Linearised and few-path MC bands against the reference MC on 4 s windows (quick: 300 samples)."""
+def open_run(registry: Path, name: str, record: Path):
+    """(model, record) of the in-process measurements, after the CLI's tuning for free runs."""
     from gpnarx.runtime import tune_for_free_run
     from gpnarx.storage.record_files import read_record
     from gpnarx.storage.registry import Registry
 
     tune_for_free_run(None)
     bundle = Registry(registry).scan().get(name)
-    model = bundle.model
-    rec = read_record(str(record), fs_default=bundle.fs)
+    return bundle.model, read_record(str(record), fs_default=bundle.fs)
+
+
+def accuracy(model, rec, quick: bool, window: float = 4.0) -> dict:
+    """Linearised and few-path MC bands against the reference MC on 4 s windows (quick: 300 samples)."""
     from gpnarx.model.discrepancy import widen
     from gpnarx.model.freerun_reference import simulate_mc_reference
 
@@ -172,7 +175,7 @@ def accuracy(registry: Path, name: str, record: Path, quick: bool, window: float
     return out
 
 
-def pass_profile(registry: Path, name: str, record: Path) -> dict:
+def pass_profile(model, rec) -> dict:
     """Each pass of the linearised free run timed on its own, in this process, on the whole record with pass 2 on
     the calling thread (``simulate_linear(workers=0)``: one thread, so each pass's wall time is its CPU time):
     pass 1 (the mean recursion), pass 2 (eq. 9 and the mean gradient at every step) and, inside it, the
@@ -181,13 +184,7 @@ def pass_profile(registry: Path, name: str, record: Path) -> dict:
     (perfect overlap), whatever the scheduling."""
     from gpnarx.model import freerun
     from gpnarx.model import gp as gpmod
-    from gpnarx.runtime import tune_for_free_run
-    from gpnarx.storage.record_files import read_record
-    from gpnarx.storage.registry import Registry
 
-    tune_for_free_run(None)
-    model = Registry(registry).scan().get(name).model
-    rec = read_record(str(record), fs_default=None)
     post = model.posterior_
     spent = {"pass1": 0.0, "nested": 0.0, "trmm": 0.0, "pass3": 0.0}
     trmm_flops = [0.0]
@@ -269,8 +266,9 @@ def main():
             walls["baseline"].append(timed(baseline, cpus["baseline"]))
             walls["serial"].append(timed(serial, cpus["serial"]))
         load1 = C.load()
-        prof = pass_profile(reg, name, record)
-        acc = accuracy(reg, name, record, q, args.window)
+        model, rec_in = open_run(reg, name, record)
+        prof = pass_profile(model, rec_in)
+        acc = accuracy(model, rec_in, q, args.window)
 
     ratio = C.median_ratio(walls["baseline"], walls["product"])
     wall = C.median(walls["product"])

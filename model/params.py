@@ -49,7 +49,7 @@ class ParamsMixin:
             name, sep, sub = key.partition("__")
             if name not in valid:
                 raise ValueError(f"invalid parameter {name!r} for estimator {type(self).__name__}; valid "
-                                 f"parameters are: {sorted(self._param_names())}")
+                                 f"parameters are: {self._param_names()}")
             if sep:
                 if not hasattr(valid[name], "set_params"):
                     raise ValueError(f"invalid parameter {key!r} for estimator {type(self).__name__}: {name} "
