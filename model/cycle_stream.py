@@ -30,7 +30,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import ndtri
 
 from .cycles import (
     COV_WINDOW_MAX,
@@ -41,6 +40,7 @@ from .cycles import (
     energy_weights,
     secant_stiffness,
 )
+from .normal import band_z
 
 MARGIN = STENCIL_HALF + 2  # samples a cycle's energy reads before its start and after its end
 MAX_CYCLE_SAMPLES = COV_WINDOW_MAX  # the longest cycle a stream reports (the linearised band's lags)
@@ -106,7 +106,7 @@ def advance(carry: dict | None, u, mean, *, fs: float, physics: dict, y=None, pa
     mass, gain = float(physics["mass"]), float(physics.get("input_gain", 1.0))
     output = physics.get("output", "displacement")
     q = ((1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0)
-    z = float(ndtri(q[1]))
+    z = band_z(confidence)
     out = []
     while len(cuts) >= 2 and cuts[1][0] + MARGIN <= end:
         (i0, f0, opens), (i1, f1, _) = cuts[0], cuts[1]

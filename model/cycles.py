@@ -72,8 +72,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import ndtri
 
+from .normal import band_z
 from .probe import drive_of, sine_fit
 from .restoring import restoring_force
 
@@ -275,7 +275,7 @@ def cycles(u, fs: float, physics: dict, mean, *, paths=None, cov_band=None, y=No
         k = _steady_from([float(w @ mean[j0 : j0 + w.size]) for j0, w in weights], STEADY_TOL_ENERGY)
         info = {**info, "bounds": info["bounds"][k:], "steady_from": info["steady_from"] + k}
     q_lo, q_hi = (1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0
-    z = float(ndtri(q_hi))
+    z = band_z(confidence)
     meas = None
     if y is not None:
         meas = (np.asarray(y, float),) + restoring_force(u, y, **kw)

@@ -54,7 +54,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from scipy.special import ndtri
+
+from .normal import band_z
 
 #: default averaging window of the local amplitude [s]: several cycles of the rig's resonance
 #: (about 19 Hz), one to two of its lowest drive frequencies (5 Hz)
@@ -198,7 +199,7 @@ def widen(run, scale: float, window: int, mean_before=None, open_end: bool = Fal
         if amp is None:
             amp = band_amplitude(run.mean, window, kind, hold, mean_before, open_end, hold_start)
         extra_sd = float(scale) * amp
-    z = float(ndtri(0.5 + 0.5 * run.confidence))
+    z = band_z(run.confidence)
     lo, hi = _widen_pair(run.mean, run.lower, run.upper, z * extra_sd, g)
     changes = {"std": np.sqrt((g * run.std) ** 2 + extra_sd**2), "lower": lo, "upper": hi}
     if getattr(run, "latent_lower", None) is not None:

@@ -30,7 +30,6 @@ import threading
 import time
 
 import numpy as np
-from scipy.special import ndtri
 
 from .freerun_core import (
     LAG_CLIP,
@@ -47,6 +46,7 @@ from .freerun_core import (
 from .freerun_reference import simulate_linear_reference
 from .gp import LocalModel, has_local_model, two_cpus
 from .kernels import LinearisableKernel, require
+from .normal import band_z
 from .posterior import Posterior
 
 # Tolerances of the local model's check (``simulate_mc``), at the checked paths (the farthest from the
@@ -296,7 +296,7 @@ def simulate_linear(
                                           include_noise=include_noise, progress=progress, cov_window=cov_window)
     t_start = time.perf_counter()
     confidence = check_confidence(confidence)
-    z = float(ndtri(1.0 - (1.0 - confidence) / 2.0))
+    z = band_z(confidence)
     u = np.asarray(u, dtype=float)
     n = u.size
     i0, y0v = start_index(n, ny, y0)

@@ -31,11 +31,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from scipy.special import ndtri
 
 from .backend import require_jax
 from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, check_confidence, lagged_inputs, start_index
 from .kernels.jax_forms import jax_kernel, kernel_structure, kernel_theta
+from .normal import band_z
 
 BLOCK_ELEMENTS = 1 << 23  # samples (steps x paths) of one block kept on the device: 64 MiB in float64
 MAX_BLOCK_STEPS = 4096
@@ -221,7 +221,7 @@ def simulate_linear_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.n
     jax = require_jax()
     jnp = jax.numpy
     confidence = check_confidence(confidence)
-    z = float(ndtri(1.0 - (1.0 - confidence) / 2.0))
+    z = band_z(confidence)
     n = u.size
     i0, y0v = start_index(n, ny, y0)
     Z, w, F, shift = _posterior_arrays(posterior)

@@ -9,9 +9,9 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from scipy.special import ndtri
 
 from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, McPaths, check_confidence, lagged_inputs, start_index
+from .normal import band_z
 
 
 def simulate_linear_reference(
@@ -48,7 +48,7 @@ def simulate_linear_reference(
         raise ValueError("state: the reference linearised run starts anew; continue streams with simulate_linear")
     t_start = time.perf_counter()
     confidence = check_confidence(confidence)
-    z = float(ndtri(1.0 - (1.0 - confidence) / 2.0))
+    z = band_z(confidence)
     n = u.size
     i0, y0v = start_index(n, ny, y0)
     mean = np.zeros(n)

@@ -56,8 +56,8 @@ envelope existed have none and skip this check.
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import ndtri
 
+from .normal import quantile
 from .probe import probe_check
 
 STD_FLOOR_REL = 1e-6
@@ -182,7 +182,7 @@ def calibrate_threshold(healthy_scores, false_alarm_rate: float = 0.01, groups=N
         mu, sd = float(np.mean(logs)), float(np.std(logs, ddof=1))
     else:
         mu, sd = grouped["mu"], grouped["sd"]
-    thr = float(np.exp(mu + ndtri(1.0 - false_alarm_rate) * sd))
+    thr = float(np.exp(mu + quantile(1.0 - false_alarm_rate) * sd))
     if s.size < 1.0 / false_alarm_rate:
         thr = max(thr, float(np.max(s)))
     out = {"threshold": thr, "false_alarm_rate": float(false_alarm_rate), "n_healthy": int(s.size),

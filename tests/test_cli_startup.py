@@ -11,8 +11,9 @@ import subprocess
 import sys
 
 # modules the predict path must not import: scikit-learn (the estimator follows its protocol without it,
-# model.params) and scipy.signal / scipy.stats (half a second together; the frequency check's STFT is numpy's)
-HEAVY = ("sklearn", "scipy.stats", "scipy.signal", "scipy.ndimage")
+# model.params), scipy.signal / scipy.stats (half a second together; the frequency check's STFT is numpy's) and
+# scipy.special (a tenth of a second; the band's z is the standard library's, model.normal)
+HEAVY = ("sklearn", "scipy.stats", "scipy.signal", "scipy.ndimage", "scipy.special")
 
 
 def _fresh(code: str, **env) -> str:
