@@ -24,4 +24,5 @@ def band_z(confidence: float) -> float:
     c = float(confidence)
     if not 0.0 < c < 1.0:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    return _STANDARD.inv_cdf(0.5 + 0.5 * c)
+    # from the lower tail (1 - c) / 2, which keeps its digits where 0.5 + 0.5 c would round to 1
+    return -_STANDARD.inv_cdf(0.5 * (1.0 - c))

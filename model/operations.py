@@ -30,7 +30,7 @@ from .backend import jax_available
 from .cycle_stream import STREAM_COV_WINDOW
 from .cycle_stream import advance as stream_cycles
 from .cycles import cov_window_for, cycles
-from .envelope import assess
+from .envelope import assess, out_of_range
 from .freerun_core import FreeRunState, check_state
 from .metrics import summary
 from .novelty import UnusableProbeContract, assess_novelty, novelty_start
@@ -167,7 +167,7 @@ def plan(operation: str, req, bundle, limits: Limits, budget: int | None = None)
         raise OperationError(f"u has {n} samples; the limit is {limits.max_samples} samples per record", "u",
                              kind=TOO_LARGE, limit=limits.max_samples)
     if not _fs_matches(float(req.fs), bundle.fs):
-        raise OperationError(f"fs {req.fs:g} Hz does not match the model's fs {bundle.fs:g} Hz "
+        raise OperationError(f"fs {float(req.fs):.12g} Hz does not match the model's fs {bundle.fs:.12g} Hz "
                              f"({bundle.name}:{bundle.version}); resample the record to {bundle.fs:g} Hz", "fs",
                              model_fs=bundle.fs)
     if req.y is not None and len(req.y) != n:
@@ -181,6 +181,9 @@ def plan(operation: str, req, bundle, limits: Limits, budget: int | None = None)
                                  f"{len(req.y0)}", "y0")
         if n <= ny:
             raise OperationError(f"u must be longer than ny={ny} samples when y0 is given, got {n}", "u")
+    if getattr(req, "start", None) == "rest" and _given(req.y0):
+        raise OperationError("start 'rest' and y0 contradict each other: y0 starts the free run from measured outputs; "
+                             "leave y0 out to start at rest, or send start 'measured'", "start")
     if start_of(operation, req) == "measured" and req.y is None and not _given(req.y0):
         raise OperationError(f"start 'measured' needs the record's measured output: send y (its first ny={ny} "
                              f"samples start the free run) or y0", "start")
@@ -251,11 +254,22 @@ def _stream_state(req, bundle, limits: Limits, method: str, paths: int, backend:
 
 def start_of(operation: str, req) -> str:
     """The request's start rule: 'state' when it continues a stream, its ``start`` field, else 'measured' for
-    novelty and 'rest' otherwise."""
+    novelty or when it sends y0, and 'rest' otherwise."""
     if getattr(req, "state", None) is not None:
         return "state"
     start = getattr(req, "start", None)
-    return start if start is not None else ("measured" if operation == "novelty" else "rest")
+    if start is not None:
+        return start
+    return "measured" if operation == "novelty" or _given(getattr(req, "y0", None)) else "rest"
+
+
+def started(plan: Plan, req) -> str:
+    """How the free run actually started, as an answer's ``start`` says it: 'state' (a stream's later chunk),
+    'measured' (from y0 or y's first ny samples) or 'rest' (also a 'measured' request whose y is not longer
+    than ny samples: nothing is left to start from)."""
+    if plan.state is not None:
+        return "state"
+    return "measured" if _initial_outputs(plan, req) is not None else "rest"
 
 
 def physics_of(bundle) -> dict:
@@ -324,20 +338,35 @@ def _simulate(plan: Plan, req, u: np.ndarray, progress: Callable | None):
                                  confidence=float(req.confidence), method=plan.method, backend=plan.backend,
                                  progress=progress, **extra, **stream)
     except np.linalg.LinAlgError:  # a factorisation of non-finite numbers (a ValueError too): the run diverged
-        raise OperationError(_diverged(plan), "u") from None
+        raise OperationError(*_diverged(plan, req, u)) from None
     except ValueError as exc:
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
         raise OperationError(msg, _field_from_message(msg)) from None
     if not (np.all(np.isfinite(run.mean)) and np.all(np.isfinite(run.lower)) and np.all(np.isfinite(run.upper))
             and np.all(np.isfinite(run.std))):
-        raise OperationError(_diverged(plan), "u")
+        raise OperationError(*_diverged(plan, req, u))
     return run
 
 
-def _diverged(plan: Plan) -> str:
-    return (f"the free-run prediction of {plan.bundle.name}:{plan.bundle.version} diverged for this input "
-            "(non-finite outputs): u is probably far outside the amplitude or frequency range the model was "
-            "trained on")
+def _diverged(plan: Plan, req, u: np.ndarray) -> tuple[str, str]:
+    """(message, field) of a free run that gave non-finite outputs (``_culprit``)."""
+    head = (f"the free-run prediction of {plan.bundle.name}:{plan.bundle.version} diverged for this input "
+            "(non-finite outputs): ")
+    return _culprit(plan, req, u, head)
+
+
+def _culprit(plan: Plan, req, u: np.ndarray, head: str) -> tuple[str, str]:
+    """(message, field) of an answer that came out non-finite: the measured start (``y0``, or ``y``'s first ny
+    samples) when it lies beyond the trained output range and u does not lie beyond the input range, else u."""
+    env = getattr(plan.bundle.model, "envelope_", None)
+    y_start = _initial_outputs(plan, req)
+    flags = out_of_range(env, u, y_start) if y_start is not None else []
+    if "y" in flags and "u" not in flags:
+        field = "y0" if _given(req.y0) else "y"
+        where = "y0" if field == "y0" else f"the first ny={plan.bundle.model.ny} samples of y (the measured start)"
+        return (head + f"{where} lie far outside the output range the model was trained on (peak "
+                       f"{env['y_peak']:.4g}); check their unit and scale", field)
+    return (head + "u is probably far outside the amplitude or frequency range the model was trained on", "u")
 
 
 def _is_stream(plan: Plan, req) -> bool:
@@ -381,7 +410,7 @@ def compute(plan: Plan, req, *, progress: Callable | None = None,
     run = _simulate(plan, req, u, progress)
     flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
     common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
-              "backend": run.backend, "seed": int(req.seed), "start": start_of(plan.operation, req), **flags}
+              "backend": run.backend, "seed": int(req.seed), "start": started(plan, req), **flags}
     steps = int(run.path_steps) if run.method == "mc" else 0
     y = None if req.y is None else np.asarray(req.y, float)
     carry = None  # what the operation carries to a stream's next chunk (FreeRunState.carry)
@@ -418,7 +447,7 @@ def _loops(plan: Plan, req, u, y, run, common, checkpoint) -> tuple[dict, dict |
     def loop(yy):
         x, r = restoring_force(u, yy, **kw)
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
-            raise OperationError("the restoring force is not finite for this record", "u")
+            raise OperationError(*_culprit(plan, req, u, "the restoring force is not finite for this record: "))
         return {"x": x, "force": r, "area": loop_area(x, r)}
 
     out = {**_head(b), **common, "n_samples": int(u.size), "physics": phys,
@@ -450,7 +479,7 @@ def _novelty(plan: Plan, req, u, run, common, flags) -> tuple[dict, dict | None]
     nov = novelty_of(b)
     try:
         # a stream's later chunk continues a run begun by the probe's rule: no new start-up to judge
-        rule = "measured" if plan.state is not None else start_of(plan.operation, req)
+        rule = "measured" if plan.state is not None else started(plan, req)
         a = assess_novelty(nov, u, req.y, b.fs, run, start=rule, flags=flags)
     except UnusableProbeContract as exc:  # a malformed contract in the manifest: say so rather than guess
         raise OperationError(f"model {b.name}:{b.version} has an unusable probe contract: {exc}",

@@ -23,15 +23,21 @@ def render_json(obj) -> bytes:
     return dumps_json(obj)
 
 
-def parse_json(raw: bytes):
-    """Parse a request body; ``ValueError`` with a clear message when it is not JSON."""
+def parse_json(raw: bytes, non_finite: bool = False):
+    """Parse a request body; ``ValueError`` with a clear message when it is not JSON.
+
+    ``non_finite``: also take the tokens NaN, Infinity and -Infinity and numbers beyond the float range (as
+    non-finite floats), for a caller that refuses them field by field (a batch: one record's bad number must
+    not lose the other records); otherwise they make the body invalid.
+    """
     if _orjson is not None:
         try:
             return _orjson.loads(raw)
         except _orjson.JSONDecodeError as exc:
-            raise ValueError(f"request body is not valid JSON: {exc}") from None
+            if not non_finite:
+                raise ValueError(f"request body is not valid JSON: {exc}") from None
     try:
-        return json.loads(raw, parse_constant=_refuse_constant)
+        return json.loads(raw, **({} if non_finite else {"parse_constant": _refuse_constant}))
     except RecursionError:
         raise ValueError("request body is not valid JSON: nested too deeply") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:

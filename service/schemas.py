@@ -46,9 +46,10 @@ _MC_DESC = (f"Monte Carlo paths for `method`='mc' (default: the model's, `defaul
 _SEED_DESC = "Seed of the Monte Carlo draws; the same request with the same seed gives the same answer."
 _CONF_DESC = "Two-sided band probability, in [0.5, 1). Default 0.99 (the 0.5% and 99.5% quantiles)."
 _START_DESC = ("Where the free run starts: 'rest' (the system at rest before the record; the default for predict "
-               "and loops) or 'measured' (from the record's first `ny` measured outputs, taken from `y0` or else "
-               "from `y`; the default for novelty). Use 'measured' for a window cut from the middle of a steady "
-               "run, 'rest' for a record that starts with the structure at rest.")
+               "and loops without `y0`) or 'measured' (from the record's first `ny` measured outputs, taken from "
+               "`y0` or else from `y`; the default for novelty and with `y0`; 'rest' with `y0` is a 422). Use "
+               "'measured' for a window cut from the middle of a steady run, 'rest' for a record that starts with "
+               "the structure at rest.")
 _BACKEND_DESC = ("Array backend of the free run: 'numpy' (the default) or 'jax' (one compiled program; on a GPU "
                  "where the server has the CUDA build of JAX; Monte Carlo evaluates eq. 8-9 exactly at every path, "
                  "so its bands agree with numpy's within Monte Carlo error, not path for path). Default: the "
@@ -164,9 +165,11 @@ _OOR_DESC = ("What lies outside the model's knowledge: 'u' when the record's pea
 
 
 class _Knowledge(BaseModel):
-    start: Literal["rest", "measured", "state"] = Field("rest", description="The start rule the free run used "
-                                                         "(see the request's `start`); 'state' when it continued "
-                                                         "a stream from the request's `state`.")
+    start: Literal["rest", "measured", "state"] = Field("rest", description="How the free run started (see the "
+                                                         "request's `start`): 'measured' from `y0` or `y`'s first "
+                                                         "`ny` samples, 'rest' also when a 'measured' record's `y` "
+                                                         "holds no more than `ny` samples, 'state' when it "
+                                                         "continued a stream from the request's `state`.")
     state: str | None = Field(None, description="With `return_state`: the token of where this free run ended. "
                                                 "Send it as the next chunk's `state` (docs/api.md, Streams).")
     stream_position: int | None = Field(None, description="With `state` or `return_state`: samples of the "

@@ -253,11 +253,13 @@ class ServiceState:
                             headers={"Retry-After": str(after)})
 
     async def run(self, fn, *args, request: Request | None = None, token: CancelToken | None = None,
-                  work: float = 1.0):
+                  work: float = 1.0, too_slow: tuple[str, str] = ("send fewer mc_paths, a shorter record or method "
+                                                                  "'linear'", "mc_paths")):
         """Run ``fn(*args)`` on the worker pool under the request deadline; cancel it if the client goes.
 
         ``token`` (the caller passes it to ``fn`` too) is set when a running job must stop; ``work``
-        (Monte Carlo path-steps) sizes the job for the queue's wait estimate.
+        (Monte Carlo path-steps) sizes the job for the queue's wait estimate; ``too_slow``: (advice, field) of
+        the 504 when the job outlives the deadline, what this request can change to finish in time.
         """
         timeout = self.settings.request_timeout or None
         watch = (lambda: _client_gone(request)) if request is not None else None
@@ -282,8 +284,7 @@ class ServiceState:
         except TimedOut:
             self.metrics.timed_out.labels("running").inc()
             raise ProblemError(504, f"the request did not finish within its time limit of {timeout:g} s "
-                                    f"(GPNARX_REQUEST_TIMEOUT); send fewer mc_paths, a shorter record or "
-                                    f"method 'linear'", "mc_paths", limit=timeout) from None
+                                    f"(GPNARX_REQUEST_TIMEOUT); {too_slow[0]}", too_slow[1], limit=timeout) from None
         except Abandoned as exc:
             self.metrics.abandoned.inc()
             raise ProblemError(499, f"{exc}; the job was cancelled") from None

@@ -26,8 +26,11 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import lzma
 import re
+import tokenize
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -45,6 +48,10 @@ MAX_MEMBERS = 8
 #: largest .npy header read from a request [bytes]
 MAX_NPY_HEADER = 4096
 _INT = re.compile(r"[+-]?\d+")
+#: what reading a damaged member can raise: the zip layer (a bad CRC, an unknown or encrypted method, a damaged
+#: deflate, bzip2 or LZMA stream) and numpy's .npy header parser (its tokenizer and literal evaluation)
+_CORRUPT = (ValueError, EOFError, OSError, zipfile.BadZipFile, NotImplementedError, RuntimeError, zlib.error,
+            lzma.LZMAError, tokenize.TokenError, SyntaxError, RecursionError, TypeError, KeyError)
 
 
 # ---------------------------------------------------------------------------------------- requests
@@ -69,7 +76,7 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, field: str):
             else:  # pragma: no cover - read_magic refuses other versions
                 raise ValueError(f"unsupported .npy version {version}")
             return shape, dtype, fh.tell()
-    except (ValueError, EOFError, OSError, zipfile.BadZipFile, NotImplementedError, RuntimeError) as exc:
+    except _CORRUPT as exc:
         raise _bad(field, f"not a readable .npy array in the archive ({type(exc).__name__}: {exc})"[:300]) from None
 
 
@@ -81,7 +88,7 @@ def read_npz_body(raw: bytes, max_bytes: int, max_samples: int) -> dict:
     """
     try:
         zf = zipfile.ZipFile(io.BytesIO(raw))
-    except (zipfile.BadZipFile, ValueError, OSError) as exc:
+    except _CORRUPT as exc:
         raise ProblemError(400, f"the {NPZ_MEDIA_TYPE} body is not a zip archive (.npz): {exc}"[:300], "body") \
             from None
     with zf:
@@ -116,7 +123,7 @@ def read_npz_body(raw: bytes, max_bytes: int, max_samples: int) -> dict:
             try:
                 with zf.open(info) as fh:
                     arr = np.lib.format.read_array(fh, allow_pickle=False, max_header_size=MAX_NPY_HEADER)
-            except (ValueError, EOFError, OSError, zipfile.BadZipFile, RuntimeError) as exc:
+            except _CORRUPT as exc:
                 raise _bad(field, f"corrupt array in the archive ({type(exc).__name__}: {exc})"[:300]) from None
             if field == "fs":
                 if arr.size != 1:

@@ -16,8 +16,15 @@ def test_quantile_matches_scipy_over_the_whole_range():
 @pytest.mark.parametrize("confidence", [0.5, 0.9, 0.95, 0.99, 0.999, 1.0 - 1e-9])
 def test_band_z_is_the_two_sided_quantile(confidence):
     z = band_z(confidence)
-    assert z == pytest.approx(float(ndtri(1.0 - (1.0 - confidence) / 2.0)), rel=1e-14)
+    assert z == pytest.approx(-float(ndtri(0.5 * (1.0 - confidence))), rel=1e-14)
     assert band_z(0.99) == pytest.approx(2.5758293035489, abs=1e-12)
+
+
+def test_band_z_keeps_its_digits_next_to_one():
+    """The largest double below 1: 0.5 + 0.5 c rounds to 1 there, the lower tail (1 - c) / 2 does not."""
+    c = np.nextafter(1.0, 0.0)
+    assert band_z(c) == pytest.approx(-float(ndtri(0.5 * (1.0 - c))), rel=1e-14)
+    assert 8.0 < band_z(c) < 8.5
 
 
 @pytest.mark.parametrize("bad", [0.0, 1.0, -0.1, 1.5, float("nan")])

@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -114,3 +115,69 @@ def test_a_record_body_without_a_json_or_npz_content_type_is_a_problem_naming_th
     for good in ("application/json", "application/merged-patch+json"):
         r = client.post("/v1/models/boucwen/predict", content=body, headers={"content-type": good})
         assert r.status_code == 200, r.text[:300]
+
+
+@pytest.mark.parametrize("token", ["1e400", "NaN", "-Infinity"])
+def test_a_non_finite_number_in_one_batch_record_fails_that_record_only(client, token):
+    """JSON that holds a number beyond the float range (valid JSON) or a NaN / Infinity token in one record:
+    that record's 422 in its slot, the others answered."""
+    good = {"model": "boucwen", "u": [0.5, -0.25] * 16, "fs": FS, "method": "linear"}
+    body = json.dumps({"requests": [good, good, good]})
+    at = body.index('"u": [', body.index("}") + 1)  # the second record's u
+    body = body[:at] + f'"u": [{token}, ' + body[at + len('"u": ['):]
+    r = client.post("/v1/batch", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 200, r.text[:300]
+    res = r.json()["results"]
+    assert "status" not in res[0] and "status" not in res[2], res
+    assert res[1]["status"] == 422 and res[1]["field"] == "requests.1.u.0", res[1]
+    # the record routes answer the same number the same way
+    one = json.dumps(good).replace('"u": [', f'"u": [{token}, ', 1)
+    _problem(client.post("/v1/models/boucwen/predict", content=one, headers={"content-type": "application/json"}),
+             422, "u.0")
+
+
+def test_a_measured_start_far_outside_the_trained_range_is_named(client):
+    """Loops whose restoring force overflows because of the measured start blame y0 (or y), not a u inside the
+    trained range; a u far outside it is still named."""
+    u = [0.5, -0.25] * 32
+    r = client.post("/v1/models/boucwen/loops", json={"u": u, "y0": [1e308] * 64, "y": [0.0] * 64, "fs": FS,
+                                                      "method": "linear"})
+    p = _problem(r, 422, "y0")
+    assert "y0" in p["detail"] and "output range" in p["detail"]
+    r = client.post("/v1/models/boucwen/loops", json={"u": u, "y": [1e308] * 64, "start": "measured", "fs": FS,
+                                                      "method": "linear"})
+    p = _problem(r, 422, "y")
+    assert "first ny" in p["detail"]
+    r = client.post("/v1/models/boucwen/loops", json={"u": [1e300, -1e300] * 32, "y0": [1e308] * 64, "fs": FS,
+                                                      "method": "linear"})
+    _problem(r, 422, "u")
+
+
+def test_confidence_next_to_one_is_answered(client):
+    c = 0.9999999999999999  # the largest double below 1: the schema takes it
+    r = client.post("/v1/models/boucwen/predict", json={"u": [0.5] * 32, "fs": FS, "method": "linear",
+                                                       "confidence": c})
+    assert r.status_code == 200, r.text[:300]
+    d = r.json()
+    assert d["confidence"] == c and all(lo <= m <= hi for lo, m, hi in zip(d["lower"], d["mean"], d["upper"]))
+
+
+def test_an_fs_mismatch_prints_both_values_apart(client):
+    p = _problem(client.post("/v1/models/boucwen/predict", json={"u": [0.5] * 32, "fs": FS - 1e-4}), 422, "fs")
+    assert f"{FS - 1e-4:.12g}" in p["detail"] and f"model's fs {FS:.12g} Hz" in p["detail"]
+
+
+def test_the_answers_start_says_how_the_run_started(client):
+    ny = built_registry().model.ny
+    u, y = [0.5, -0.25] * 32, [1e-5, -1e-5] * 32
+    base = {"u": u, "fs": FS, "method": "linear"}
+    post = lambda **kw: client.post("/v1/models/boucwen/predict", json={**base, **kw})  # noqa: E731
+    assert post().json()["start"] == "rest"
+    assert post(y0=y[:ny]).json()["start"] == "measured"  # y0 starts the run from measured outputs
+    assert post(y=y, start="measured").json()["start"] == "measured"
+    # too short to hold a measured start: the run starts at rest, and says so
+    short = client.post("/v1/models/boucwen/predict", json={"u": u[:ny], "y": y[:ny], "fs": FS, "method": "linear",
+                                                            "start": "measured"})
+    assert short.status_code == 200 and short.json()["start"] == "rest", short.text[:300]
+    p = _problem(post(y0=y[:ny], start="rest"), 422, "start")
+    assert "contradict" in p["detail"]

@@ -165,6 +165,22 @@ def test_predict_past_time_limit_is_504_and_frees_the_worker(rate):
         assert rl.status_code == 504, rl.text[:300]
 
 
+def test_a_linearised_run_past_the_limit_gets_advice_that_applies_to_it():
+    """The 504 of a linearised record names u and asks for a shorter record, not for fewer Monte Carlo paths;
+    a batch of linearised records names requests."""
+    app = create_app(built_registry().root, Settings(workers=1, queue_size=0, request_timeout=0.1))
+    body = {"u": multisine(60000, 31).tolist(), "fs": FS, "method": "linear"}  # about a second here
+    with LiveServer(app) as srv, httpx.Client(base_url=srv.url, timeout=60) as c:
+        r = c.post("/v1/models/boucwen/predict", json=body)
+        assert r.status_code == 504, r.text[:300]
+        p = r.json()
+        assert p["field"] == "u" and "shorter record" in p["detail"] and "mc_paths" not in p["detail"], p
+        assert _wait(lambda: app.state.service.executor.pending == 0, 30.0)
+        rb = c.post("/v1/batch", json={"requests": [{"model": "boucwen", **body}]})
+        assert rb.status_code == 504 and rb.json()["field"] == "requests", rb.text[:300]
+        assert "mc_paths" not in rb.json()["detail"]
+
+
 def test_client_disconnect_frees_the_worker(rate):
     app = create_app(built_registry().root, Settings(workers=1, queue_size=0, request_timeout=0))
     ex = app.state.service.executor

@@ -275,3 +275,68 @@ def test_docs_wire_table_is_the_render_of_its_stored_run():
     page = (root / "docs" / "api.md").read_text()
     block = page[page.index(bench.BEGIN):page.index(bench.END) + len(bench.END)]
     assert block == bench.render(about, command, kv), "docs/api.md's wire table differs from its stored run's render"
+
+
+def _member_data_offset(raw: bytes, name: str) -> int:
+    """Offset of a member's compressed data in a zip archive (after its local header)."""
+    info = zipfile.ZipFile(io.BytesIO(raw)).getinfo(name)
+    n, extra = int.from_bytes(raw[info.header_offset + 26: info.header_offset + 28], "little"), \
+        int.from_bytes(raw[info.header_offset + 28: info.header_offset + 30], "little")
+    return info.header_offset + 30 + n + extra
+
+
+def _lzma_npz(u: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_LZMA) as zf:
+        arr = io.BytesIO()
+        np.save(arr, u)
+        zf.writestr("u.npy", arr.getvalue())
+    return buf.getvalue()
+
+
+def test_npz_damaged_streams_and_headers_are_a_422_on_the_array(client):
+    """A damaged deflate stream, a damaged LZMA stream and a .npy header numpy cannot tokenize: each a 422
+    naming the array, never a 500."""
+    u = np.random.default_rng(0).normal(size=2000)
+    deflate = bytearray(npz(u=u, fs=FS))
+    deflate[_member_data_offset(bytes(deflate), "u.npy")] = 0x07  # an invalid deflate block type
+    lz = bytearray(_lzma_npz(np.random.default_rng(0).normal(size=20000)))
+    off = _member_data_offset(bytes(lz), "u.npy")
+    for k in range(off + 200, off + 400):
+        lz[k] ^= 0x5A
+    head = b"{'descr': '<f8"  # an unclosed brace
+    head += b" " * ((64 - (10 + len(head) + 1) % 64) % 64) + b"\n"
+    untokenizable = io.BytesIO()
+    with zipfile.ZipFile(untokenizable, "w") as zf:
+        zf.writestr("u.npy", b"\x93NUMPY\x01\x00" + len(head).to_bytes(2, "little") + head + b"\0" * 32)
+    for body, query in ((bytes(deflate), ""), (bytes(lz), f"?fs={FS}"), (untokenizable.getvalue(), f"?fs={FS}")):
+        r = post_npz(client, body, query)
+        assert r.status_code == 422 and r.headers["content-type"] == PROBLEM, r.text
+        assert r.json()["field"] == "u", r.json()
+
+
+@pytest.mark.parametrize("kind", ["deflate", "lzma", "stored"])
+def test_npz_reader_refuses_any_damaged_byte_with_a_problem(kind):
+    """Every single-byte change of a valid archive (a sample of them) gives an answer or a 4xx ProblemError:
+    no other exception leaves the reader."""
+    from gpnarx.service.problems import ProblemError
+    from gpnarx.service.wire import read_npz_body
+
+    u = np.random.default_rng(1).normal(size=300)
+    if kind == "lzma":
+        raw = _lzma_npz(u)
+    else:
+        buf = io.BytesIO()
+        (np.savez_compressed if kind == "deflate" else np.savez)(buf, u=u, fs=np.float64(FS))
+        raw = buf.getvalue()
+    rng = np.random.default_rng(2)
+    problems = 0
+    for pos, val in zip(rng.integers(0, len(raw), 600), rng.integers(0, 256, 600)):
+        bad = bytearray(raw)
+        bad[pos] = val
+        try:
+            read_npz_body(bytes(bad), 1 << 20, 10_000)
+        except ProblemError as exc:
+            assert 400 <= exc.status < 500, (pos, val, exc.status, str(exc))
+            problems += 1
+    assert problems > 0

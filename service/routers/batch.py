@@ -40,8 +40,12 @@ async def batch(request: Request, state: StateDep):
     results, todo = await plan_items(state, items)
     if todo:
         token = CancelToken()
+        mc = any(plan.method == "mc" for _, plan, _ in todo)
+        advice = "send fewer records per batch, shorter records" + (
+            ", fewer mc_paths or method 'linear'" if mc else " (a long record as a stream in chunks: docs/api.md)")
         done, steps = await state.run(run_items, state, request, todo, token, request=request, token=token,
-                                      work=sum(plan.work for _, plan, _ in todo))
+                                      work=sum(plan.work for _, plan, _ in todo),
+                                      too_slow=(advice, "mc_paths" if mc else "requests"))
         state.metrics.path_steps.inc(steps)
         for i, out in done:
             results[i] = out
@@ -54,7 +58,7 @@ def read_items(raw: bytes, ctype: str, max_batch: int) -> list:
     if ctype and "json" not in ctype.split(";")[0].lower():
         raise ProblemError(415, f"the body must be application/json, got {ctype[:100]!r}", "body")
     try:
-        data = parse_json(raw)
+        data = parse_json(raw, non_finite=True)  # a non-finite number is its record's 422, not the batch's
     except ValueError as exc:
         raise ProblemError(400, str(exc), "body") from None
     if not isinstance(data, dict):

@@ -119,8 +119,10 @@ async def single(state: ServiceState, request: Request, operation: str, body: Re
     bundle = await state.alookup(name, version)
     plan = ops.plan(operation, body, bundle, state.settings)
     token = CancelToken()
+    too_slow = (("send fewer mc_paths, a shorter record or method 'linear'", "mc_paths") if plan.method == "mc"
+                else ("send a shorter record (a stream in chunks: docs/api.md, Streams)", "u"))
     out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter(), token,
-                                                   request=request, token=token, work=plan.work)
+                                                   request=request, token=token, work=plan.work, too_slow=too_slow)
     state.metrics.path_steps.inc(steps)
     state.metrics.answered(operation, out)
     state.telemetry.answered(request, operation, out, body, waited + computed)  # audit line, drift, latency
