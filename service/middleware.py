@@ -12,6 +12,7 @@ import asyncio
 import logging
 import time
 import uuid
+import zlib
 
 from fastapi import FastAPI
 from starlette.routing import Match
@@ -53,6 +54,30 @@ def _header(scope, name: bytes) -> str | None:
 
 class _BodyTooLarge(Exception):
     pass
+
+
+#: request bodies the service decodes (``Content-Encoding``); anything else is a 415
+REQUEST_ENCODINGS = ("gzip", "identity")
+
+
+def _request_encoding(scope) -> str | None:
+    """The request's body encoding ('gzip' or None for none/identity); ProblemError 415 for another one."""
+    value = _header(scope, b"content-encoding")
+    codings = [c.strip().lower() for c in (value or "").split(",") if c.strip()]
+    codings = [c for c in codings if c != "identity"]
+    if not codings:
+        return None
+    if codings == ["gzip"] or codings == ["x-gzip"]:
+        return "gzip"
+    raise ProblemError(415, f"Content-Encoding {value[:60]!r} is not supported: send the body as it is or "
+                            f"gzip-compressed (Content-Encoding: gzip)", "content-encoding",
+                       accepted=list(REQUEST_ENCODINGS))
+
+
+def _without_encoding(scope) -> dict:
+    """``scope`` without the headers that describe the encoded body (its encoding and length)."""
+    drop = (b"content-encoding", b"content-length")
+    return {**scope, "headers": [(k, v) for k, v in scope.get("headers") or () if k.lower() not in drop]}
 
 
 class _BodyTimeout(Exception):
@@ -111,6 +136,7 @@ class GuardMiddleware:
 
         body_timeout = st.settings.body_timeout
         body_done = False
+        inflate = None  # a gzip-encoded body: decoded here, its decoded size under the same cap
 
         async def receive_wrapper():
             nonlocal received, body_done
@@ -125,11 +151,30 @@ class GuardMiddleware:
             if message["type"] == "http.request" and not message.get("more_body", False):
                 body_done = True
             if message["type"] == "http.request":
+                if inflate is not None:
+                    message = {**message, "body": _inflated(message)}
                 received += len(message.get("body", b""))
                 if received > limit:
                     ctx["exceeded"] = True
                     raise _BodyTooLarge()
             return message
+
+        def _inflated(message) -> bytes:
+            """This chunk of a gzip body decoded, at most one byte past the cap (then the cap's 413)."""
+            try:
+                out = inflate.decompress(message.get("body", b""), max(0, limit - received) + 1)
+                if inflate.unconsumed_tail:  # more decoded bytes than the cap allows: the cap's 413
+                    return out + b"\0"
+                if inflate.unused_data:
+                    raise zlib.error("bytes follow the end of the gzip stream")
+                if not message.get("more_body", False) and not inflate.eof:
+                    raise zlib.error("the gzip stream ends early")
+            except zlib.error as exc:  # answered as an oversized body is: the app's own answer is swallowed
+                ctx["exceeded"] = True
+                ctx["refusal"] = ProblemError(400, f"the gzip-encoded body could not be decoded ({exc})",
+                                              "content-encoding")
+                raise _BodyTooLarge() from None
+            return out
 
         async def reply(p: ProblemError):
             resp = problem_response(p)
@@ -154,6 +199,13 @@ class GuardMiddleware:
                 if problem is not None:
                     await reply(problem)
                     return
+            try:
+                if _request_encoding(scope) == "gzip":
+                    inflate = zlib.decompressobj(wbits=31)
+                    scope = _without_encoding(scope)
+            except ProblemError as problem:
+                await reply(problem)
+                return
             cl = headers.get("content-length")
             if cl is not None:
                 try:
@@ -173,7 +225,7 @@ class GuardMiddleware:
                 pass
             if ctx["exceeded"] and (ctx["status"] is None or ctx["swallow"]):
                 ctx["swallow"] = False
-                await reply(too_slow if ctx["timeout"] else too_large)
+                await reply(ctx.get("refusal") or (too_slow if ctx["timeout"] else too_large))
         except asyncio.CancelledError:
             # the server cancels requests still running when its drain window (GPNARX_DRAIN_TIMEOUT) ends:
             # a retryable 503 problem instead of uvicorn's bare text/plain 500
@@ -190,7 +242,7 @@ class GuardMiddleware:
             incident = uuid.uuid4().hex[:12]
             log.exception("unhandled error (incident %s) on %s %s", incident, scope.get("method"), scope.get("path"))
             if ctx["exceeded"] and not ctx["status"]:
-                await reply(too_slow if ctx["timeout"] else too_large)
+                await reply(ctx.get("refusal") or (too_slow if ctx["timeout"] else too_large))
             elif ctx["status"] is None:
                 await reply(ProblemError(500, f"internal error (incident {incident}); the error was logged",
                                          incident=incident))

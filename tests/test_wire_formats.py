@@ -340,3 +340,36 @@ def test_npz_reader_refuses_any_damaged_byte_with_a_problem(kind):
             assert 400 <= exc.status < 500, (pos, val, exc.status, str(exc))
             problems += 1
     assert problems > 0
+
+
+def test_gzip_request_bodies_are_decoded_and_bounded(registry):
+    """A gzip-encoded body (Content-Encoding: gzip) gets the plain body's answer on a record route and in a batch;
+    its decoded size is under the body cap (413, without inflating the rest); a body that is not gzip, ends early
+    or has bytes after its end is a 400, and another encoding a 415, each naming content-encoding."""
+    import gzip
+    import json
+
+    cap = 1 << 20
+    c = TestClient(create_app(registry, Settings(workers=1, queue_size=4, max_body_bytes=cap)),
+                   raise_server_exceptions=False)
+    body = {"u": multisine(256, 3).tolist(), "fs": FS, "method": "linear"}
+    raw = json.dumps(body).encode()
+    gz = {"content-type": "application/json", "content-encoding": "gzip"}
+    plain = c.post("/v1/models/boucwen/predict", json=body)
+    r = c.post("/v1/models/boucwen/predict", content=gzip.compress(raw), headers=gz)
+    assert r.status_code == 200 and r.json()["mean"] == plain.json()["mean"], r.text[:300]
+    batch = json.dumps({"requests": [{"model": "boucwen", **body}]}).encode()
+    r = c.post("/v1/batch", content=gzip.compress(batch), headers=gz)
+    assert r.status_code == 200 and r.json()["results"][0]["mean"] == plain.json()["mean"], r.text[:300]
+    bomb = gzip.compress(b" " * (64 * cap))  # 64 MiB of spaces, about 65 kB on the wire
+    r = c.post("/v1/models/boucwen/predict", content=bomb, headers=gz)
+    assert r.status_code == 413 and r.json()["field"] == "body" and r.json()["limit"] == cap, r.text[:300]
+    for bad in (raw, gzip.compress(raw)[:-12], gzip.compress(raw) + b"junk"):
+        r = c.post("/v1/models/boucwen/predict", content=bad, headers=gz)
+        assert r.status_code == 400 and r.headers["content-type"] == PROBLEM, r.text[:300]
+        assert r.json()["field"] == "content-encoding" and "gzip" in r.json()["detail"]
+    r = c.post("/v1/models/boucwen/predict", content=raw, headers={**gz, "content-encoding": "br"})
+    assert r.status_code == 415 and r.json()["field"] == "content-encoding" and "gzip" in r.json()["accepted"]
+    r = c.post("/v1/models/boucwen/predict", content=raw,
+               headers={"content-type": "application/json", "content-encoding": "identity"})
+    assert r.status_code == 200
