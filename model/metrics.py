@@ -1,6 +1,8 @@
 """Prediction metrics: fit % (eq. 14), RMSE, NRMSE, band coverage and width."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -14,19 +16,33 @@ def _pair(y, yhat):
     return y, yhat
 
 
+def rms(a) -> float:
+    """Root mean square of the samples of ``a`` (same unit), sqrt(mean(a^2)) taken on a / max|a|: finite for any
+    finite samples (the squares of samples beyond 1.3e154 overflow a double); inf when a sample is not finite, nan
+    for no samples."""
+    a = np.asarray(a, dtype=float).ravel()
+    if a.size == 0:
+        return float("nan")
+    peak = float(np.max(np.abs(a)))
+    if peak == 0.0 or not math.isfinite(peak):
+        return peak if not math.isnan(peak) else float("nan")
+    b = a / peak
+    return peak * math.sqrt(float(np.mean(b * b)))
+
+
 def fit_percent(y, yhat) -> float:
-    """Eq. (14): 100 (1 - sqrt(sum (y - mu)^2 / sum y^2)) [%]."""
+    """Eq. (14): 100 (1 - sqrt(sum (y - mu)^2 / sum y^2)) [%] (as a ratio of RMS values: ``rms``)."""
     y, yhat = _pair(y, yhat)
-    den = float(np.sum(y * y))
+    den = rms(y)
     if den == 0.0:
         return float("nan")
-    return 100.0 * (1.0 - np.sqrt(float(np.sum((y - yhat) ** 2)) / den))
+    return 100.0 * (1.0 - rms(y - yhat) / den)
 
 
 def rmse(y, yhat) -> float:
-    """Root-mean-square error, in output units."""
+    """Root-mean-square error, in output units (``rms``: no overflow for large finite errors)."""
     y, yhat = _pair(y, yhat)
-    return float(np.sqrt(np.mean((y - yhat) ** 2)))
+    return rms(y - yhat)
 
 
 def nrmse(y, yhat) -> float:

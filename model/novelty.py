@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .metrics import rms
 from .normal import quantile
 from .probe import probe_check
 
@@ -136,10 +137,12 @@ def novelty_score(y, mean, std, method: str = RMS_METHOD) -> dict:
     if method == SEGMENT_METHOD:
         if z.size < SEGMENTS:
             raise ValueError(f"the {SEGMENT_METHOD} score needs at least {SEGMENTS} scored samples, got {z.size}")
-        score = float(np.median([np.sqrt(np.mean(c * c)) for c in np.array_split(z, SEGMENTS)]))
+        score = float(np.median([rms(c) for c in np.array_split(z, SEGMENTS)]))
     else:
-        score = float(np.sqrt(np.mean(z * z)))
-    nlpd = float(np.mean(0.5 * np.log(2 * np.pi * std[ok] ** 2) + 0.5 * z * z))
+        score = rms(z)
+    # mean of 0.5 log(2 pi s^2) + 0.5 z^2, its z^2 term as 0.5 rms(z)^2: inf only when that exceeds a double
+    r = rms(z)
+    nlpd = float(np.mean(0.5 * np.log(2 * np.pi * std[ok] ** 2))) + 0.5 * r * r
     return {"score": score, "nlpd": nlpd, "n_samples": int(ok.sum()), "method": method}
 
 

@@ -316,9 +316,10 @@ class NoveltyWindow(BaseModel):
 class NoveltyResponse(_Knowledge):
     model: str
     version: str
-    score: float = Field(..., description="RMS standardised residual of y under the predictive distribution "
-                         "(about 1 for a healthy record); with score_method 'segment_median_rms', the median of "
-                         "that RMS over 16 contiguous segments (robust to isolated spikes).")
+    score: float | None = Field(..., description="RMS standardised residual of y under the predictive distribution "
+                                "(about 1 for a healthy record); with score_method 'segment_median_rms', the median "
+                                "of that RMS over 16 contiguous segments (robust to isolated spikes). Null only "
+                                "beyond the double range (a y some 1e308 predictive std from the mean).")
     score_method: Literal["rms_standardised_residual", "segment_median_rms"] = Field(
         "rms_standardised_residual", description="How the score was computed: the bundle's calibrated method, "
         "so score and threshold are always comparable.")
@@ -336,7 +337,9 @@ class NoveltyResponse(_Knowledge):
     drive: Drive | None = Field(None, description="The request's drive as estimated from `u`.")
     false_alarm_rate: float | None = Field(..., description="False-alarm rate the threshold was calibrated for "
                                               "(null if the calibration does not say).")
-    nlpd: float = Field(..., description="Mean negative log predictive density.")
+    nlpd: float | None = Field(..., description="Mean negative log predictive density; null when it exceeds the "
+                               "double range (a y more than about 1e154 predictive std from the mean, where the "
+                               "score is still a number).")
     n_samples: int = Field(..., description="Samples that entered the score.")
     novelty_window: NoveltyWindow | None = Field(
         None, description="With `state` or `return_state`: the verdict over the stream's last 8 s (this chunk "

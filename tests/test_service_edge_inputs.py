@@ -181,3 +181,18 @@ def test_the_answers_start_says_how_the_run_started(client):
     assert short.status_code == 200 and short.json()["start"] == "rest", short.text[:300]
     p = _problem(post(y0=y[:ny], start="rest"), 422, "start")
     assert "contradict" in p["detail"]
+
+
+def test_a_spike_far_outside_the_range_still_gets_a_numeric_score(client):
+    """One sample some 1e160 from the prediction: the novelty score (an RMS taken without overflow) is a number,
+    the verdict novel; predict's fit and rmse are numbers too."""
+    n = 256
+    u = [0.5, -0.25] * (n // 2)
+    y = [0.0] * n
+    y[200] = 1e160
+    d = client.post("/v1/models/boucwen/novelty", json={"u": u, "y": y, "fs": FS, "method": "linear",
+                                                        "start": "rest"}).json()
+    assert isinstance(d["score"], float) and d["score"] > 1e150 and d["verdict"] == "novel", d
+    assert "y" in d["out_of_range"]
+    p = client.post("/v1/models/boucwen/predict", json={"u": u, "y": y, "fs": FS, "method": "linear"}).json()
+    assert isinstance(p["rmse"], float) and p["rmse"] > 1e150 and isinstance(p["fit"], float), p.get("rmse")
