@@ -46,11 +46,25 @@ def title_for(status: int) -> str:
         return "Error"
 
 
+#: longest message of one validation error, and of a problem's detail [characters]: a message that quotes the
+#: input (a 4000-digit number, a long name) stays readable
+MAX_MESSAGE_CHARS = 300
+MAX_DETAIL_CHARS = 600
+
+
+def capped(text: str, limit: int) -> str:
+    """``text`` cut to ``limit`` characters, saying how long it was."""
+    if len(text) <= limit:
+        return text
+    return text[: limit - 25] + f"... ({len(text)} characters)"
+
+
 class ProblemError(Exception):
     """Raised anywhere in the service; turned into a problem-details response."""
 
     def __init__(self, status: int, detail: str, field: str | None = None, *, title: str | None = None,
                  type_: str | None = None, headers: dict | None = None, **extra: Any):
+        detail = capped(str(detail), MAX_DETAIL_CHARS)
         super().__init__(detail)
         self.status = int(status)
         self.detail = detail
@@ -94,7 +108,7 @@ def _message(err: dict) -> str:
     ctx = err.get("ctx") or {}
     if err.get("type") == "json_invalid" and ctx.get("error"):
         msg = f"request body is not valid JSON: {ctx['error']}"
-    return msg
+    return capped(msg, MAX_MESSAGE_CHARS)
 
 
 def validation_problem(errors: list[dict], status: int = 422) -> ProblemError:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict
+from pydantic import BaseModel, ConfigDict, Field, Strict, StrictBool
 
 from gpnarx.model.stream_token import MAX_TOKEN_CHARS
 
@@ -90,7 +90,7 @@ class RecordRequest(_Strict):
     backend: Literal["numpy", "jax"] | None = Field(None, description=_BACKEND_DESC)
     start: Literal["rest", "measured"] | None = Field(None, description=_START_DESC)
     state: str | None = Field(None, min_length=1, max_length=MAX_TOKEN_CHARS, description=_STATE_DESC)
-    return_state: bool = Field(False, description=_RETURN_STATE_DESC)
+    return_state: StrictBool = Field(False, description=_RETURN_STATE_DESC)
 
 
 class NoveltyRequest(RecordRequest):

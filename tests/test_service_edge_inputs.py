@@ -196,3 +196,16 @@ def test_a_spike_far_outside_the_range_still_gets_a_numeric_score(client):
     assert "y" in d["out_of_range"]
     p = client.post("/v1/models/boucwen/predict", json={"u": u, "y": y, "fs": FS, "method": "linear"}).json()
     assert isinstance(p["rmse"], float) and p["rmse"] > 1e150 and isinstance(p["fit"], float), p.get("rmse")
+
+
+def test_strict_flags_empty_batch_and_long_echoes(client):
+    """return_state takes only true/false; an empty batch body is the record routes' 422 body; a problem that
+    quotes a 4000-digit number stays short."""
+    body = {"u": [0.5] * 32, "fs": FS, "method": "linear"}
+    for v in ("yes", 1, "true"):
+        _problem(client.post("/v1/models/boucwen/predict", json={**body, "return_state": v}), 422, "return_state")
+    _problem(client.post("/v1/batch", content=b"", headers={"content-type": "application/json"}), 422, "body")
+    r = client.post("/v1/models/boucwen/predict", content=b'{"fs": 750, "u": [0.5], "mc_paths": ' + b"9" * 4000 + b"}",
+                    headers={"content-type": "application/json"})
+    p = _problem(r, 422, "mc_paths")
+    assert len(p["detail"]) <= 600 and "characters)" in p["detail"]

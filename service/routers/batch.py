@@ -57,6 +57,8 @@ def read_items(raw: bytes, ctype: str, max_batch: int) -> list:
     ``requests.I``) that refuses it; a ProblemError for the body as a whole."""
     if ctype and "json" not in ctype.split(";")[0].lower():
         raise ProblemError(415, f"the body must be application/json, got {ctype[:100]!r}", "body")
+    if not raw.strip():
+        raise ProblemError(422, "the body is empty: send a JSON object {\"requests\": [...]}", "body")
     try:
         data = parse_json(raw, non_finite=True)  # a non-finite number is its record's 422, not the batch's
     except ValueError as exc:
