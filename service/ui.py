@@ -140,8 +140,12 @@ def _folder(upload: UploadFile) -> str:
     return parent or "LMS export"
 
 
-def parse_uploads(uploads: list[tuple[str, str, bytes]], fs: float | None):
-    """(file name, folder name, contents) of 1 or 2 uploaded files -> ``(Record, format)``."""
+def parse_uploads(uploads: list[tuple[str, str, bytes]], fs: float | None, max_samples: int | None = None,
+                  max_bytes: int | None = None):
+    """(file name, folder name, contents) of 1 or 2 uploaded files -> ``(Record, format)``; max_samples
+    [samples per signal] and max_bytes [bytes decompressed]: checked from each file's headers before it is
+    parsed (``storage.record_formats.check_bounds``, RecordTooLarge)."""
+    bounds = {"max_samples": max_samples, "max_bytes": max_bytes}
     names = [n for n, _, _ in uploads]
     lms = {LMS_INPUT[0], LMS_OUTPUT[0]}
     if len(uploads) == 2 or (len(uploads) == 1 and names[0] in lms):
@@ -151,10 +155,10 @@ def parse_uploads(uploads: list[tuple[str, str, bytes]], fs: float | None):
         by = {n: (folder, data) for n, folder, data in uploads}
         folder = by[LMS_OUTPUT[0]][0]
         rec = parse_lms(by[LMS_INPUT[0]][1], by[LMS_OUTPUT[0]][1], fs=fs, name=folder, source=folder,
-                        shaker_source=LMS_INPUT[0], time_source=LMS_OUTPUT[0])
+                        shaker_source=LMS_INPUT[0], time_source=LMS_OUTPUT[0], **bounds)
         return rec, "lms-testlab"
     name, _, data = uploads[0]
-    return parse_record(data, name, fs=fs), PurePath(name).suffix.lower().lstrip(".")
+    return parse_record(data, name, fs=fs, **bounds), PurePath(name).suffix.lower().lstrip(".")
 
 
 # ------------------------------------------------------------------------------------------ page

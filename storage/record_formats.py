@@ -12,6 +12,10 @@ formats are documented in ``storage.record_files``.
   extension of ``filename``.
 - :func:`parse_lms` ``(shaker, time, ...)``: the two files of an LMS Test.Lab export
   (``TimeShaker.mat``: input u, ``Time.mat``: output y).
+- :func:`check_bounds` ``(data, filename, max_samples=, max_bytes=)``: refuse, from the file's headers and
+  directory alone (nothing decompressed or allocated from a declared size), a file whose parse would load
+  more than ``max_samples`` samples per signal or decompress more than ``max_bytes`` bytes
+  (:class:`RecordTooLarge`); ``parse_record`` and ``parse_lms`` call it when given those limits.
 
 ``source`` names the file in every error message and in ``Record.meta["source"]`` (default: the
 file name). Every problem raises :class:`RecordFileError` (a ``ValueError``) with one line naming
@@ -22,7 +26,9 @@ from __future__ import annotations
 import csv
 import io
 import math
+import struct
 import zipfile
+import zlib
 from pathlib import PurePath
 
 import numpy as np
@@ -33,6 +39,7 @@ from .record_formats_lab import LAB_FORMATS
 
 __all__ = [
     "RecordFileError",
+    "RecordTooLarge",
     "NoSamplingFrequency",
     "KNOWN_UNITS",
     "FORMATS",
@@ -42,6 +49,7 @@ __all__ = [
     "check_fs",
     "parse_record",
     "parse_lms",
+    "check_bounds",
 ]
 
 # Unit labels accepted on records (normalised spelling). Empty string = not stated.
@@ -120,7 +128,8 @@ class NoSamplingFrequency(RecordFileError):
     or ``fs_default``: the caller names its own option (``--fs``, the parse form's ``fs`` field)."""
 
 
-def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, source=None) -> Record:
+def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, source=None,
+                 max_samples=None, max_bytes=None) -> Record:
     """Parse the contents of a record file into a :class:`Record`.
 
     data: bytes or a seekable binary file. filename: its name; the extension picks the format
@@ -128,7 +137,9 @@ def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, so
     has none, checked against the file's otherwise (0.1 %). fs_default: used only when the file
     carries no sampling information. name: record name (default: the file name's stem).
     source: what error messages and ``meta["source"]`` call the file (default: ``filename``).
-    An LMS export needs both of its files: :func:`parse_lms`.
+    max_samples [samples per signal], max_bytes [bytes decompressed]: when given, :func:`check_bounds`
+    refuses a larger file from its headers first (:class:`RecordTooLarge`). An LMS export needs both of
+    its files: :func:`parse_lms`.
     """
     fname = PurePath(str(filename)).name
     src = fname if source is None else source
@@ -144,6 +155,8 @@ def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, so
     stem = PurePath(fname).stem
     try:
         fh = _binary(data)
+        if max_samples is not None or max_bytes is not None:
+            check_bounds(fh, fname, max_samples=max_samples, max_bytes=max_bytes, source=src)
         if ext == ".csv":
             return _read_csv(src, fh, fs, name or stem, fs_default)
         if ext == ".npz":
@@ -164,19 +177,24 @@ def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, so
 
 
 def parse_lms(shaker, time, *, fs=None, name=None, source="LMS export", shaker_source=None,
-              time_source=None) -> Record:
+              time_source=None, max_samples=None, max_bytes=None) -> Record:
     """Parse an LMS Test.Lab export from the contents of its two files (see ``storage.record_files``).
 
     shaker: ``TimeShaker.mat`` (input u, struct ``Time_Shaker__X``); time: ``Time.mat`` (output y,
     struct ``Time_Laser__X``); each bytes or a seekable binary file. source names the export in
     messages and ``meta["source"]``; shaker_source / time_source name the two files (default
     ``SOURCE/TimeShaker.mat`` and ``SOURCE/Time.mat``). name: record name (default: source's name).
+    max_samples, max_bytes: as for :func:`parse_record`, checked on each file.
     """
     if fs is not None:
         fs = check_fs(source, fs)
     pin = shaker_source if shaker_source is not None else f"{source}/{LMS_INPUT[0]}"
     pout = time_source if time_source is not None else f"{source}/{LMS_OUTPUT[0]}"
     try:
+        if max_samples is not None or max_bytes is not None:
+            shaker, time = _binary(shaker), _binary(time)
+            for p, fh in ((pin, shaker), (pout, time)):
+                check_bounds(fh, LMS_INPUT[0], max_samples=max_samples, max_bytes=max_bytes, source=p)
         cin = _lms_channel(pin, _binary(shaker), LMS_INPUT[1])
         cout = _lms_channel(pout, _binary(time), LMS_OUTPUT[1])
     except RecordFileError:
@@ -202,6 +220,305 @@ def parse_lms(shaker, time, *, fs=None, name=None, source="LMS export", shaker_s
     }
     return _make(source, cin["values"], cout["values"], fs, {"u": cin["unit"], "y": cout["unit"]},
                  name or PurePath(str(source)).name, meta)
+
+
+# ============================================================================ bounds
+class RecordTooLarge(RecordFileError):
+    """A record file declares more than a bounded parse loads (:func:`check_bounds`): ``what`` (an array or
+    variable of the file) holds ``size`` ``unit`` (``"samples"``, values of a signal or of another array,
+    or ``"bytes"``, decompressed) and ``limit`` is the most, in the same unit. Raised from the headers."""
+
+    def __init__(self, path, what: str, size: int, limit: int, unit: str):
+        self.what, self.size, self.limit, self.unit = what, int(size), int(limit), unit
+        if unit == "samples":
+            held = f"{what} holds {self.size} {'samples' if what in ('u', 'y', 'the array') else 'values'}"
+            super().__init__(path, f"{held}; the limit is {self.limit}")
+        else:
+            super().__init__(path, f"decompressing {what} brings the file to {self.size} bytes; the limit is "
+                                   f"{self.limit} bytes")
+
+
+def check_bounds(data, filename: str, *, max_samples=None, max_bytes=None, source=None) -> None:
+    """Refuse a record file that a parse would load too much of, from its headers and directory alone.
+
+    max_samples: most samples of ``u`` and of ``y`` [samples], and most values of any other array the
+    parser reads (``fs``, units, ``name``) [values]. max_bytes: most bytes the parser may decompress from
+    the file, all arrays and variables together [bytes]. Either may be None (not checked).
+
+    What is read, per format: ``.npz``: the zip directory (each member's declared size) and the
+    ``.npy`` header of each member the parser reads (shape x item size), which must agree (else a
+    :class:`RecordFileError`, the member is corrupt); ``.npy``: the header (rows = samples; its data
+    must be in the file, as numpy allocates the declared size before reading it); MATLAB v5 ``.mat``:
+    each variable's tag, class, dimensions and name (a compressed variable's first bytes only; its
+    stream is then inflated, at most to its declared size, to check the cells and structs it nests
+    against their declared element counts); HDF5 / MATLAB v7.3: the shape and item size of the
+    datasets read (a chunked dataset may be compressed or never written, read as its fill value). CSV,
+    UFF-58 and TDMS hold their samples uncompressed: the size of the upload bounds them.
+
+    Raises :class:`RecordTooLarge` (a ``RecordFileError``) naming the array and the limit; a file whose
+    headers cannot be read is left to the parser, which fails on the same headers without loading.
+    """
+    fname = PurePath(str(filename)).name
+    src = fname if source is None else source
+    ext = PurePath(fname).suffix.lower()
+    fh = _binary(data)
+    fh.seek(0)
+    try:
+        if ext == ".npz":
+            arrays = _npz_arrays(src, fh)
+        elif ext == ".npy":
+            arrays = _npy_arrays(src, fh, max_samples)
+        elif ext == ".mat" and not _is_hdf5_mat(fh):
+            arrays = _mat_arrays(src, fh, max_samples, max_bytes)
+        elif ext in (".h5", ".hdf5", ".mat"):
+            from . import record_formats_lab as lab
+
+            arrays = lab.hdf5_arrays(fh)
+        else:
+            arrays = []
+    finally:
+        fh.seek(0)
+    _check_sizes(src, arrays, max_samples, max_bytes)
+
+
+def _check_sizes(p, arrays, max_samples, max_bytes, total=0) -> int:
+    """arrays: (name, values, decompressed bytes) of what the parser loads, as the headers declare them;
+    total: bytes of arrays checked before. Returns the new total [bytes]."""
+    for what, count, _ in arrays:
+        if max_samples is not None and count > max_samples:
+            raise RecordTooLarge(p, what, count, max_samples, "samples")
+    total += sum(nbytes for _, _, nbytes in arrays)
+    if max_bytes is not None and total > max_bytes:
+        names = [what for what, _, nbytes in arrays if nbytes]
+        shown = ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
+        raise RecordTooLarge(p, shown, total, max_bytes, "bytes")
+    return total
+
+
+#: largest .npy header read [bytes] (numpy's own default: what np.load reads)
+_NPY_HEADER_MAX = 10000
+
+
+def _npy_header(fh):
+    """(shape, dtype) of the .npy array at ``fh``'s position, read from its header only; None when
+    ``fh`` does not start with the .npy magic (np.load then reads the member as raw bytes)."""
+    fmt = np.lib.format
+    magic = fh.read(fmt.MAGIC_LEN)
+    if magic[:len(fmt.MAGIC_PREFIX)] != fmt.MAGIC_PREFIX:
+        return None
+    version = tuple(magic[len(fmt.MAGIC_PREFIX):])
+    if version not in ((1, 0), (2, 0), (3, 0)):
+        raise ValueError(f"unsupported .npy version {version}")
+    reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+    shape, _, dtype = reader(fh, max_header_size=_NPY_HEADER_MAX)
+    return shape, dtype
+
+
+def _npz_arrays(p, fh) -> list:
+    """(name, values, data bytes) of each member ``_read_npz`` reads; the directory and the headers agree."""
+    try:
+        zf = zipfile.ZipFile(fh)
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError):
+        return []  # np.load refuses it too
+    out = []
+    with zf:
+        members = zf.namelist()
+        for key in ("u", "y", "fs", "units_u", "units_y", "name"):  # found as np.load's NpzFile finds them
+            member = key if key in members else (f"{key}.npy" if f"{key}.npy" in members else None)
+            if member is None:
+                continue
+            info = zf.getinfo(member)
+            try:
+                with zf.open(info) as m:
+                    head = _npy_header(m)
+                    header_bytes = m.tell()
+            except (ValueError, EOFError, OSError, zipfile.BadZipFile, NotImplementedError, RuntimeError):
+                continue  # np.load fails on the same header, before allocating
+            if head is None:  # not a .npy member: np.load returns its bytes
+                out.append((key, 1, info.file_size))
+                continue
+            shape, dtype = head
+            if dtype.hasobject:
+                continue  # refused without pickle before its data is read
+            count = math.prod(shape)
+            nbytes = count * dtype.itemsize
+            if header_bytes + nbytes != info.file_size:
+                raise RecordFileError(p, f"corrupt array {key!r}: its .npy header says {nbytes} data bytes, "
+                                         f"the zip directory {info.file_size - header_bytes}")
+            out.append((key, count, nbytes))
+    return out
+
+
+def _npy_arrays(p, fh, max_samples) -> list:
+    """(the array, rows, 0) of a .npy file: its data is not compressed, but must be in the file."""
+    try:
+        head = _npy_header(fh)
+    except (ValueError, EOFError, OSError, NotImplementedError):
+        return []  # np.load fails on the same header
+    if head is None or head[1].hasobject:
+        return []
+    shape, dtype = head
+    start = fh.tell()
+    present = fh.seek(0, 2) - start
+    nbytes = math.prod(shape) * dtype.itemsize
+    arrays = [("the array", shape[0] if shape else 1, 0)]
+    _check_sizes(p, arrays, max_samples, None)
+    if nbytes > present:  # np.load would allocate the declared size, then find the data missing
+        raise RecordFileError(p, f"truncated .npy file: its header says {nbytes} data bytes (shape {shape}, "
+                                 f"dtype {dtype}), the file holds {present}")
+    return arrays
+
+
+# MATLAB v5 (``scipy.io.loadmat``): data element types and array classes of the MAT-file format
+_MI_INT8, _MI_INT32, _MI_UINT32, _MI_MATRIX, _MI_COMPRESSED = 1, 5, 6, 14, 15
+_MX_CELL, _MX_STRUCT, _MX_OBJECT, _MX_OPAQUE = 1, 2, 3, 17
+#: inflated bytes read to find a compressed variable's tag, class, dimensions and name
+_MAT_HEAD = 4096
+#: most nesting of cells and structs walked (deeper: refused as corrupt)
+_MAT_DEPTH = 64
+
+
+class _MatCorrupt(ValueError):
+    pass
+
+
+def _mat_element(buf, pos, e):
+    """(type, payload, next position) of the data element at ``pos`` (full or small format)."""
+    if pos + 8 > len(buf):
+        raise _MatCorrupt("truncated data element")
+    w0, w1 = struct.unpack_from(e + "II", buf, pos)
+    if w0 >> 16:  # small format: the byte count in the upper half of the first word, the data in the second
+        n = w0 >> 16
+        if n > 4:
+            raise _MatCorrupt("bad small data element")
+        return w0 & 0xFFFF, bytes(buf[pos + 4:pos + 4 + n]), pos + 8
+    end = pos + 8 + w1
+    if end > len(buf):
+        raise _MatCorrupt("truncated data element")
+    return w0, bytes(buf[pos + 8:end]), pos + 8 + ((w1 + 7) & ~7)
+
+
+def _mat_header(buf, e):
+    """(class, dims, name, position after the name) of the miMATRIX payload ``buf`` (``dims`` None for
+    opaque objects, whose payload then starts at the returned position)."""
+    mdtype, flags, pos = _mat_element(buf, 0, e)
+    if mdtype != _MI_UINT32 or len(flags) < 4:
+        raise _MatCorrupt("bad array flags")
+    mc = struct.unpack_from(e + "I", flags)[0] & 0xFF
+    if mc == _MX_OPAQUE:
+        return mc, None, "", pos
+    mdtype, dims, pos = _mat_element(buf, pos, e)
+    if mdtype != _MI_INT32 or len(dims) % 4:
+        raise _MatCorrupt("bad dimensions")
+    _, name, pos = _mat_element(buf, pos, e)
+    return mc, struct.unpack(f"{e}{len(dims) // 4}i", dims), name.decode("latin-1"), pos
+
+
+def _mat_walk(buf, e, depth=0) -> None:
+    """Check that each cell and struct nested in the miMATRIX payload ``buf`` holds its declared elements:
+    scipy allocates an element array of the declared size before reading them (each takes >= 8 bytes)."""
+    if depth > _MAT_DEPTH:
+        raise _MatCorrupt(f"cells or structs nested deeper than {_MAT_DEPTH}")
+    mc, dims, name, pos = _mat_header(buf, e)
+    if mc == _MX_OPAQUE:
+        for _ in range(3):
+            _, _, pos = _mat_element(buf, pos, e)
+        elements = 1
+    elif mc in (_MX_CELL, _MX_STRUCT, _MX_OBJECT):
+        if any(d < 0 for d in dims):
+            raise _MatCorrupt("negative dimension")
+        elements = math.prod(dims)
+        if mc != _MX_CELL:
+            if mc == _MX_OBJECT:
+                _, _, pos = _mat_element(buf, pos, e)  # class name
+            _, length, pos = _mat_element(buf, pos, e)
+            _, names, pos = _mat_element(buf, pos, e)
+            width = struct.unpack_from(e + "i", length.ljust(4, b"\0"))[0]
+            elements *= len(names) // width if width > 0 else 0
+        if elements * 8 > len(buf) - pos:
+            raise _MatCorrupt(f"{name or 'a cell or struct'} declares {elements} elements in {len(buf) - pos} "
+                              f"bytes")
+    else:
+        return
+    for _ in range(elements):
+        if pos + 8 > len(buf):
+            raise _MatCorrupt("truncated cell or struct")
+        mdtype, n = struct.unpack_from(e + "II", buf, pos)
+        if mdtype != _MI_MATRIX or pos + 8 + n > len(buf):
+            raise _MatCorrupt("bad cell or struct element")
+        if n:
+            _mat_walk(memoryview(buf)[pos + 8:pos + 8 + n], e, depth + 1)
+        pos += 8 + n
+
+
+def _inflate(fh, nbytes, cap, keep=True) -> tuple[int, bytes]:
+    """(length, bytes) inflated from the next ``nbytes`` bytes of ``fh`` (a zlib stream), stopping past
+    ``cap`` bytes [bytes]; without ``keep`` only the length is kept (in steps of at most 1 MiB)."""
+    d = zlib.decompressobj()
+    out = bytearray()
+    size, left = 0, nbytes
+    while size <= cap and not d.eof:
+        chunk = d.unconsumed_tail
+        if not chunk:
+            chunk = fh.read(min(left, 1 << 16))
+            left -= len(chunk)
+            if not chunk:
+                break
+        got = d.decompress(chunk, min(cap + 1 - size, 1 << 20))
+        size += len(got)
+        if keep:
+            out += got
+    return size, bytes(out)
+
+
+def _mat_arrays(p, fh, max_samples, max_bytes) -> list:
+    """(variable, values, inflated bytes) of each variable of a MATLAB v5 file, from its tag and header;
+    the variables are checked against the limits as they are found, before a compressed one is inflated."""
+    head = fh.read(128)
+    # scipy reads a file whose first four bytes hold a zero as MATLAB v4 (not compressed, no cells)
+    if len(head) < 128 or 0 in head[:4] or head[124 + (head[126:127] == b"I")] != 1:
+        return []
+    e = "<" if head[126:128] == b"IM" else ">"
+    out: list = []
+    pos, total = 128, 0
+    try:
+        while True:
+            fh.seek(pos)
+            tag = fh.read(8)
+            if len(tag) < 8:
+                break
+            mdtype, n = struct.unpack(e + "II", tag)
+            if mdtype == _MI_COMPRESSED and n:
+                first = _inflate(fh, n, 8 + _MAT_HEAD)[1]
+                if len(first) < 8 or struct.unpack_from(e + "I", first)[0] != _MI_MATRIX:
+                    break  # scipy stops reading there with an error
+                declared = struct.unpack_from(e + "I", first, 4)[0]
+                if not declared:
+                    break  # an empty variable: scipy stops reading there with an error
+                body = first[8:8 + declared]
+            elif mdtype == _MI_MATRIX and n:
+                declared, body = 0, fh.read(n)  # not compressed: the upload holds it
+            else:
+                break  # scipy stops reading there with an error
+            mc, dims, name, _ = _mat_header(body, e)
+            found = (name if name in ("u", "y") else f"variable {name!r}",
+                     math.prod(dims) if dims and name in ("u", "y") else 0, declared)
+            total = _check_sizes(p, [found], max_samples, max_bytes, total)
+            out.append(found)
+            nests = mc in (_MX_CELL, _MX_STRUCT, _MX_OBJECT, _MX_OPAQUE)
+            if declared:  # the stream must not hold more than its tag declares: scipy reads what it holds
+                fh.seek(pos + 8)
+                size, body = _inflate(fh, n, 8 + declared, keep=nests)
+                if size > 8 + declared:
+                    raise _MatCorrupt(f"compressed variable {name!r} inflates to more than the {declared} "
+                                      f"bytes its tag declares")
+                body = body[8:]
+            if nests:
+                _mat_walk(body, e)
+            pos += 8 + n
+    except _MatCorrupt as exc:
+        raise RecordFileError(p, f"corrupt or truncated MATLAB file ({exc})") from None
+    return out
 
 
 # ============================================================================ shared checks

@@ -174,11 +174,55 @@ def _attr_str(v) -> str:
     return str(a.ravel()[0]) if a.size else ""
 
 
+#: the datasets ``read_hdf5`` reads (when they are datasets at the root)
+HDF5_READ = ("u", "y", "fs", "units_u", "units_y")
+
+
+def hdf5_arrays(fh) -> list:
+    """(name, values, bytes) of each dataset ``read_hdf5`` reads, from the dataset's shape and item size
+    alone (a chunked dataset may be compressed, or never written and read as its fill value: its declared
+    size is what reading it allocates). Empty when h5py is missing or cannot open the file (``read_hdf5``
+    then fails the same way, before reading a dataset)."""
+    try:
+        import h5py
+    except ImportError:
+        return []
+    fh.seek(0)
+    try:
+        f = h5py.File(fh, "r")
+    except Exception:  # noqa: BLE001 - read_hdf5 reports it
+        return []
+    out = []
+    with f:
+        for key in HDF5_READ:
+            ds = f.get(key)
+            if isinstance(ds, h5py.Dataset):
+                count = int(ds.size or 0)
+                out.append((key, count, count * ds.dtype.itemsize))
+    return out
+
+
+def _refuse_outside_data(h5py, f) -> None:
+    """LabFormatError when a root entry the reader may open keeps its data outside the file: an external link, a
+    dataset in external raw files or a virtual dataset would make a parse read other files of the machine that
+    parses it (a server's, for an uploaded file)."""
+    for key in HDF5_READ:
+        link = f.get(key, getlink=True)
+        if isinstance(link, h5py.ExternalLink):
+            raise LabFormatError(f"'{key}' is an external link to {link.filename!r}: only data inside the file is read")
+        obj = f.get(key) if link is not None else None
+        if isinstance(obj, h5py.Dataset) and (obj.external or obj.is_virtual):
+            raise LabFormatError(f"dataset '{key}' keeps its data outside the file (external or virtual storage): "
+                                 f"only data inside the file is read")
+
+
 def read_hdf5(p, fh) -> dict:
-    """u, y, fs, units and meta of an HDF5 / MATLAB v7.3 file (see the module doc)."""
+    """u, y, fs, units and meta of an HDF5 / MATLAB v7.3 file (see the module doc); data kept outside the file
+    (external links, external or virtual storage) is refused."""
     h5py = need(p, "h5py", "h5py", "HDF5 / MATLAB v7.3")
     fh.seek(0)
     with h5py.File(fh, "r") as f:
+        _refuse_outside_data(h5py, f)
         keys = sorted(f.keys())
         if "u" not in f or not isinstance(f["u"], h5py.Dataset):
             raise LabFormatError(f"missing dataset 'u' at the root (datasets and groups: "

@@ -14,7 +14,7 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagge
 from starlette.datastructures import UploadFile
 from starlette.responses import HTMLResponse
 
-from gpnarx.storage.record_formats import FORMATS, RecordFileError
+from gpnarx.storage.record_formats import FORMATS, RecordFileError, RecordTooLarge
 
 from ..answers import answer
 from ..deps import V1, SettingsDep, StateDep
@@ -170,7 +170,12 @@ async def parse_record_file(request: Request, settings: SettingsDep):
             raise ProblemError(422, f"{name or '(no name)'}: unsupported record format; use "
                                     f"{', '.join(FORMATS)} or the two files of an LMS export", "files")
     try:
-        rec, fmt = await asyncio.to_thread(parse_uploads, files, fs)
+        # at most GPNARX_MAX_SAMPLES per signal and GPNARX_MAX_BODY_BYTES decompressed (what an uncompressed upload
+        # may hold), decided from the files' headers before anything is decompressed (RecordTooLarge, a 413)
+        rec, fmt = await asyncio.to_thread(parse_uploads, files, fs, settings.max_samples, settings.max_body_bytes)
+    except RecordTooLarge as exc:
+        setting = "GPNARX_MAX_SAMPLES" if exc.unit == "samples" else "GPNARX_MAX_BODY_BYTES"
+        raise ProblemError(413, f"{exc} ({setting}): send a shorter part of it", "files", limit=exc.limit) from None
     except RecordFileError as exc:
         field = "fs" if exc.problem.startswith(_FS_PROBLEMS) else "files"
         raise ProblemError(422, str(exc), field) from None
