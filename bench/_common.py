@@ -328,6 +328,22 @@ def fmt(v) -> str:
     return f"{v:.4g}"
 
 
+def bundle_fidelity(bundle) -> dict:
+    """What a timed bundle keeps of the method's fidelity, for its RESULT line: its posterior (``posterior=``:
+    exact or sparse) and its training report's lowest fit % over the held-out (validate) records with that
+    record's name (``heldout_fit_min=``, ``heldout_fit_min_record=``), so that a speed is quoted with the
+    fidelity it comes with. {} for a bundle without a training report."""
+    man = getattr(bundle, "manifest", None) or {}
+    recs = (man.get("training") or {}).get("records") or {}
+    held = {k: float(v["fit"]) for k, v in recs.items()
+            if isinstance(v, dict) and v.get("role") == "validate" and v.get("fit") is not None}
+    if not held:
+        return {}
+    worst = min(held, key=held.get)
+    return {"posterior": str(man.get("mode", "unknown")), "heldout_fit_min": held[worst],
+            "heldout_fit_min_record": worst}
+
+
 def result(**kv) -> None:
     """Print the contract line: RESULT key=value ..."""
     print("RESULT " + " ".join(f"{k}={fmt(v)}" for k, v in kv.items()), flush=True)

@@ -83,7 +83,7 @@ def main():
     if args.quick:
         import bench_mc_speed as S
 
-        model, segs, note, _ = S.quick_model()
+        model, segs, note, _, _ = S.quick_model()
         runs = [(seg[0], seg[4], seg[1], seg[3]) for seg in segs]
         paths = 256
     else:

@@ -8,6 +8,10 @@ Each record class on its own (``pss_sine=``, ``pss_sweep=``, ``pss_noise=``, the
 depends least on the machine's load): on spread paths (start-ups, sweeps, noise) the local model falls
 back to exact evaluation, so the speed depends on the record.
 
+The line also names the timed bundle's posterior and its lowest held-out fit % (``posterior=``,
+``heldout_fit_min=``, ``heldout_fit_min_record=``: ``_common.bundle_fidelity``), so that a speed is quoted with the
+fidelity it comes with.
+
 Model: the ``bert-real`` bundle as its shipped config trains it (``configs/bert-real.toml``: the exact
 posterior on its training rows, or a sparse one where the config says so), on three
 segments of 1024 steps of a 64 s real record (default the 20 Hz sine, the held-out record nearest
@@ -64,7 +68,7 @@ def quick_model():
     pairs, _, r50 = C.protocol()
     m = GPNARX(ny=C.NY, nu=C.NU, mode="sparse", n_inducing=64, max_train_points=500).fit(pairs, theta=C.THETA_REF)
     seg = ("50 N sweep from measured", r50.u[900:960], r50.y[900:960], r50.y[900: 900 + C.NY], "sweep")
-    return m, [seg], "quick", 750.0
+    return m, [seg], "quick", 750.0, {}
 
 
 WHOLE = (("Chirp/Chirp0to40Hz/Chirp0p10", "sweep"), ("Rand/Rand0p10", "noise"), ("Rand/Rand0p25", "noise"))
@@ -86,7 +90,7 @@ def bert_model(registry, record, classes=True, whole=False, seconds=None):
             n = rec.u.size if seconds is None else int(round(seconds * rec.fs))
             what = "whole" if n >= rec.u.size else f"first {n / rec.fs:g} s"
             segs.append((f"{Path(sub).name} {what} from rest", rec.u[:n], rec.y[:n], None, cls))
-        return b.model, segs, f"{note}; {b.name}:{b.version}", rec.fs
+        return b.model, segs, f"{note}; {b.name}:{b.version}", rec.fs, C.bundle_fidelity(b)
     path = Path(record) if record else R.bert_data() / "Sine" / "Sine_20Hz"
     rec = read_record(str(path), fs_default=b.fs)
     fs = rec.fs
@@ -97,7 +101,7 @@ def bert_model(registry, record, classes=True, whole=False, seconds=None):
                                  ("Rand/Rand0p10", "noise", (5.0,))):
             other = read_record(str(data / sub), fs_default=b.fs)
             segs += segments(other, Path(sub).name, cls, starts, ny)
-    return b.model, segs, f"{note}; {b.name}:{b.version}", fs
+    return b.model, segs, f"{note}; {b.name}:{b.version}", fs, C.bundle_fidelity(b)
 
 
 def segments(rec, name, cls, starts, ny, steps=1024):
@@ -132,7 +136,7 @@ def main():
     reps = args.reps or (2 if q else 3)
     if args.seconds is not None and not (args.whole and args.seconds > 0):
         raise SystemExit("--seconds needs --whole and a positive number of seconds")
-    model, segs, note, fs = quick_model() if q else bert_model(args.registry, args.record, not args.sine_only,
+    model, segs, note, fs, fidelity = quick_model() if q else bert_model(args.registry, args.record, not args.sine_only,
                                                                 args.whole, args.seconds)
     post = model.posterior_
 
@@ -237,7 +241,8 @@ def main():
              baseline_what="previous-simulate_mc-bench/mc_baseline.py-same-posterior-paths-seed",
              ratio=C.median(ratios), paths=P, steps=sum(steps), local_steps=sum(local.values()),
              max_mean_diff_se=worst["mean"], max_edge_diff_se=worst["edge"], prev_max_diff_se=worst["prev"],
-             cov_gap_points=cov_gap, load=C.median(loads), blas_threads=C.blas_threads(), **extra, **per_class)
+             cov_gap_points=cov_gap, load=C.median(loads), blas_threads=C.blas_threads(), **extra, **per_class,
+             **fidelity)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,10 @@ Each pass of the free run timed alone on one thread in this process (``pass1_s=`
 triangular products of eq. 9 inside it, ``trmm_s=`` at ``trmm_gflops=``, ``pass3_s=``): half their sum plus
 ``outside_s=`` is the least wall time two cores can give the whole process (``two_core_floor_s=``,
 ``rt_factor_floor=``), however the passes overlap.
+The timed bundle's fidelity goes with its speed (``_common.bundle_fidelity``): ``posterior=`` (exact or sparse)
+and the lowest fit % of its training report over the held-out records, ``heldout_fit_min=`` (which record:
+``heldout_fit_min_record=``); ``--registry`` may hold a bert-real trained otherwise (``gpnarx train bert-real
+--mode sparse``) to compare the two.
 ``--method linear`` is what the shipped bert-real config names for whole records
 (``[predict] method``); the CLI's own default is Monte Carlo (see the notes printed below).
 
@@ -130,14 +134,15 @@ def band_stats(y, run) -> tuple[float, float]:
 
 
 def open_run(registry: Path, name: str, record: Path):
-    """(model, record) of the in-process measurements, after the CLI's tuning for free runs."""
+    """(model, record, fidelity) of the in-process measurements, after the CLI's tuning for free runs; fidelity:
+    ``_common.bundle_fidelity`` of the bundle."""
     from gpnarx.runtime import tune_for_free_run
     from gpnarx.storage.record_files import read_record
     from gpnarx.storage.registry import Registry
 
     tune_for_free_run(None)
     bundle = Registry(registry).scan().get(name)
-    return bundle.model, read_record(str(record), fs_default=bundle.fs)
+    return bundle.model, read_record(str(record), fs_default=bundle.fs), C.bundle_fidelity(bundle)
 
 
 def accuracy(model, rec, quick: bool, window: float = 4.0) -> dict:
@@ -266,7 +271,7 @@ def main():
             walls["baseline"].append(timed(baseline, cpus["baseline"]))
             walls["serial"].append(timed(serial, cpus["serial"]))
         load1 = C.load()
-        model, rec_in = open_run(reg, name, record)
+        model, rec_in, fidelity = open_run(reg, name, record)
         prof = pass_profile(model, rec_in)
         acc = accuracy(model, rec_in, q, args.window)
 
@@ -325,7 +330,7 @@ def main():
              width_ratio_max=max(w["width_ratio_lin"] for w in ws), width_dev=width_dev,
              cov_mc=ws[0]["cov_mc"], cov_lin=ws[0]["cov_lin"], few_paths=ws[0]["few_paths"],
              few_mc_rt_simulate_only=few_rt, few_width_ratio_min=min(w["width_ratio_few"] for w in ws),
-             load=C.load(), blas_threads=C.blas_threads())
+             load=C.load(), blas_threads=C.blas_threads(), **fidelity)
 
 
 if __name__ == "__main__":

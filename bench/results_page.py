@@ -29,6 +29,9 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
             "(bench_realtime.py, bench_mc_speed.py --whole --seconds 2 at 1 and 2 BLAS threads)", None),
            ("bench/exact_2core_quiet_startup.txt", "The exact bert-real on the quiet 2-core machine, lighter start-up "
             "(bench_realtime.py with the free run's own time, bench_mc_speed.py --whole --seconds 2)", None),
+           ("bench/sparse_vs_exact_2core.txt", "The exact and the sparse bert-real side by side on the 2-core "
+            "machine (bench_realtime.py, bench_mc_speed.py --whole --seconds 2; posterior= and heldout_fit_min= "
+            "say what each keeps of the fidelity)", None),
            ("bench/local_check.txt", "Does the Monte Carlo local model's check bound the error at every path? "
             "(bench_local_check.py)", None),
            ("bench/wire.txt", "One 64 s predict answer as JSON, gzip JSON and NPZ (bench_wire.py)", None),

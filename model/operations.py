@@ -299,9 +299,10 @@ def novelty_of(bundle) -> dict:
     """The bundle's novelty calibration (a dict with a numeric ``threshold``)."""
     nov = bundle.manifest.get("novelty")
     if not isinstance(nov, dict) or not isinstance(nov.get("threshold"), (int, float)):
-        raise OperationError(f"model {bundle.name}:{bundle.version} has no novelty calibration; train it with "
-                             f"'healthy' records to get a threshold (the default bert-standin-monitor bundle has "
-                             f"one)", kind=CONFLICT)
+        raise OperationError(f"model {bundle.name}:{bundle.version} has no novelty calibration: give it a threshold "
+                             f"with 'gpnarx calibrate' on healthy records (or train it with 'healthy' records), or "
+                             f"use a monitor bundle (the default registry's bert-real-monitor and "
+                             f"bert-standin-monitor have one)", "name", kind=CONFLICT)
     return nov
 
 

@@ -231,7 +231,8 @@ def test_novelty_healthy_and_damaged(client):
     damaged = client.post("/v1/models/boucwen/novelty", json={**base, "y": y_dmg.tolist()}).json()
     assert damaged["verdict"] == "novel" and damaged["score"] > damaged["threshold"]
     assert_problem(client.post("/v1/models/boucwen/novelty", json=base), 422, "y")
-    assert_problem(client.post("/v1/models/plain/novelty", json={**base, "y": u.tolist()}), 409)
+    p = assert_problem(client.post("/v1/models/plain/novelty", json={**base, "y": u.tolist()}), 409, "name")
+    assert "gpnarx calibrate" in p["detail"] and "bert-real-monitor" in p["detail"]
 
 
 def test_novelty_outside_the_calibration_envelope_is_novel(client):
