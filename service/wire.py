@@ -26,13 +26,12 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import lzma
 import re
-import tokenize
 import zipfile
-import zlib
 
 import numpy as np
+
+from gpnarx.storage.record_formats import NPY_READ_ERRORS, npy_header
 
 from .problems import ProblemError
 
@@ -48,10 +47,7 @@ MAX_MEMBERS = 8
 #: largest .npy header read from a request [bytes]
 MAX_NPY_HEADER = 4096
 _INT = re.compile(r"[+-]?\d+")
-#: what reading a damaged member can raise: the zip layer (a bad CRC, an unknown or encrypted method, a damaged
-#: deflate, bzip2 or LZMA stream) and numpy's .npy header parser (its tokenizer and literal evaluation)
-_CORRUPT = (ValueError, EOFError, OSError, zipfile.BadZipFile, NotImplementedError, RuntimeError, zlib.error,
-            lzma.LZMAError, tokenize.TokenError, SyntaxError, RecursionError, TypeError, KeyError)
+_CORRUPT = NPY_READ_ERRORS  # what reading a damaged member or archive can raise
 
 
 # ---------------------------------------------------------------------------------------- requests
@@ -65,17 +61,14 @@ def _member_name(info: zipfile.ZipInfo) -> str:
 
 
 def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, field: str):
-    """(shape, dtype, header bytes) of one member, read from its first bytes only."""
+    """(shape, dtype, header bytes) of one member, read from its first bytes only (``storage.record_formats.
+    npy_header``, as the record upload reads its members)."""
     try:
         with zf.open(info) as fh:
-            version = np.lib.format.read_magic(fh)
-            if version == (1, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh, max_header_size=MAX_NPY_HEADER)
-            elif version in ((2, 0), (3, 0)):
-                shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh, max_header_size=MAX_NPY_HEADER)
-            else:  # pragma: no cover - read_magic refuses other versions
-                raise ValueError(f"unsupported .npy version {version}")
-            return shape, dtype, fh.tell()
+            head = npy_header(fh, MAX_NPY_HEADER)
+            if head is None:
+                raise ValueError("the member does not start with the .npy magic")
+            return head[0], head[1], fh.tell()
     except _CORRUPT as exc:
         raise _bad(field, f"not a readable .npy array in the archive ({type(exc).__name__}: {exc})"[:300]) from None
 

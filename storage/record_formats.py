@@ -25,8 +25,10 @@ from __future__ import annotations
 
 import csv
 import io
+import lzma
 import math
 import struct
+import tokenize
 import zipfile
 import zlib
 from pathlib import PurePath
@@ -50,6 +52,8 @@ __all__ = [
     "parse_record",
     "parse_lms",
     "check_bounds",
+    "npy_header",
+    "NPY_READ_ERRORS",
 ]
 
 # Unit labels accepted on records (normalised spelling). Empty string = not stated.
@@ -299,9 +303,18 @@ def _check_sizes(p, arrays, max_samples, max_bytes, total=0) -> int:
 _NPY_HEADER_MAX = 10000
 
 
-def _npy_header(fh):
-    """(shape, dtype) of the .npy array at ``fh``'s position, read from its header only; None when
-    ``fh`` does not start with the .npy magic (np.load then reads the member as raw bytes)."""
+#: what reading a damaged .npy member of a zip archive can raise: the zip layer (a bad CRC, an unknown or encrypted
+#: method, a damaged deflate, bzip2 or LZMA stream) and numpy's .npy header parser (its tokenizer and literal
+#: evaluation)
+NPY_READ_ERRORS = (ValueError, EOFError, OSError, zipfile.BadZipFile, NotImplementedError, RuntimeError, zlib.error,
+                   lzma.LZMAError, tokenize.TokenError, SyntaxError, RecursionError, TypeError, KeyError)
+
+
+def npy_header(fh, max_header_size: int = _NPY_HEADER_MAX):
+    """(shape, dtype) of the .npy array at ``fh``'s position, read from its header only (at most
+    ``max_header_size`` bytes); ``fh`` is left at the start of its data. None when ``fh`` does not start with the
+    .npy magic (np.load then reads the member as raw bytes). Raises one of ``NPY_READ_ERRORS`` on a damaged
+    header."""
     fmt = np.lib.format
     magic = fh.read(fmt.MAGIC_LEN)
     if magic[:len(fmt.MAGIC_PREFIX)] != fmt.MAGIC_PREFIX:
@@ -310,7 +323,7 @@ def _npy_header(fh):
     if version not in ((1, 0), (2, 0), (3, 0)):
         raise ValueError(f"unsupported .npy version {version}")
     reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
-    shape, _, dtype = reader(fh, max_header_size=_NPY_HEADER_MAX)
+    shape, _, dtype = reader(fh, max_header_size=max_header_size)
     return shape, dtype
 
 
@@ -330,9 +343,9 @@ def _npz_arrays(p, fh) -> list:
             info = zf.getinfo(member)
             try:
                 with zf.open(info) as m:
-                    head = _npy_header(m)
+                    head = npy_header(m)
                     header_bytes = m.tell()
-            except (ValueError, EOFError, OSError, zipfile.BadZipFile, NotImplementedError, RuntimeError):
+            except NPY_READ_ERRORS:
                 continue  # np.load fails on the same header, before allocating
             if head is None:  # not a .npy member: np.load returns its bytes
                 out.append((key, 1, info.file_size))
@@ -352,7 +365,7 @@ def _npz_arrays(p, fh) -> list:
 def _npy_arrays(p, fh, max_samples) -> list:
     """(the array, rows, 0) of a .npy file: its data is not compressed, but must be in the file."""
     try:
-        head = _npy_header(fh)
+        head = npy_header(fh)
     except (ValueError, EOFError, OSError, NotImplementedError):
         return []  # np.load fails on the same header
     if head is None or head[1].hasobject:
