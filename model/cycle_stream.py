@@ -74,20 +74,19 @@ def advance(carry: dict | None, u, mean, *, fs: float, physics: dict, y=None, pa
     n = u.size
     yy = np.full(n, np.nan) if y is None else np.asarray(y, float)
     extra = paths if paths is not None else cov_band
-    c = carry or {}
-    pos = int(c.get("position", 0))  # global index of this chunk's first sample
-    base = int(c.get("base", pos))
-    seg = {k: np.concatenate([np.asarray(c.get(k, np.zeros(0)), float), v]) for k, v in
-           zip(_SERIES, (u, mean, yy))}
+    c = _checked(carry or {})
+    pos = c["position"]  # global index of this chunk's first sample
+    base = c["base"]
+    seg = {k: np.concatenate([c[k], v]) for k, v in zip(_SERIES, (u, mean, yy))}
     if extra is not None:
         ex = np.asarray(extra, float)
-        old = np.asarray(c["extra"], float) if "extra" in c else np.zeros((0, ex.shape[1]))
+        old = c["extra"] if "extra" in c else np.zeros((0, ex.shape[1]))
         if old.size and old.shape[1] != ex.shape[1]:
             raise ValueError("state: the loops carry holds another number of paths or covariance lags")
         seg["extra"] = np.concatenate([old.reshape(-1, ex.shape[1]), ex])
-    cuts = [list(x) for x in c.get("cuts", [])]  # [i, frac, opens]: crossing between samples i - 1 and i
-    armed, peak = bool(c.get("armed", False)), float(c.get("peak", 0.0))
-    prev = float(c["last"]) if "last" in c else None
+    cuts = c["cuts"]  # [i, frac, opens]: crossing between samples i - 1 and i
+    armed, peak = c["armed"], c["peak"]
+    prev = c.get("last")
     for j in range(n):  # the crossing rule, sample by sample (the same in one call or in many)
         i = pos + j
         v = mean[j]
@@ -148,6 +147,64 @@ def advance(carry: dict | None, u, mean, *, fs: float, physics: dict, y=None, pa
     if new["last"] is None:
         new.pop("last")
     return out, new
+
+
+def _checked(c: dict) -> dict:
+    """A carry (``advance``'s own, or a token's: a client may rebuild one) with every value of the type and range
+    ``advance`` writes, as numbers and arrays; ValueError naming the carry otherwise."""
+    def bad(what):
+        return ValueError(f"state: the loops carry is malformed ({what})")
+
+    def integer(v, what):
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 1 << 53:
+            raise bad(f"{what} must be a non-negative integer")
+        return v
+
+    def number(v, what):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise bad(f"{what} must be a finite number")
+        return float(v)
+
+    if not isinstance(c, dict):
+        raise bad("not an object")
+    pos = integer(c.get("position", 0), "position")
+    base = integer(c.get("base", pos), "base")
+    if base > pos:
+        raise bad("base lies after position")
+    held = pos - base  # samples carried: from base up to the chunk's first sample
+    out = {"position": pos, "base": base}
+    for k in (*_SERIES, "extra"):
+        if k not in c:
+            if k != "extra" and held:
+                raise bad(f"{k} is missing")
+            out[k] = np.zeros(0) if k != "extra" else None
+            continue
+        a = np.asarray(c[k], dtype=float)
+        if a.ndim != (2 if k == "extra" else 1) or a.shape[0] != held:
+            raise bad(f"{k} must hold the {held} samples from base to position")
+        if k != "y" and not np.all(np.isfinite(a)):  # y is NaN where no measured output came
+            raise bad(f"{k} holds a non-finite number")
+        out[k] = a
+    if out["extra"] is None:
+        out.pop("extra")
+    cuts = c.get("cuts", [])
+    if not isinstance(cuts, list) or len(cuts) > held + 1:
+        raise bad("cuts must be a list of at most one crossing per carried sample")
+    out["cuts"] = []
+    for x in cuts:
+        if not isinstance(x, list) or len(x) != 3 or not isinstance(x[2], bool):
+            raise bad("each cut must be [sample, fraction, opens]")
+        i, frac = integer(x[0], "a cut's sample"), number(x[1], "a cut's fraction")
+        if not base < i <= pos or not 0.0 <= frac <= 1.0:
+            raise bad("a cut lies outside the carried samples")
+        out["cuts"].append([i, frac, x[2]])
+    armed = c.get("armed", False)
+    if not isinstance(armed, bool):
+        raise bad("armed must be true or false")
+    out["armed"], out["peak"] = armed, number(c.get("peak", 0.0), "peak")
+    if "last" in c:
+        out["last"] = number(c["last"], "last")
+    return out
 
 
 __all__ = ["MARGIN", "MAX_CYCLE_SAMPLES", "STREAM_COV_WINDOW", "advance"]

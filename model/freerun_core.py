@@ -102,10 +102,26 @@ def check_state(state: FreeRunState, method: str, ny: int, nu: int, y0, n_paths:
             n_state, n_lags = paths.shape if paths.ndim == 2 else (0, 0)
             raise ValueError(f"state carries {n_state} Monte Carlo paths of {n_lags} lags; this call asks for "
                              f"mc_paths={n_paths} with ny={ny} (send mc_paths={n_state})")
-    elif np.asarray(state.mean_tail).shape != (ny,):
-        raise ValueError(f"state: mean_tail must hold ny={ny} outputs")
+        if state.path_peak is None or np.asarray(state.path_peak).shape != (n_paths,):
+            raise ValueError(f"state: path_peak must hold one peak per path ({n_paths})")
+        if state.rng is None:
+            raise ValueError("state: a Monte Carlo state needs its random generator's state")
+    else:
+        if np.asarray(state.mean_tail).shape != (ny,):
+            raise ValueError(f"state: mean_tail must hold ny={ny} outputs")
+        cov = np.asarray(state.cov)
+        if cov.ndim != 2 or cov.shape[0] != cov.shape[1] or cov.shape[0] < ny:
+            raise ValueError(f"state: cov must be a square matrix of at least ny={ny} lags, got shape {cov.shape}")
     if np.asarray(state.u_tail).shape != (nu - 1,):
         raise ValueError(f"state: u_tail must hold nu - 1 = {nu - 1} inputs")
+    for name in ("u_tail", "mean_tail", "cov", "paths", "path_peak", "amp_tail", "amp_hold"):
+        v = getattr(state, name)
+        if v is not None and not np.all(np.isfinite(np.asarray(v, dtype=float))):
+            raise ValueError(f"state: {name} holds a non-finite number")
+    if state.amp_hold is not None and np.asarray(state.amp_hold).size != 1:
+        raise ValueError("state: amp_hold must hold one number")
+    if state.amp_tail is not None and np.asarray(state.amp_tail).ndim != 1:
+        raise ValueError("state: amp_tail must be 1-D")
 
 
 def check_confidence(confidence: float) -> float:

@@ -82,15 +82,24 @@ class RollingWindow:
     @classmethod
     def from_carry(cls, d: dict | None, max_samples: int) -> "RollingWindow":
         """The window a token carried (a new one when ``d`` is None or its size differs from ``max_samples``)."""
-        if not d or int(d.get("max_samples", 0)) != int(max_samples):
+        if not d or d.get("max_samples") != int(max_samples) or isinstance(d.get("max_samples"), bool):
             return cls(max_samples)
-        arrays = {k: np.asarray(d.get(k, np.zeros(0)), dtype=float).ravel() for k in _ARRAYS}
+        malformed = ValueError("state: its novelty window is malformed")
+        try:  # a client may rebuild a token signed with the public key: every value is checked before use
+            arrays = {k: np.asarray(d.get(k, np.zeros(0)), dtype=float).ravel() for k in _ARRAYS}
+        except (TypeError, ValueError):
+            raise malformed from None
         n = {v.size for v in arrays.values()}
+        size = n.pop() if len(n) == 1 else -1
+        finite = all(np.all(np.isfinite(arrays[k])) for k in ("u", "mean", "std"))  # y: NaN where none was measured
         chunks = d.get("chunks") or []
-        if len(n) != 1 or n.pop() > max_samples or not isinstance(chunks, list):
-            raise ValueError("state: its novelty window is malformed")
-        return cls(int(max_samples), chunks=[[int(c[0]), int(c[1]), [str(f) for f in c[2]]] for c in chunks],
-                   **arrays)
+        if not 0 <= size <= max_samples or not finite or not isinstance(chunks, list) or len(chunks) > size + 1:
+            raise malformed
+        if not all(isinstance(c, list) and len(c) == 3 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                               and v >= 0 for v in c[:2])
+                   and isinstance(c[2], list) and all(isinstance(f, str) for f in c[2]) for c in chunks):
+            raise malformed
+        return cls(int(max_samples), chunks=[[c[0], c[1], list(c[2])] for c in chunks], **arrays)
 
 
 __all__ = ["HTTP_WINDOW_SECONDS", "RollingWindow"]

@@ -99,6 +99,8 @@ def decode_state(token: str, model: str, version: str, key: bytes | str | None =
             raise StateTokenError(f"state token body exceeds {MAX_BODY_BYTES} bytes decompressed")
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             header = json.loads(bytes(z["header"]).decode())
+            if not isinstance(header, dict):
+                raise StateTokenError("state token header is not a JSON object")
             arrays = {k: np.array(z[k], dtype=np.float64) for k in _ARRAYS if k in z.files}
             carry = {op: dict(d) for op, d in (header.get("carry") or {}).items()}
             for name in z.files:
@@ -114,13 +116,40 @@ def decode_state(token: str, model: str, version: str, key: bytes | str | None =
                             f"uses {model}:{version}; start the stream anew (no state) or send it to that version")
     if "u_tail" not in arrays or header.get("method") not in ("linear", "mc"):
         raise StateTokenError("state token lacks its input lags or method")
-    return FreeRunState(header["method"], int(header["position"]), arrays["u_tail"],
-                        mean_tail=arrays.get("mean_tail"), cov=arrays.get("cov"), paths=arrays.get("paths"),
-                        path_peak=arrays.get("path_peak"), rng=_from_json(header.get("rng")),
-                        check_rng=_from_json(header.get("check_rng")), floor=int(header.get("floor", 0)),
-                        retry_in=int(header.get("retry_in", 0)), amp_tail=arrays.get("amp_tail"),
-                        amp_hold=arrays.get("amp_hold"),
-                        carry=carry or None)
+    try:  # a token signed with the public key can be rebuilt by anyone: every value is checked before use
+        return FreeRunState(header["method"], _integer(header, "position", 0, MAX_POSITION), arrays["u_tail"],
+                            mean_tail=arrays.get("mean_tail"), cov=arrays.get("cov"), paths=arrays.get("paths"),
+                            path_peak=arrays.get("path_peak"), rng=_rng_state(header.get("rng"), "rng"),
+                            check_rng=_rng_state(header.get("check_rng"), "check_rng"),
+                            floor=_integer(header, "floor", 0, 1 << 16, 0),
+                            retry_in=_integer(header, "retry_in", -1, MAX_POSITION, 0),
+                            amp_tail=arrays.get("amp_tail"), amp_hold=arrays.get("amp_hold"), carry=carry or None)
+    except (TypeError, ValueError, KeyError, OverflowError) as exc:
+        raise StateTokenError(f"state token holds a malformed state: {exc}"[:300]) from None
+
+
+#: largest position (samples) a state may carry: 2^53, a float64's exact integers (over 2.7 million years at 1 kHz)
+MAX_POSITION = 1 << 53
+
+
+def _integer(header: dict, key: str, lo: int, hi: int, default=None) -> int:
+    """header[key] (or ``default`` when absent) as an integer in [lo, hi]; ValueError otherwise."""
+    v = header.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise ValueError(f"{key} must be an integer in [{lo}, {hi}], got {str(v)[:40]}")
+    return v
+
+
+def _rng_state(d, key: str):
+    """A bit generator's state from the header (``_from_json``), checked by loading it into a PCG64 (the
+    generator ``np.random.default_rng`` makes); None stays None."""
+    if d is None:
+        return None
+    if not isinstance(d, dict):
+        raise ValueError(f"{key} must be a random generator state (a JSON object)")
+    state = _from_json(d)
+    np.random.PCG64().state = state  # raises on anything that is not a PCG64 state
+    return state
 
 
 def _jsonable(rng_state):

@@ -2,6 +2,8 @@
 the record sent whole (model level, state tokens, HTTP with two replicas and a restart)."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -241,3 +243,89 @@ def test_gpnarx_stream_reads_stdin_csv_and_prints_a_line_per_chunk():
             assert got[k] == (pytest.approx(v, rel=1e-9) if isinstance(v, (int, float)) else v), (k, got, want)
     bad = subprocess.run(cmd, input="u,y\n1.0,2.0\n1.0,oops\n", capture_output=True, text=True, timeout=300)
     assert bad.returncode == 1 and "stdin line 3" in bad.stderr, bad.stderr
+
+
+# ------------------------------------------------------------------------------------- forged tokens
+def _unpack(token: str):
+    import base64
+    import io
+    import json
+    import zlib
+
+    raw = base64.urlsafe_b64decode(token)
+    with np.load(io.BytesIO(zlib.decompress(raw[35:])), allow_pickle=False) as z:
+        return json.loads(bytes(z["header"]).decode()), {k: np.array(z[k]) for k in z.files if k != "header"}
+
+
+def _forge(header, arrays) -> str:
+    """A token rebuilt and re-signed with the public key, as any client can when no GPNARX_STREAM_KEY is set."""
+    import base64
+    import hashlib
+    import hmac
+    import io
+    import json
+    import zlib
+
+    from gpnarx.model.stream_token import MAGIC, PUBLIC_KEY
+
+    buf = io.BytesIO()
+    np.savez(buf, header=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
+    body = zlib.compress(buf.getvalue())
+    return base64.urlsafe_b64encode(MAGIC + hmac.new(PUBLIC_KEY, body, hashlib.sha256).digest() + body).decode()
+
+
+def _edited(header, arrays, path: str, value):
+    """(header, arrays) with one value replaced: ``path`` a header key, ``carry.OP.KEY`` or an array name."""
+    h, a = json.loads(json.dumps(header)), dict(arrays)
+    if path in a or path.startswith("array:"):
+        a[path.removeprefix("array:")] = value
+    elif path.startswith("carry."):
+        _, op, key = path.split(".", 2)
+        h.setdefault("carry", {}).setdefault(op, {})[key] = value
+    else:
+        h[path] = value
+    return h, a
+
+
+FORGED = {  # what a client could write into a token it rebuilds: each must be a 422 on state, never a 500
+    "predict": [("position", "abc"), ("position", None), ("position", 1e30), ("position", -5), ("floor", "x"),
+                ("retry_in", [1]), ("rng", [1, 2]), ("array:cov", np.ones((3, 3))), ("array:cov", np.full((10, 10),
+                np.nan)), ("array:mean_tail", np.ones(3)), ("array:amp_hold", np.ones(4))],
+    "predict_mc": [("rng", None), ("rng", {"bit_generator": "MT19937"}), ("check_rng", [1, 2]),
+                   ("array:path_peak", np.ones(3))],
+    "loops": [("carry.loops.position", None), ("carry.loops.base", [1, 2]), ("carry.loops.cuts", "x"),
+              ("carry.loops.cuts", -1), ("carry.loops.cuts", [1, 2]), ("carry.loops.cuts", [[10 ** 12, 0.5, True]]),
+              ("carry.loops.peak", None), ("carry.loops.last", [1, 2]), ("carry.loops.armed", "yes"),
+              ("array:carry.loops.extra", np.ones(7)), ("array:carry.loops.mean", np.ones(3))],
+    "novelty": [("carry.novelty.chunks", [1, 2]), ("carry.novelty.chunks", [["a", 1, []]]),
+                ("array:carry.novelty.std", np.full(5, np.nan))],
+}
+
+
+@pytest.mark.parametrize("op", list(FORGED))
+def test_http_forged_tokens_are_422_on_state_never_500(op):
+    """Without GPNARX_STREAM_KEY the signature is a checksum with a public key: a client can rebuild a token with
+    any values. Each is refused as a problem naming state (in a batch: that slot only)."""
+    registry = built_registry().root
+    c = _app(registry, key=None)
+    u, y = short_record(300, 4)
+    route = "predict" if op.startswith("predict") else op
+    body = {"u": u.tolist(), "fs": FS, "method": "mc" if op == "predict_mc" else "linear", "return_state": True,
+            **({"mc_paths": 16} if op == "predict_mc" else {}), **({"y": y.tolist()} if op == "novelty" else {})}
+    if op == "novelty":
+        body["start"] = "measured"
+    r = c.post(f"/v1/models/boucwen/{route}", json=body)
+    assert r.status_code == 200, r.text[:300]
+    header, arrays = _unpack(r.json()["state"])
+    nxt = {k: v for k, v in body.items() if k != "start"}
+    ok = c.post(f"/v1/models/boucwen/{route}", json={**nxt, "state": _forge(header, arrays)})
+    assert ok.status_code == 200, ok.text[:300]  # a faithful rebuild is a valid token
+    for path, value in FORGED[op]:
+        token = _forge(*_edited(header, arrays, path, value))
+        r = c.post(f"/v1/models/boucwen/{route}", json={**nxt, "state": token})
+        assert r.status_code == 422 and r.json()["field"] == "state", (path, value, r.status_code, r.text[:300])
+    bad = _forge(*_edited(header, arrays, *FORGED[op][0]))
+    good = {"model": "boucwen", "operation": route, **nxt}
+    res = c.post("/v1/batch", json={"requests": [good, {**good, "state": bad}, good]}).json()["results"]
+    assert "status" not in res[0] and "status" not in res[2], res
+    assert res[1]["status"] == 422 and res[1]["field"] == "requests.1.state", res[1]

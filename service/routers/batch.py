@@ -104,6 +104,12 @@ async def plan_items(state, items: list) -> tuple[list, list]:
                 exc.field = "model" if exc.field == "name" else "version"
             results[i] = exc.to_dict(prefix)
             continue
+        except Exception:  # one bad record never loses the others
+            incident = uuid.uuid4().hex[:12]
+            log.exception("batch record %d could not be planned (incident %s)", i, incident)
+            results[i] = ProblemError(500, f"internal error on this record (incident {incident})",
+                                      incident=incident).to_dict(prefix)
+            continue
         budget -= plan.work if plan.method == "mc" else 0
         todo.append((i, plan, req))
     return results, todo
