@@ -229,7 +229,23 @@ def _progress(enabled, n):
     return bar, cb
 
 
+def _check_out(out: str | None) -> None:
+    """Refuse an --out the prediction could not be written to, before the prediction runs."""
+    if not out:
+        return
+    from pathlib import Path
+
+    path = Path(out)
+    if path.suffix.lower() not in (".npz", ".csv"):
+        raise UsageError(f"--out {out}: name a .npz or .csv file (the suffix picks the format)")
+    if path.is_dir():
+        raise UsageError(f"--out {out}: is a directory; name a .npz or .csv file")
+    if not path.parent.is_dir():
+        raise UsageError(f"--out {out}: its folder {path.parent} does not exist")
+
+
 def run_predict(args):
+    _check_out(args.out)
     bundle, rec, mc = load(args)
     args.method = args.method or bundle.default_method("predict")
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)

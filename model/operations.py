@@ -162,6 +162,9 @@ def plan(operation: str, req, bundle, limits: Limits, budget: int | None = None)
     ``limits``; ``budget``: Monte Carlo path-steps left to this request (a batch's shared budget)."""
     if operation not in OPERATIONS:
         raise OperationError(f"operation must be one of {OPERATIONS}", "operation")
+    seed = getattr(req, "seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
+        raise OperationError(f"seed must be an integer in [0, 2^63), got {str(seed)[:40]}", "seed")
     n = len(req.u)
     if limits.max_samples is not None and n > limits.max_samples:
         raise OperationError(f"u has {n} samples; the limit is {limits.max_samples} samples per record", "u",

@@ -115,6 +115,9 @@ class GuardMiddleware:
         rid_token = REQUEST_ID.set(rid)
         rid_header = (REQUEST_ID_HEADER.lower().encode(), rid.encode())
         ctx = {"status": None, "exceeded": False, "swallow": False, "timeout": False}
+        head = scope.get("method") == "HEAD"  # a GET route answers HEAD too: its headers, without the body
+        if head:
+            scope = {**scope, "method": "GET"}
         limit = st.settings.max_body_bytes
         key = st.settings.api_key
         if key and not needs_key(scope.get("path", "")):
@@ -132,6 +135,8 @@ class GuardMiddleware:
                     message = {**message, "headers": [*headers, rid_header]}
             elif ctx["swallow"]:
                 return
+            elif head and message["type"] == "http.response.body":
+                message = {**message, "body": b""}
             await send(message)
 
         body_timeout = st.settings.body_timeout
@@ -161,12 +166,17 @@ class GuardMiddleware:
 
         def _inflated(message) -> bytes:
             """This chunk of a gzip body decoded, at most one byte past the cap (then the cap's 413)."""
+            nonlocal inflate
             try:
                 out = inflate.decompress(message.get("body", b""), max(0, limit - received) + 1)
                 if inflate.unconsumed_tail:  # more decoded bytes than the cap allows: the cap's 413
                     return out + b"\0"
-                if inflate.unused_data:
-                    raise zlib.error("bytes follow the end of the gzip stream")
+                while inflate.eof and inflate.unused_data:  # another gzip member follows (RFC 1952)
+                    rest = inflate.unused_data
+                    inflate = zlib.decompressobj(wbits=31)
+                    out += inflate.decompress(rest, max(0, limit - received - len(out)) + 1)
+                    if inflate.unconsumed_tail:
+                        return out + b"\0"
                 if not message.get("more_body", False) and not inflate.eof:
                     raise zlib.error("the gzip stream ends early")
             except zlib.error as exc:  # answered as an oversized body is: the app's own answer is swallowed

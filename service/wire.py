@@ -196,18 +196,20 @@ def render_npz(content: dict) -> bytes:
 
 
 def wants_npz(accept: str | None) -> bool:
-    """True when the Accept header prefers NPZ (listed with a non-zero quality)."""
+    """True when the Accept header prefers NPZ: listed with a non-zero quality, and not below the quality it
+    gives ``application/json`` itself (wildcards do not count against NPZ; a tie goes to NPZ)."""
     if not accept:
         return False
-    for part in accept.split(","):
+    quality: dict[str, float] = {}
+    for part in accept.split(",")[:64]:
         bits = [b.strip() for b in part.split(";")]
-        if bits[0].lower() == NPZ_MEDIA_TYPE:
-            q = next((b[2:] for b in bits[1:] if b.lower().startswith("q=")), "1")
-            try:
-                return float(q) > 0
-            except ValueError:
-                return False
-    return False
+        q = next((b[2:] for b in bits[1:] if b.lower().startswith("q=")), "1")
+        try:
+            quality.setdefault(bits[0].lower(), float(q))
+        except ValueError:
+            quality.setdefault(bits[0].lower(), 0.0)
+    npz = quality.get(NPZ_MEDIA_TYPE, 0.0)
+    return npz > 0 and npz >= quality.get("application/json", 0.0)
 
 
 # ---------------------------------------------------------------------------------------- ETags

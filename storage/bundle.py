@@ -83,8 +83,8 @@ class BundleWarning(UserWarning):
 
 def check_name(name: str, what: str = "model name") -> str:
     if not isinstance(name, str) or not NAME_RE.match(name) or ".." in name:
-        raise BundleError(f"{what} {name!r} is invalid: use 1-64 letters, digits, '_', '-', '.' "
-                          "starting with a letter or digit")
+        raise BundleError(f"{what} {str(name)[:80]!r} is invalid: use 1-64 letters, digits, '_', '-', '.' "
+                          "starting with a letter or digit, without '..'")
     return name
 
 

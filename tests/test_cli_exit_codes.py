@@ -43,6 +43,9 @@ def registry(tmp_path):
     (["predict", "--registry", "{reg}", "--model", "m"], "required", 2),  # missing RECORD
     (["predict", "--registry", "{reg}", "--model", "m", "{rec}", "--no-such-option"], "--no-such-option", 2),
     (["no-such-command"], "no-such-command", 2),
+    (["predict", "--registry", "{reg}", "--model", "m", "{rec}", "--out", "{tmp}/pred.xyz"], "--out", 2),  # no format
+    (["predict", "--registry", "{reg}", "--model", "m", "{rec}", "--out", "{tmp}"], "--out", 2),  # a directory
+    (["predict", "--registry", "{reg}", "--model", "m", "{rec}", "--out", "{tmp}/absent/p.npz"], "--out", 2),
     (["simulate", "bouc-wen", "--amplitude", "-1", "--out", "{tmp}/o.npz"], "--amplitude", 2),
     (["simulate", "bouc-wen", "--amplitude", "1", "--out", "{tmp}/absent/o.npz"], "does not exist", 1),
     (["calibrate", "--registry", "{reg}", "--model", "m", "{rec}", "{rec}", "--false-alarm-rate", "0.9"],
@@ -190,3 +193,15 @@ def _alive(pid: int) -> bool:
     except OSError:
         return False
     return state != "Z"
+
+
+def test_a_negative_seed_names_the_option(tmp_path, capsys):
+    """The seed is checked with the other request fields (model.operations.plan), so the CLI names --seed."""
+    from test_service_support import built_registry
+
+    rec = tmp_path / "r.npz"
+    np.savez(rec, u=np.sin(np.arange(256) * 0.3), fs=750.0)
+    rc = main(["predict", "--registry", str(built_registry().root), "--model", "boucwen", str(rec), "--method", "mc",
+               "--mc", "8", "--seed", "-1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--seed" in err and len(err.strip().splitlines()) == 1, err

@@ -364,6 +364,9 @@ def test_gzip_request_bodies_are_decoded_and_bounded(registry):
     bomb = gzip.compress(b" " * (64 * cap))  # 64 MiB of spaces, about 65 kB on the wire
     r = c.post("/v1/models/boucwen/predict", content=bomb, headers=gz)
     assert r.status_code == 413 and r.json()["field"] == "body" and r.json()["limit"] == cap, r.text[:300]
+    half = len(raw) // 2  # two gzip members one after the other are one body (RFC 1952)
+    r = c.post("/v1/models/boucwen/predict", content=gzip.compress(raw[:half]) + gzip.compress(raw[half:]), headers=gz)
+    assert r.status_code == 200 and r.json()["mean"] == plain.json()["mean"], r.text[:300]
     for bad in (raw, gzip.compress(raw)[:-12], gzip.compress(raw) + b"junk"):
         r = c.post("/v1/models/boucwen/predict", content=bad, headers=gz)
         assert r.status_code == 400 and r.headers["content-type"] == PROBLEM, r.text[:300]
@@ -373,3 +376,24 @@ def test_gzip_request_bodies_are_decoded_and_bounded(registry):
     r = c.post("/v1/models/boucwen/predict", content=raw,
                headers={"content-type": "application/json", "content-encoding": "identity"})
     assert r.status_code == 200
+
+
+def test_accept_prefers_json_when_it_ranks_json_higher(client):
+    from gpnarx.service.wire import wants_npz
+
+    assert wants_npz("application/x-npz") and wants_npz("application/x-npz, */*")
+    assert wants_npz("application/json, application/x-npz")  # a tie goes to NPZ, as before
+    assert not wants_npz("application/json;q=1, application/x-npz;q=0.5")
+    assert not wants_npz("application/x-npz;q=0") and not wants_npz("*/*") and not wants_npz(None)
+    body = {"u": multisine(64, 3).tolist(), "fs": FS, "method": "linear"}
+    r = client.post("/v1/models/boucwen/predict", json=body,
+                    headers={"accept": "application/json;q=1, application/x-npz;q=0.5"})
+    assert r.status_code == 200 and r.headers["content-type"].startswith("application/json")
+
+
+def test_head_on_get_routes_answers_the_headers_without_a_body(client):
+    for path in ("/health/live", "/health/ready", "/metrics", "/v1/models", "/v1/models/boucwen"):
+        get, head = client.get(path), client.head(path)
+        assert head.status_code == get.status_code == 200, (path, head.status_code)
+        assert head.content == b"" and head.headers["content-type"] == get.headers["content-type"], path
+    assert client.head("/v1/models/nosuchmodel").status_code == 404
