@@ -84,6 +84,24 @@ class _BodyTimeout(Exception):
     pass
 
 
+def _matching_path(routes, scope, depth: int = 0) -> str | None:
+    """The path template of the route among ``routes`` that fully matches ``scope``, looking into included
+    routers (FastAPI wraps each in an object whose ``original_router`` holds its routes); None when none does."""
+    for r in routes:
+        try:
+            match, _ = r.matches(scope)
+        except Exception:  # pragma: no cover - a route type that cannot match this scope
+            continue
+        if match != Match.FULL:
+            continue
+        if getattr(r, "path", None):
+            return r.path
+        inner = getattr(getattr(r, "original_router", None), "routes", None)
+        if inner and depth < 4:
+            return _matching_path(inner, scope, depth + 1)
+    return None
+
+
 class GuardMiddleware:
     """Outermost ASGI layer: body-size cap, metrics, and the last-resort 500 problem."""
 
@@ -96,14 +114,8 @@ class GuardMiddleware:
         route = scope.get("route")
         if route is not None and getattr(route, "path", None):
             return route.path
-        for r in self.fastapi_app.router.routes:
-            try:
-                match, _ = r.matches(scope)
-            except Exception:  # pragma: no cover
-                continue
-            if match == Match.FULL:
-                return getattr(r, "path", "unmatched")
-        return "unmatched"
+        # a request answered before routing (API key, shedding, body size, encoding): the route it was for
+        return _matching_path(self.fastapi_app.router.routes, scope) or "unmatched"
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":

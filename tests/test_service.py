@@ -432,6 +432,10 @@ def test_api_key(registry):
             for open_path in ("/health/live", "/health/ready", "/metrics"):
                 assert c.get(open_path).status_code == 200
             assert "secret" not in p["detail"]
+            # answered before routing, yet counted under the route it was for (not "unmatched")
+            text = c.get("/metrics").text
+            assert 'gpnarx_http_requests_total{method="POST",route="/v1/models/{name}/predict",status="401"}' in text
+            assert 'route="unmatched",status="401"' not in text
 
 
 def test_openapi_declares_the_key_scheme_only_when_a_key_is_set(registry):
