@@ -134,14 +134,14 @@ def novelty_score(y, mean, std, method: str = RMS_METHOD) -> dict:
     if not ok.any():
         raise ValueError("predictive std is zero everywhere; cannot score novelty")
     z = (y[ok] - mean[ok]) / std[ok]
+    r = rms(z)
     if method == SEGMENT_METHOD:
         if z.size < SEGMENTS:
             raise ValueError(f"the {SEGMENT_METHOD} score needs at least {SEGMENTS} scored samples, got {z.size}")
         score = float(np.median([rms(c) for c in np.array_split(z, SEGMENTS)]))
     else:
-        score = rms(z)
+        score = r
     # mean of 0.5 log(2 pi s^2) + 0.5 z^2, its z^2 term as 0.5 rms(z)^2: inf only when that exceeds a double
-    r = rms(z)
     nlpd = float(np.mean(0.5 * np.log(2 * np.pi * std[ok] ** 2))) + 0.5 * r * r
     return {"score": score, "nlpd": nlpd, "n_samples": int(ok.sum()), "method": method}
 

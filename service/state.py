@@ -253,14 +253,15 @@ class ServiceState:
                             headers={"Retry-After": str(after)})
 
     async def run(self, fn, *args, request: Request | None = None, token: CancelToken | None = None,
-                  work: float = 1.0, too_slow: tuple[str, str] = ("send fewer mc_paths, a shorter record or method "
-                                                                  "'linear'", "mc_paths")):
+                  work: float = 1.0, too_slow: tuple[str, str] | None = None):
         """Run ``fn(*args)`` on the worker pool under the request deadline; cancel it if the client goes.
 
         ``token`` (the caller passes it to ``fn`` too) is set when a running job must stop; ``work``
         (Monte Carlo path-steps) sizes the job for the queue's wait estimate; ``too_slow``: (advice, field) of
-        the 504 when the job outlives the deadline, what this request can change to finish in time.
+        the 504 when the job outlives the deadline, what this request can change to finish in time
+        (``too_slow_advice``; default: a Monte Carlo record's).
         """
+        too_slow = too_slow or too_slow_advice(True)
         timeout = self.settings.request_timeout or None
         watch = (lambda: _client_gone(request)) if request is not None else None
         try:
@@ -288,6 +289,19 @@ class ServiceState:
         except Abandoned as exc:
             self.metrics.abandoned.inc()
             raise ProblemError(499, f"{exc}; the job was cancelled") from None
+
+
+def too_slow_advice(monte_carlo: bool, batch: bool = False) -> tuple[str, str]:
+    """(advice, field) of the 504 of a request whose job outlived its deadline: what it can change to finish in
+    time, and the field to name (``monte_carlo``: it runs Monte Carlo paths; ``batch``: it is a batch)."""
+    if batch:
+        if monte_carlo:
+            return "send fewer records per batch, shorter records, fewer mc_paths or method 'linear'", "mc_paths"
+        return "send fewer records per batch, shorter records (a long record as a stream in chunks: docs/api.md)", \
+            "requests"
+    if monte_carlo:
+        return "send fewer mc_paths, a shorter record or method 'linear'", "mc_paths"
+    return "send a shorter record (a stream in chunks: docs/api.md, Streams)", "u"
 
 
 async def _client_gone(request: Request) -> None:

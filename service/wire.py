@@ -47,7 +47,6 @@ MAX_MEMBERS = 8
 #: largest .npy header read from a request [bytes]
 MAX_NPY_HEADER = 4096
 _INT = re.compile(r"[+-]?\d+")
-_CORRUPT = NPY_READ_ERRORS  # what reading a damaged member or archive can raise
 
 
 # ---------------------------------------------------------------------------------------- requests
@@ -69,7 +68,7 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, field: str):
             if head is None:
                 raise ValueError("the member does not start with the .npy magic")
             return head[0], head[1], fh.tell()
-    except _CORRUPT as exc:
+    except NPY_READ_ERRORS as exc:  # a damaged archive or member
         raise _bad(field, f"not a readable .npy array in the archive ({type(exc).__name__}: {exc})"[:300]) from None
 
 
@@ -81,7 +80,7 @@ def read_npz_body(raw: bytes, max_bytes: int, max_samples: int) -> dict:
     """
     try:
         zf = zipfile.ZipFile(io.BytesIO(raw))
-    except _CORRUPT as exc:
+    except NPY_READ_ERRORS as exc:  # a damaged archive or member
         raise ProblemError(400, f"the {NPZ_MEDIA_TYPE} body is not a zip archive (.npz): {exc}"[:300], "body") \
             from None
     with zf:
@@ -116,7 +115,7 @@ def read_npz_body(raw: bytes, max_bytes: int, max_samples: int) -> dict:
             try:
                 with zf.open(info) as fh:
                     arr = np.lib.format.read_array(fh, allow_pickle=False, max_header_size=MAX_NPY_HEADER)
-            except _CORRUPT as exc:
+            except NPY_READ_ERRORS as exc:  # a damaged archive or member
                 raise _bad(field, f"corrupt array in the archive ({type(exc).__name__}: {exc})"[:300]) from None
             if field == "fs":
                 if arr.size != 1:

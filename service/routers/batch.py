@@ -20,6 +20,7 @@ from ..deps import RECORD_PROBLEMS, V1, StateDep
 from ..problems import ProblemError, validation_problem
 from ..responses import parse_json
 from ..schemas import BatchItem, BatchResponse
+from ..state import too_slow_advice
 from ..worker import Cancelled, CancelToken
 
 log = logging.getLogger("gpnarx.service")
@@ -40,12 +41,9 @@ async def batch(request: Request, state: StateDep):
     results, todo = await plan_items(state, items)
     if todo:
         token = CancelToken()
-        mc = any(plan.method == "mc" for _, plan, _ in todo)
-        advice = "send fewer records per batch, shorter records" + (
-            ", fewer mc_paths or method 'linear'" if mc else " (a long record as a stream in chunks: docs/api.md)")
         done, steps = await state.run(run_items, state, request, todo, token, request=request, token=token,
                                       work=sum(plan.work for _, plan, _ in todo),
-                                      too_slow=(advice, "mc_paths" if mc else "requests"))
+                                      too_slow=too_slow_advice(any(p.method == "mc" for _, p, _ in todo), batch=True))
         state.metrics.path_steps.inc(steps)
         for i, out in done:
             results[i] = out
@@ -105,10 +103,7 @@ async def plan_items(state, items: list) -> tuple[list, list]:
             results[i] = exc.to_dict(prefix)
             continue
         except Exception:  # one bad record never loses the others
-            incident = uuid.uuid4().hex[:12]
-            log.exception("batch record %d could not be planned (incident %s)", i, incident)
-            results[i] = ProblemError(500, f"internal error on this record (incident {incident})",
-                                      incident=incident).to_dict(prefix)
+            results[i] = _internal_error(i, "could not be planned")
             continue
         budget -= plan.work if plan.method == "mc" else 0
         todo.append((i, plan, req))
@@ -132,8 +127,13 @@ def run_items(state, request, todo: list, token) -> tuple[list, int]:
         except ProblemError as exc:
             done.append((i, exc.to_dict(f"requests.{i}")))
         except Exception:  # one bad record never loses the others
-            incident = uuid.uuid4().hex[:12]
-            log.exception("batch record %d failed (incident %s)", i, incident)
-            done.append((i, ProblemError(500, f"internal error on this record (incident {incident})",
-                                         incident=incident).to_dict(f"requests.{i}")))
+            done.append((i, _internal_error(i, "failed")))
     return done, steps
+
+
+def _internal_error(i: int, what: str) -> dict:
+    """The 500 problem of batch record ``i`` that raised unexpectedly, its traceback logged under an incident id."""
+    incident = uuid.uuid4().hex[:12]
+    log.exception("batch record %d %s (incident %s)", i, what, incident)
+    return ProblemError(500, f"internal error on this record (incident {incident})",
+                        incident=incident).to_dict(f"requests.{i}")

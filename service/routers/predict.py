@@ -15,7 +15,7 @@ from ..deps import RECORD_PROBLEMS, V1, NameP, StateDep, VersionP
 from ..problems import ProblemError
 from ..responses import JSONBytesResponse
 from ..schemas import LoopsResponse, NoveltyRequest, NoveltyResponse, PredictResponse, RecordRequest
-from ..state import ServiceState
+from ..state import ServiceState, too_slow_advice
 from ..wire import NPZ_MEDIA_TYPE, npz_request_fields, render_npz, wants_npz
 from ..worker import CancelToken
 
@@ -119,10 +119,9 @@ async def single(state: ServiceState, request: Request, operation: str, body: Re
     bundle = await state.alookup(name, version)
     plan = ops.plan(operation, body, bundle, state.settings)
     token = CancelToken()
-    too_slow = (("send fewer mc_paths, a shorter record or method 'linear'", "mc_paths") if plan.method == "mc"
-                else ("send a shorter record (a stream in chunks: docs/api.md, Streams)", "u"))
     out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter(), token,
-                                                   request=request, token=token, work=plan.work, too_slow=too_slow)
+                                                   request=request, token=token, work=plan.work,
+                                                   too_slow=too_slow_advice(plan.method == "mc"))
     state.metrics.path_steps.inc(steps)
     state.metrics.answered(operation, out)
     state.telemetry.answered(request, operation, out, body, waited + computed)  # audit line, drift, latency
