@@ -322,10 +322,21 @@ def test_every_shipped_config_loads_and_is_named_after_its_file():
     names = sorted(p.stem for p in CONFIG_DIR.glob("*.toml"))
     assert set(DEFAULT_BUNDLES) - set(DERIVED) <= set(names)  # derived defaults have no config of their own
     assert set(DERIVED.values()) <= set(names)
+    without_data = []
     for name in names:
         cfg = load_config(CONFIG_DIR / f"{name}.toml")
         assert cfg.name == name
+        train = [s for s in cfg.records if "train" in s.roles]
+        assert train, name
+        # the lab data (training.datapaths, as the other data tests find it) is not in a fresh clone: a config
+        # that trains on it is checked without reading its records
+        if not DATA.is_dir() and any(s.path is not None and DATA in s.path.parents for s in train):
+            without_data.append(name)
+            continue
         assert cfg.records_for("train"), name
+    if without_data:
+        pytest.skip(f"train records of {', '.join(without_data)} not read: real BERT records not found at {DATA} "
+                    f"(set GPNARX_BERT_DATA)")
 
 
 def test_monitor_config_trains_on_healthy_probes_only():

@@ -70,6 +70,30 @@ def test_healthy_records_scored_at_once_give_the_scores_of_one_at_a_time():
         score_healthy(bundle, [Record(recs[0].u, None, FS, name="r0"), recs[1]], RMS_METHOD, n_paths=8, jobs=2)
 
 
+def test_healthy_records_scored_at_once_never_fork_a_process_with_jax_running():
+    """With JAX's runtime started in this process (its threads: a fork may deadlock, and JAX warns on
+    ``os.fork()``), ``score_healthy(jobs=2)`` starts its scorers without forking this process: no warning,
+    the same scores as one at a time."""
+    import warnings
+
+    jnp = pytest.importorskip("jax.numpy")
+    from test_service_support import FS, built_registry, short_record
+
+    from gpnarx.model.record import Record
+    from gpnarx.storage.bundle import load_bundle
+    from gpnarx.training.novelty_calibration import score_healthy
+
+    float(jnp.zeros(1).sum())  # JAX's backend up, its at-fork warning installed
+    bundle = load_bundle(built_registry().root / "plain" / "1")
+    recs = [Record(*short_record(150 + 10 * k), FS, name=f"r{k}") for k in range(2)]
+    one = score_healthy(bundle, recs, RMS_METHOD, n_paths=8, seed=3, jobs=1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        two = score_healthy(bundle, recs, RMS_METHOD, n_paths=8, seed=3, jobs=2)
+    assert two == one
+    assert not [w for w in caught if "fork" in str(w.message)], [str(w.message) for w in caught]
+
+
 def test_grouped_calibration_takes_the_spread_between_recordings():
     """Windows of two recordings at different score levels (tight within each): the pooled fit sees 20 close draws
     per level, the grouped fit (``groups``) a spread between recordings, and places the threshold for a new

@@ -47,6 +47,25 @@ def test_arx_lag_search_finds_the_true_order_and_scores_every_cell():
         arx_lag_search(train, lags, [2], [2], criterion="median")
 
 
+def test_arx_lag_search_takes_the_fewest_lags_among_cells_equal_to_round_off(monkeypatch):
+    """Two exact cells whose fits differ by round-off (as another BLAS gives them): the smaller order wins; a
+    cell better by more than round-off still wins over fewer lags."""
+    import gpnarx.training.baselines as bl
+
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=1200)
+    train, lags = [_rec(u[:800], _filter(u[:800]), "train")], [_rec(u[800:], _filter(u[800:]), "lags")]
+    # cells in grid order (ny, nu) = (1, 2), (2, 2), (4, 2): the fits another machine computed
+    for fits, chosen in (([24.9, 99.9999999999988, 99.99999999999899], (2, 2)),
+                         ([99.99999999999899, 99.9999999999988, 24.9], (1, 2)),
+                         ([24.9, 99.0, 99.5], (4, 2))):
+        given = iter(fits)
+        monkeypatch.setattr(bl, "fit_percent", lambda y, m, given=given: next(given))
+        s = arx_lag_search(train, lags, [1, 2, 4], [2], criterion="worst")
+        assert (s["ny"], s["nu"]) == chosen, fits
+    assert bl.ARX_TIE_TOLERANCE <= 1e-6  # round-off only: the baseline stays the best ARX of the grid
+
+
 def test_class_arx_is_fitted_on_the_other_records_of_its_class_only():
     rng = np.random.default_rng(2)
     recs = {n: _rec(u, _filter(u), n) for n, u in (("a", rng.normal(size=800)), ("b", rng.normal(size=800)),

@@ -15,6 +15,7 @@ import numpy as np
 
 from gpnarx.model.metrics import fit_percent, rmse
 from gpnarx.model.regressors import stack_regressors
+from gpnarx.training.lagchoice import choose_lags
 
 
 class LinearARX:
@@ -49,12 +50,19 @@ class LinearARX:
         return y[ny:]
 
 
+#: fit points (eq. 14) within which two cells of ``arx_lag_search`` are a tie, decided by fewer lags: round-off
+#: only (two exact orders differ by about 1e-12 points from one BLAS to another), so the baseline stays the
+#: best ARX of the grid rather than the GP-NARX rule's smallest cell within 0.5 points
+ARX_TIE_TOLERANCE = 1e-6
+
+
 def arx_lag_search(train_records, lag_records, ny_grid, nu_grid, criterion: str = "worst") -> dict:
     """The ARX a system-identification engineer would choose with the GP-NARX's own lag search: at each
     (ny, nu) of the grid, least squares on ``train_records``, free-run on each ``lag_records`` record
     (from rest, or from its first ny measured outputs when ``meta["initial"] == "measured"``), scored by
     fit % (eq. 14); the cell with the best ``criterion`` ("worst": the lowest record fit, "mean": the
-    mean fit; ties: fewer lags) is refitted and returned.
+    mean fit) is refitted and returned. Cells within ``ARX_TIE_TOLERANCE`` points of the best are ties:
+    the smallest ny + nu among them wins (``lagchoice.choose_lags``' rule), then the higher fit.
 
     Returns ``{"model": LinearARX, "ny", "nu", "fit", "cells": [{"ny", "nu", "fits"}...]}``.
     """
@@ -78,7 +86,11 @@ def arx_lag_search(train_records, lag_records, ny_grid, nu_grid, criterion: str 
         vals = list(c["fits"].values())
         return min(vals) if criterion == "worst" else float(np.mean(vals))
 
-    best = max(cells, key=lambda c: (score(c), -(c["ny"] + c["nu"])))
+    scored = [{"ny": c["ny"], "nu": c["nu"], "fit": score(c), "cell": c} for c in cells]
+    if any(np.isfinite(c["fit"]) for c in scored):
+        best = choose_lags(scored, tolerance=ARX_TIE_TOLERANCE)["cell"]
+    else:  # every cell diverged: the fewest lags
+        best = min(cells, key=lambda c: c["ny"] + c["nu"])
     return {"model": LinearARX(best["ny"], best["nu"]).fit(train_records), "ny": best["ny"], "nu": best["nu"],
             "fit": score(best), "criterion": criterion,
             "cells": [{**c, "fits": {k: (v if np.isfinite(v) else None) for k, v in c["fits"].items()}}

@@ -16,6 +16,7 @@ one free run per healthy record, which is training-sized work, not request-sized
 from __future__ import annotations
 
 import multiprocessing
+import sys
 from concurrent.futures import ProcessPoolExecutor
 
 from gpnarx.model.novelty import (
@@ -59,20 +60,32 @@ def _forked_score(k: int) -> dict:
     return _score_one(a["bundle"], a["records"][k], k, a["method"], a["n_paths"], a["seed"], a["propagation"], None)
 
 
+def _sent_score(bundle: Bundle, rec, k: int, method: str, n_paths: int, seed: int, propagation: str) -> dict:
+    return _score_one(bundle, rec, k, method, n_paths, seed, propagation, None)
+
+
+def _fork_is_safe() -> bool:
+    """Whether this process may be forked: POSIX, and no JAX loaded (JAX runs threads of its own, a forked
+    copy of them may deadlock, and JAX warns on ``os.fork()``)."""
+    return "fork" in multiprocessing.get_all_start_methods() and "jax" not in sys.modules
+
+
 def score_healthy(bundle: Bundle, records, method: str, n_paths: int = 1024, seed: int = 0,
                   propagation: str = "mc", progress=None, jobs: int = 1) -> list[dict]:
     """Novelty score of each record (``model.record.Record`` with y) by the scoring rule of
     ``gpnarx novelty``; record k uses seed ``seed + k``.
 
-    jobs: records scored at once, each in a forked process (POSIX ``fork``; elsewhere, or with one
-    record, one at a time); the scores are the same as one at a time (each record's seed is its own).
+    jobs: records scored at once, each in a forked process (POSIX ``fork``), or, where this process must
+    not be forked (JAX loaded: its threads) or cannot be, in processes of a fresh interpreter (the bundle
+    and records sent to them); with one record, one at a time. The scores are the same as one at a time
+    (each record's seed is its own).
     """
     records = list(records)
     for rec in records:  # checked before any work, as one at a time would
         if rec.y is None:
             raise ValueError(f"{rec.name}: a healthy record needs its measured output y")
     jobs = max(1, min(int(jobs), len(records)))
-    if jobs > 1 and "fork" in multiprocessing.get_all_start_methods():
+    if jobs > 1 and _fork_is_safe():
         _FORKED.update(bundle=bundle, records=records, method=method, n_paths=n_paths, seed=seed,
                        propagation=propagation)
         try:
@@ -80,6 +93,12 @@ def score_healthy(bundle: Bundle, records, method: str, n_paths: int = 1024, see
                 return list(pool.map(_forked_score, range(len(records))))
         finally:
             _FORKED.clear()
+    if jobs > 1:
+        n = len(records)
+        context = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context(context)) as pool:
+            return list(pool.map(_sent_score, [bundle] * n, records, range(n), [method] * n, [n_paths] * n,
+                                 [seed] * n, [propagation] * n))
     return [_score_one(bundle, rec, k, method, n_paths, seed, propagation, progress) for k, rec in enumerate(records)]
 
 
