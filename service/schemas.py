@@ -471,8 +471,11 @@ class AuditStatus(BaseModel):
 class Ready(BaseModel):
     status: Literal["ready"]
     bundles: int
-    models: dict[str, list[str]]
-    refused: list[RefusedBundle]
+    refused_count: int = Field(..., description="Versions refused (bad checksum, unreadable, ...).")
+    models: dict[str, list[str]] | None = Field(None, description="Served versions of each model; absent for a "
+                                                "caller without the key when GPNARX_API_KEY is set (as every "
+                                                "member below).")
+    refused: list[RefusedBundle] | None = Field(None, description="The refused versions and why.")
     registry_held: RegistryHeld | None = Field(None, description="Only while a registry scan that dropped too "
                                                "many versions is held back (the service stays ready).")
     startup: StartupStatus | None = Field(None, description="Only while or after the server builds its default "

@@ -63,8 +63,8 @@ from .remote import RemoteStore, StorageError, as_local
 SCHEMA_VERSION = 2  # what save_bundle writes; older manifests are migrated on load (MIGRATIONS)
 MANIFEST = "manifest.json"
 MANIFEST_SUM = "manifest.sha256"  # sha256 of manifest.json: an edited manifest is refused too
-NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-VERSION_RE = re.compile(r"^[1-9][0-9]{0,8}$")
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}\Z")  # \Z: $ would match before a final newline
+VERSION_RE = re.compile(r"^[1-9][0-9]{0,8}\Z")
 MAX_MANIFEST_BYTES = 4 * 1024 * 1024
 TMP_PREFIX = ".tmp-"  # hidden temporary folder of a bundle being written: NAME/.tmp-VERSION-XXXX
 STALE_TMP_SECONDS = 3600.0  # a temporary folder untouched this long is a killed write's leftover
@@ -82,7 +82,7 @@ class BundleWarning(UserWarning):
 
 
 def check_name(name: str, what: str = "model name") -> str:
-    if not isinstance(name, str) or not NAME_RE.match(name) or ".." in name:
+    if not isinstance(name, str) or not NAME_RE.fullmatch(name) or ".." in name:
         raise BundleError(f"{what} {str(name)[:80]!r} is invalid: use 1-64 letters, digits, '_', '-', '.' "
                           "starting with a letter or digit, without '..'")
     return name
@@ -90,7 +90,7 @@ def check_name(name: str, what: str = "model name") -> str:
 
 def check_version(version) -> str:
     v = str(version)
-    if not VERSION_RE.match(v):
+    if not VERSION_RE.fullmatch(v):
         raise BundleError(f"version {version!r} is invalid: use a positive integer")
     return v
 

@@ -48,7 +48,7 @@ from .bundle import (
 from .remote import RemoteStore, StorageError, as_local, cache_dir_for
 
 ALIASES = "aliases.json"  # NAME/aliases.json: {"aliases": {ALIAS: VERSION}}
-ALIAS_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
+ALIAS_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}\Z")  # \Z: $ would match before a final newline
 IMPLICIT_ALIASES = ("latest",)  # the newest listed version; never written
 FINGERPRINT = ".listing.json"  # in a cached remote version: the store listing it was copied from
 DEFAULT_MAX_LOADED = 8  # built bundles kept in memory by a lazy registry (the service's GPNARX_MAX_LOADED)
@@ -56,7 +56,7 @@ DEFAULT_MAX_LOADED = 8  # built bundles kept in memory by a lazy registry (the s
 
 def check_alias(alias, what: str = "alias") -> str:
     a = str(alias)
-    if not ALIAS_RE.match(a):
+    if not ALIAS_RE.fullmatch(a):
         raise BundleError(f"{what} {alias!r} is invalid: use 1-32 letters, digits, '_', '-' starting with a letter")
     return a
 
@@ -66,7 +66,7 @@ def check_version_ref(ref) -> str:
     v = str(ref)
     if v[:1].isdigit() or not v:
         return check_version(v)
-    if not ALIAS_RE.match(v):
+    if not ALIAS_RE.fullmatch(v):
         raise BundleError(f"version {ref!r} is invalid: use a positive integer or an alias (1-32 letters, digits, "
                           "'_', '-' starting with a letter, e.g. production or latest)")
     return v
