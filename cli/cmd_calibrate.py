@@ -41,7 +41,7 @@ def add_parser(sub):
 
 
 def run(args):
-    from gpnarx.cli.cmd_predict import check_mc, open_model, parse_window, read_cli_record, resolve_registry
+    from gpnarx.cli.cmd_predict import check_fs, check_mc, open_model, parse_window, read_cli_record, resolve_registry
     from gpnarx.runtime import tune_for_free_run
     from gpnarx.storage.bundle import BundleError
     from gpnarx.storage.registry import parse_model_ref
@@ -69,8 +69,7 @@ def run(args):
             rec = rec.window(*window)
         if rec.y is None:
             raise CLIError(f"{r}: a healthy record needs its measured output y")
-        if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
-            raise CLIError(f"{r}: fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {bundle.fs} Hz")
+        rec = check_fs(rec, bundle, str(r))
         rec.name = str(r)  # calibration records are named by the path given
         recs.append(rec)
     log = (lambda m: None) if args.json else (lambda m: print(m, file=sys.stderr))

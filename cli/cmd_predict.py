@@ -135,13 +135,24 @@ def load(args, operation: str = "predict"):
     if args.window:
         t0, t1 = parse_window(args.window)
         rec = rec.window(t0, t1)  # a RecordError (ValueError) names the record's span
-    check_fs(rec, bundle)
+    rec = check_fs(rec, bundle, args.record)
     return bundle, rec, check_mc(args.mc, bundle, operation)
 
 
-def check_fs(rec, bundle) -> None:
-    if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
-        raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {bundle.fs} Hz")
+def check_fs(rec, bundle, name: str | None = None):
+    """``rec`` at the model's fs: the rule of every interface (``model.operations.check_fs``: within its
+    ``FS_RTOL`` the record is taken at the model's rate), else a CLIError naming both rates and how to resample
+    (prefixed by ``name``, the record as the command line gave it, when given)."""
+    from dataclasses import replace
+
+    from gpnarx.model.operations import OperationError
+    from gpnarx.model.operations import check_fs as check_rate
+
+    try:
+        fs = check_rate(rec.fs, bundle)
+    except OperationError as exc:
+        raise operation_error(exc, name or rec.name) from None
+    return rec if fs == rec.fs else replace(rec, fs=fs)
 
 
 def check_mc(mc, bundle=None, operation: str = "predict") -> int:

@@ -194,8 +194,7 @@ def _run(args, runner) -> dict:
     def calls():
         for path in args.records:
             try:  # read here: a worker gets the arrays, never the path
-                rec = read_cli_record(path, args.fs)
-                check_fs(rec, bundle)
+                rec = check_fs(read_cli_record(path, args.fs), bundle, str(path))
             except (CLIError, ValueError, OSError, KeyError, LookupError) as exc:
                 yield Failed(exc)
                 continue

@@ -78,13 +78,13 @@ def _record_chunks(rec, n: int):
 
 
 def run_stream(args):
-    from gpnarx.cli.cmd_predict import check_mc, load_model, read_cli_record
+    from gpnarx.cli.cmd_predict import check_fs, check_mc, load_model, read_cli_record
     from gpnarx.model.cycle_stream import STREAM_COV_WINDOW
     from gpnarx.model.cycle_stream import advance as stream_cycles
     from gpnarx.model.metrics import summary
     from gpnarx.model.novelty import assess_novelty, novelty_start
     from gpnarx.model.novelty_window import RollingWindow
-    from gpnarx.model.operations import OperationError, physics_of
+    from gpnarx.model.operations import FS_RTOL, OperationError, fs_matches, physics_of
     from gpnarx.storage.jsonsafe import dumps_json
 
     if not args.chunk > 0:
@@ -100,13 +100,12 @@ def run_stream(args):
     mc = check_mc(args.mc, bundle)
     n = max(int(round(args.chunk * fs)), model.ny + 1)
     if args.record == "-":
-        if args.fs is not None and abs(args.fs - fs) > 1e-9 * fs:
-            raise CLIError(f"--fs {args.fs:g} Hz does not match model {bundle.name}:{bundle.version} fs {fs:g} Hz; "
-                           f"stdin lines must be at the model's fs")
+        if args.fs is not None and not fs_matches(args.fs, fs):
+            raise CLIError(f"--fs {args.fs:g} Hz does not match model {bundle.name}:{bundle.version} fs {fs:g} Hz "
+                           f"(tolerance {FS_RTOL * 1e6:g} ppm); stdin lines must be at the model's fs")
         chunks = _stdin_chunks(n)
     else:
-        if abs(rec.fs - fs) > 1e-9 * fs:
-            raise CLIError(f"record fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs {fs} Hz")
+        rec = check_fs(rec, bundle, args.record)
         chunks = _record_chunks(rec, n)
     nov = bundle.manifest.get("novelty")
     window = RollingWindow(int(args.window) * n)  # the last chunks' samples, for the rolling score

@@ -153,8 +153,41 @@ def _given(a) -> bool:
     return a is not None and len(a) > 0
 
 
-def _fs_matches(a: float, b: float) -> bool:
-    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+#: relative tolerance of a record's fs [Hz] against the model's: 10 ppm. Files that store the sample interval to
+#: a few significant digits read a few ppm off (UFF-58's 6 digits: 1/750 s = 1.33333e-03 s reads 750.002 Hz, 2.7
+#: ppm); within it the record is the model's rate (its fs is used), beyond it the record must be resampled
+FS_RTOL = 10e-6
+
+
+def fs_matches(fs: float, model_fs: float) -> bool:
+    """Whether a record sampled at ``fs`` [Hz] is at the model's ``model_fs`` [Hz] within ``FS_RTOL``."""
+    return math.isclose(float(fs), float(model_fs), rel_tol=FS_RTOL, abs_tol=0.0)
+
+
+def resample_advice(fs: float, model_fs: float) -> str:
+    """How to bring a record from ``fs`` to ``model_fs`` [Hz]: scipy's polyphase resampler with the ratio's
+    integers when it is a simple fraction."""
+    from fractions import Fraction
+
+    ratio = Fraction(float(model_fs) / float(fs)).limit_denominator(1000)
+    if ratio > 0 and math.isclose(float(ratio), model_fs / fs, rel_tol=FS_RTOL):
+        how = f"scipy.signal.resample_poly(x, up={ratio.numerator}, down={ratio.denominator})"
+    else:
+        how = f"scipy.signal.resample(x, round(len(x) * {float(model_fs):g} / {float(fs):.12g}))"
+    return f"resample u and y to {float(model_fs):g} Hz first, e.g. {how}"
+
+
+def check_fs(fs, bundle) -> float:
+    """The one sampling-frequency rule of every interface (HTTP routes, batch, CLI commands): ``fs`` [Hz] of a
+    record against ``bundle.fs``. Within ``FS_RTOL`` the model's fs is returned (the record is taken at the
+    model's rate); otherwise an ``OperationError`` on ``fs`` naming both rates, the tolerance and how to resample
+    (``limit``: ``FS_RTOL``; ``model_fs``: the model's rate)."""
+    fs = float(fs)
+    if fs_matches(fs, bundle.fs):
+        return float(bundle.fs)
+    raise OperationError(f"fs {fs:.12g} Hz does not match the model's fs {bundle.fs:.12g} Hz "
+                         f"({bundle.name}:{bundle.version}; tolerance {FS_RTOL * 1e6:g} ppm): "
+                         f"{resample_advice(fs, bundle.fs)}", "fs", limit=FS_RTOL, model_fs=bundle.fs)
 
 
 def plan(operation: str, req, bundle, limits: Limits, budget: int | None = None) -> Plan:
@@ -169,10 +202,7 @@ def plan(operation: str, req, bundle, limits: Limits, budget: int | None = None)
     if limits.max_samples is not None and n > limits.max_samples:
         raise OperationError(f"u has {n} samples; the limit is {limits.max_samples} samples per record", "u",
                              kind=TOO_LARGE, limit=limits.max_samples)
-    if not _fs_matches(float(req.fs), bundle.fs):
-        raise OperationError(f"fs {float(req.fs):.12g} Hz does not match the model's fs {bundle.fs:.12g} Hz "
-                             f"({bundle.name}:{bundle.version}); resample the record to {bundle.fs:g} Hz", "fs",
-                             model_fs=bundle.fs)
+    check_fs(req.fs, bundle)  # within FS_RTOL: the free run and what is derived from it use the model's fs
     if req.y is not None and len(req.y) != n:
         raise OperationError(f"y has {len(req.y)} samples but u has {n}; they must have the same length", "y")
     if operation == "novelty" and req.y is None:

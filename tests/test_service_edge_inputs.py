@@ -163,8 +163,11 @@ def test_confidence_next_to_one_is_answered(client):
 
 
 def test_an_fs_mismatch_prints_both_values_apart(client):
-    p = _problem(client.post("/v1/models/boucwen/predict", json={"u": [0.5] * 32, "fs": FS - 1e-4}), 422, "fs")
-    assert f"{FS - 1e-4:.12g}" in p["detail"] and f"model's fs {FS:.12g} Hz" in p["detail"]
+    from gpnarx.model.operations import FS_RTOL
+
+    off = FS * (1 - 1.5 * FS_RTOL)  # just outside the tolerance: both rates printed apart
+    p = _problem(client.post("/v1/models/boucwen/predict", json={"u": [0.5] * 32, "fs": off}), 422, "fs")
+    assert f"{off:.12g}" in p["detail"] and f"model's fs {FS:.12g} Hz" in p["detail"]
 
 
 def test_the_answers_start_says_how_the_run_started(client):

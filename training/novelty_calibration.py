@@ -29,6 +29,7 @@ from gpnarx.model.novelty import (
     novelty_start,
     record_envelope,
 )
+from gpnarx.model.operations import FS_RTOL, fs_matches, resample_advice
 from gpnarx.model.probe import probe_contract
 from gpnarx.storage.bundle import Bundle, derive_bundle
 
@@ -40,9 +41,9 @@ def _score_one(bundle: Bundle, rec, k: int, method: str, n_paths: int, seed: int
     model = bundle.model
     if rec.y is None:
         raise ValueError(f"{rec.name}: a healthy record needs its measured output y")
-    if abs(rec.fs - bundle.fs) > 1e-9 * bundle.fs:
-        raise ValueError(f"{rec.name}: fs {rec.fs} Hz does not match model {bundle.name}:{bundle.version} fs "
-                         f"{bundle.fs} Hz")
+    if not fs_matches(rec.fs, bundle.fs):
+        raise ValueError(f"{rec.name}: fs {rec.fs:.12g} Hz does not match model {bundle.name}:{bundle.version} fs "
+                         f"{bundle.fs:.12g} Hz (tolerance {FS_RTOL * 1e6:g} ppm): {resample_advice(rec.fs, bundle.fs)}")
     y0 = novelty_start(rec.y, model.ny)
     if y0 is None:
         raise ValueError(f"{rec.name}: a healthy record must be longer than ny={model.ny} samples")
