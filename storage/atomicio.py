@@ -5,7 +5,8 @@ fsynced, and the file then replaces the destination with ``os.replace``: a reade
 file or the new one, never half of one, and a failed write leaves no temporary file behind. The file
 gets the mode a plain ``open()`` would give it (0666 less the umask: 0644 under the usual 022), not
 the temporary file's private 0600.
-(Bundles are folders: ``storage.bundle`` publishes them by renaming a temporary folder.)
+(Bundles are folders: ``storage.bundle`` publishes them by renaming a temporary folder, given the modes of a
+plain ``mkdir`` and ``open()`` first by ``plain_modes``.)
 """
 from __future__ import annotations
 
@@ -33,6 +34,29 @@ def _umask() -> int:
 def file_mode() -> int:
     """The mode ``open()`` gives a new file: 0666 less the umask."""
     return 0o666 & ~_umask()
+
+
+def dir_mode() -> int:
+    """The mode ``mkdir`` gives a new folder: 0777 less the umask."""
+    return 0o777 & ~_umask()
+
+
+def plain_modes(folder) -> None:
+    """Give ``folder`` and every folder and file under it the modes ``mkdir`` and ``open()`` would give them
+    (``dir_mode``, ``file_mode``), as after ``tempfile.mkdtemp`` (0700) or a copy of private files; links are
+    left as they are."""
+    folder = Path(os.fspath(folder))
+    dmode, fmode = dir_mode(), file_mode()
+    os.chmod(folder, dmode)
+    for here, dirs, files in os.walk(folder):
+        for d in dirs:
+            p = os.path.join(here, d)
+            if not os.path.islink(p):
+                os.chmod(p, dmode)
+        for f in files:
+            p = os.path.join(here, f)
+            if not os.path.islink(p):
+                os.chmod(p, fmode)
 
 
 @contextmanager
@@ -66,4 +90,4 @@ def write_atomic(path, data: bytes | str) -> None:
         f.write(data)
 
 
-__all__ = ["atomic_file", "file_mode", "write_atomic"]
+__all__ = ["atomic_file", "dir_mode", "file_mode", "plain_modes", "write_atomic"]

@@ -57,6 +57,7 @@ import numpy as np
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.kernels import DEFAULT_CONSTANT_CAP
 
+from .atomicio import plain_modes
 from .jsonsafe import json_default
 from .remote import RemoteStore, StorageError, as_local
 
@@ -265,6 +266,9 @@ def _write_new_version(registry, name: str, version, fill):
     tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{version}-{writer_tag()}-", dir=local / name))
     try:
         fill(tmp, version)
+        # mkdtemp's 0700 (and a copied report's modes) would make the bundle private to its writer: a server
+        # running as another user could not read it
+        plain_modes(tmp)
         os.rename(tmp, target)  # atomic on one filesystem; fails if target appeared meanwhile
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -27,7 +27,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
-from .atomicio import write_atomic
+from .atomicio import plain_modes, write_atomic
 from .bundle import (
     MANIFEST,
     MAX_MANIFEST_BYTES,
@@ -52,6 +52,14 @@ ALIAS_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}\Z")  # \Z: $ would match be
 IMPLICIT_ALIASES = ("latest",)  # the newest listed version; never written
 FINGERPRINT = ".listing.json"  # in a cached remote version: the store listing it was copied from
 DEFAULT_MAX_LOADED = 8  # built bundles kept in memory by a lazy registry (the service's GPNARX_MAX_LOADED)
+
+
+def unreadable(where: str, exc: OSError) -> str:
+    """Why ``where`` (a bundle, a model folder, an alias file) is refused when reading it raised ``exc``."""
+    name = os.path.basename(exc.filename) if isinstance(exc.filename, str) else ""
+    uid = f" (uid {os.getuid()})" if hasattr(os, "getuid") else ""
+    return (f"{where}: cannot be read: {exc.strerror or type(exc).__name__}{f' ({name})' if name else ''}; its "
+            f"folders and files must be readable by the user this process runs as{uid}")
 
 
 def check_alias(alias, what: str = "alias") -> str:
@@ -225,6 +233,7 @@ class Registry:
         self._alias_seen: dict = {}  # name -> (fingerprint, aliases or None, reason or None)
         self._loaded = _Loaded(max_loaded)
         self._only: str | None = None
+        self._unlisted: dict = {}  # model folders the last local scan could not list: name -> reason
         self._lock = threading.Lock()
         self.unpublished: dict = {}  # object store: {(name, version): {file: info}} listed without a manifest
 
@@ -238,7 +247,7 @@ class Registry:
             self._only
         new.bundles, new.refused, new.aliases, new._seen, new._alias_seen = {}, [], {}, {}, {}
         new._lock = threading.Lock()
-        new.unpublished = {}
+        new.unpublished, new._unlisted = {}, {}
         return new
 
     def scan(self, only: str | None = None) -> "Registry":
@@ -271,6 +280,8 @@ class Registry:
                 bundles.setdefault(name, {})[version] = entry
             else:
                 refused.append({"path": self._display(name, version), "reason": reason})
+        for name, reason in sorted(self._unlisted.items()):  # model folders this process may not list
+            refused.append({"path": self._display(name), "reason": reason})
         aliases: dict = {}
         for name, fingerprint in sorted(alias_files.items()):
             old = alias_seen.get(name)
@@ -281,6 +292,8 @@ class Registry:
                     got, reason = read_aliases(self.store or self.root, name), None
                 except (BundleError, StorageError) as exc:
                     got, reason = None, str(exc)
+                except OSError as exc:  # another user's private file
+                    got, reason = None, unreadable(f"{self._display(name)}/{ALIASES}", exc)
             self._alias_seen[name] = (fingerprint, got, reason)
             if got:
                 aliases[name] = got
@@ -292,23 +305,37 @@ class Registry:
     def _list_local(self) -> tuple[dict, dict]:
         """{(name, version): fingerprint} of every version folder, {name: fingerprint} of alias files."""
         versions, alias_files = {}, {}
+        self._unlisted = {}
         root = self.root
-        if not root.is_dir():
-            return versions, alias_files
-        name_dirs = [root / self._only] if self._only else sorted(root.iterdir())
+        try:
+            if not root.is_dir():
+                return versions, alias_files
+            name_dirs = [root / self._only] if self._only else sorted(root.iterdir())
+        except OSError as exc:  # the registry folder itself: nothing can be served from it
+            raise StorageError(unreadable(str(root), exc)) from None
         for name_dir in name_dirs:
-            if not name_dir.is_dir() or name_dir.name.startswith("."):
+            try:
+                if not name_dir.is_dir() or name_dir.name.startswith("."):
+                    continue
+                has_aliases = (name_dir / ALIASES).is_file()
+                vdirs = sorted(name_dir.iterdir())
+            except OSError as exc:  # another user's private model folder: refused, the others are served
+                if NAME_RE.match(name_dir.name):
+                    self._unlisted[name_dir.name] = unreadable(self._display(name_dir.name), exc)
                 continue
-            if (name_dir / ALIASES).is_file():
+            if has_aliases:
                 alias_files[name_dir.name] = None  # small: read at every scan
-            for vdir in sorted(name_dir.iterdir()):
-                if not vdir.is_dir() or vdir.name.startswith("."):
-                    continue  # hidden temporary folders of in-progress writes
+            for vdir in vdirs:
+                try:
+                    if not vdir.is_dir() or vdir.name.startswith("."):
+                        continue  # hidden temporary folders of in-progress writes
+                except OSError:
+                    pass  # listed but not even stat-able: _verify refuses it, naming why
                 try:
                     fingerprint = tuple(sorted((f.name, st.st_size, st.st_mtime_ns) for f in vdir.iterdir()
                                                if f.is_file() and (st := f.stat())))
                 except OSError:
-                    fingerprint = None  # vanishing meanwhile: verify it now
+                    fingerprint = None  # vanishing meanwhile, or unreadable: verify it now
                 versions[(name_dir.name, vdir.name)] = fingerprint
         return versions, alias_files
 
@@ -389,6 +416,8 @@ class Registry:
             if path is not None:
                 msg = msg.replace(str(path), where)
             return None, msg
+        except OSError as exc:  # another user's private folder or file: refused like a bad checksum
+            return None, unreadable(where, exc)
 
     def _fetch(self, name: str, version: str, fingerprint: tuple, force: bool = False) -> tuple[Path, bool]:
         """(local copy of a remote version, whether it was copied now). Copies are immutable, one
@@ -414,6 +443,7 @@ class Registry:
                 dest.parent.mkdir(parents=True, exist_ok=True)
                 self.store.download(f"{name}/{version}/{fn}", dest)
             (tmp / FINGERPRINT).write_text(stamp)
+            plain_modes(tmp)  # not mkdtemp's 0700: processes of other users may share the cache folder
             if force and target.exists():  # a damaged copy: moved aside, replaced
                 aside = base / f"{TMP_PREFIX}damaged-{uuid.uuid4().hex[:8]}"
                 try:
@@ -526,8 +556,8 @@ class Registry:
             return e
         try:
             return self._loaded.get((e.name, e.version, e.fingerprint), lambda: load_bundle(e.path))
-        except BundleError as exc:
-            reason = str(exc)
+        except (BundleError, OSError) as exc:
+            reason = str(exc) if isinstance(exc, BundleError) else unreadable(self._display(e.name, e.version), exc)
             if self.remote:
                 reason = reason.replace(str(e.path), self._display(e.name, e.version))
             with self._lock:  # new containers swapped in: readers iterating the old ones are not disturbed
