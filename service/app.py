@@ -122,7 +122,8 @@ async def lifespan(app: FastAPI):
 
 
 def reload_on_sighup(state: ServiceState) -> None:
-    """Rescan the registry on SIGHUP (where the event loop runs in the main thread)."""
+    """Rescan the registry and reopen the audit trail's file on SIGHUP (where the event loop runs in the main
+    thread)."""
     if not hasattr(signal, "SIGHUP"):
         return
     loop = asyncio.get_running_loop()
@@ -134,7 +135,8 @@ def reload_on_sighup(state: ServiceState) -> None:
             log.exception("reload on SIGHUP failed")
 
     def on_hup():
-        log.info("SIGHUP: reloading the registry")
+        log.info("SIGHUP: reloading the registry and reopening the audit trail's file")
+        state.telemetry.audit.reopen()  # logrotate's postrotate `kill -HUP`: later lines go to the new file
         loop.create_task(reload())
 
     try:

@@ -22,13 +22,28 @@ writes. A call on the event loop also leaves the record's hash to a thread of th
 ``MAX_HASHING`` records waiting). A write that fails (unwritable path, full disk, unreachable store) counts its lines as
 failed, keeps the error for ``/health/ready`` (``audit``; readiness is not failed) and reopens the
 target on the next line. ``/metrics``: ``gpnarx_audit_lines_total{outcome}`` (written, failed,
-dropped) and ``gpnarx_audit_write_failures_total``.
+dropped), ``gpnarx_audit_lines_lost_total`` (failed + dropped), ``gpnarx_audit_write_failures_total`` and
+``gpnarx_audit_reopens_total{reason}``.
+
+A local file (a path or ``file://``) is written through an ``O_APPEND`` descriptor, one ``os.write`` per line:
+
+- before each batch of lines the path's device and inode are compared with the open file's: a file deleted
+  or renamed (logrotate without ``copytruncate``) is reopened (created again at the path), so no line goes
+  to a deleted inode and lines after a rotation go to the new file; ``reopen()`` (SIGHUP under
+  ``gpnarx serve``) does the same at once. A file truncated in place (``copytruncate``) needs nothing: the
+  next append starts at its new end;
+- a line is never left torn: a write that fails or comes back short is cut off again (``ftruncate`` to the
+  file's length before it) and the line counted as failed; where that is impossible the fragment is ended
+  with a newline before the next line (``torn`` counts those), so the fragment stands alone and every other
+  line parses. A file that already ends in a fragment (a process killed mid-line) gets a newline first too.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
+import os
 import queue
 import sys
 import threading
@@ -46,6 +61,8 @@ STDOUT = "-"
 _CHUNK = 256
 #: records at most waiting to be hashed off the event loop (``AuditTrail.record(offload=True)``)
 MAX_HASHING = 64
+#: why the writer reopened a local file (``gpnarx_audit_reopens_total{reason}``)
+REOPEN_REASONS = ("deleted", "rotated", "signal", "error")
 
 
 def client_id(api_key: str | None) -> str:
@@ -106,6 +123,8 @@ class AuditTrail:
         self.failed = 0  # lines whose write failed
         self.failures = 0  # failed write attempts
         self.dropped = 0  # lines refused by a full queue
+        self.torn = 0  # fragments of failed writes that could not be cut off (ended by a newline instead)
+        self.reopens = dict.fromkeys(REOPEN_REASONS, 0)  # local file reopened, by reason
         self.last_error: str | None = None
         self.last_error_time: str | None = None
         self._last_ok = True  # whether the last write attempt succeeded
@@ -114,6 +133,11 @@ class AuditTrail:
         self._hash_pool: ThreadPoolExecutor | None = None
         self._thread: threading.Thread | None = None
         self._fh = None
+        self._fd: int | None = None  # a local file's O_APPEND descriptor (``_write_local``)
+        self._fd_id: tuple | None = None  # (st_dev, st_ino) of the file it holds
+        self._need_newline = False  # the file ends in a fragment: the next line starts on a new line
+        self._reopen_asked = False  # reopen() called (SIGHUP): the writer reopens before its next line
+        self._reopen_next: str | None = None  # why the next open is a reopen (counted once it is done)
         self._closed = False
 
     @classmethod
@@ -201,6 +225,100 @@ class AuditTrail:
                 self._thread.start()
 
     # ------------------------------------------------------------------ the writer thread
+    def reopen(self) -> None:
+        """Close and open the target again before the next line (SIGHUP under ``gpnarx serve``, after a
+        rotation); safe from any thread or a signal handler: the writer thread does it."""
+        self._reopen_asked = True
+
+    def _local_path(self) -> str | None:
+        """The target's path when it is a local file (a path or ``file://`` URL), else None."""
+        if self.target == STDOUT or ("://" in self.target and not self.target.startswith("file://")):
+            return None
+        return self.target.removeprefix("file://")
+
+    def _open_fd(self, path: str) -> None:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+        st = os.fstat(fd)
+        tail = b"\n"
+        if st.st_size > 0:
+            try:
+                with open(path, "rb") as fh:
+                    fh.seek(-1, os.SEEK_END)
+                    tail = fh.read(1) or b"\n"
+            except OSError:  # a write-only file: taken as whole
+                pass
+        self._fd, self._fd_id = fd, (st.st_dev, st.st_ino)
+        self._need_newline = tail != b"\n"  # a fragment left by a killed process: not glued to our line
+        if self._reopen_next is not None:
+            with self._lock:
+                self.reopens[self._reopen_next] += 1
+            self._reopen_next = None
+
+    def _close_fd(self) -> None:
+        fd, self._fd, self._fd_id = self._fd, None, None
+        if fd is not None:
+            try:
+                os.close(fd)
+            except OSError:  # pragma: no cover
+                pass
+
+    def _check_file(self, path: str) -> None:
+        """Reopen when asked to, or when the path no longer names the open file (deleted or renamed)."""
+        if self._fd is not None and self._reopen_asked:
+            self._reopen_asked = False
+            self._close_fd()
+            self._reopen_next = "signal"
+        elif self._fd is not None:
+            try:
+                st = os.stat(path)
+                why = None if (st.st_dev, st.st_ino) == self._fd_id else "rotated"
+            except FileNotFoundError:
+                why = "deleted"
+            if why is not None:
+                self._close_fd()
+                self._reopen_next = why
+        self._reopen_asked = False
+        if self._fd is None:
+            self._open_fd(path)
+
+    def _write_line(self, data: bytes) -> None:
+        """Append one line with one ``os.write``; on a failed or short write, cut the file back to its length
+        before it (or end the fragment with a newline) and raise."""
+        fd = self._fd
+        if self._need_newline:
+            data = b"\n" + data
+        before = os.fstat(fd).st_size
+        try:
+            n = os.write(fd, data)
+            if n == len(data):
+                self._need_newline = False
+                return
+            error: OSError = OSError(errno.EIO, f"short write: {n} of {len(data)} bytes")
+        except OSError as exc:
+            error = exc
+        try:
+            if os.fstat(fd).st_size > before:
+                os.ftruncate(fd, before)  # the fragment goes; O_APPEND writes on at the new end
+        except OSError:
+            self._need_newline = True  # the fragment stays: the next line starts on a line of its own
+            with self._lock:
+                self.torn += 1
+        raise error
+
+    def _write_local(self, path: str, lines: list[str]) -> int:
+        """Write ``lines`` to the local file; the number written before a failure (which raises, its
+        ``written`` attribute set)."""
+        self._check_file(path)
+        done = 0
+        try:
+            for line in lines:
+                self._write_line((line + "\n").encode("utf-8"))
+                done += 1
+        except OSError as exc:
+            exc.written = done
+            raise
+        return done
+
     def _open(self):
         if "://" in self.target and not self.target.startswith("file://"):
             import fsspec
@@ -218,26 +336,37 @@ class AuditTrail:
                 pass
 
     def _write(self, lines: list[str]) -> None:
+        path = self._local_path()
         try:
-            if self.target == STDOUT:  # looked up on each write: sys.stdout may be replaced (capture, redirect)
-                fh = sys.stdout
+            if path is not None:
+                self._write_local(path, lines)
             else:
-                if self._fh is None:
-                    self._fh = self._open()
-                fh = self._fh
-            fh.write("".join(line + "\n" for line in lines))
-            fh.flush()
+                if self.target == STDOUT:  # looked up on each write: sys.stdout may be replaced (capture, redirect)
+                    fh = sys.stdout
+                else:
+                    if self._fh is None:
+                        self._fh = self._open()
+                    fh = self._fh
+                fh.write("".join(line + "\n" for line in lines))
+                fh.flush()
         except Exception as exc:
-            self._close_fh()  # reopened on the next line
+            done = getattr(exc, "written", 0)
+            if path is not None and self._fd is not None:
+                self._close_fd()  # reopened on the next line
+                self._reopen_next = "error"
+            else:
+                self._close_fh()  # reopened on the next line
+            lost = lines[done:]
             with self._lock:
-                self.failed += len(lines)
+                self.written += done
+                self.failed += len(lost)
                 self.failures += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"[:500]
                 self.last_error_time = _now()
                 self._last_ok = False
             if self.failures == 1 or self.failures % 100 == 0:  # named by the first lost line's request id
                 log.error("audit trail %s: write failed (%d line(s) lost so far): %s", shown_target(self.target),
-                          self.failed, self.last_error, extra={"request_id": _request_id_of(lines[0])})
+                          self.failed, self.last_error, extra={"request_id": _request_id_of(lost[0])})
             return
         with self._lock:
             self.written += len(lines)
@@ -263,6 +392,7 @@ class AuditTrail:
                 self.queue.task_done()
             if stop:
                 self._close_fh()
+                self._close_fd()
                 return
 
     def flush(self, timeout: float = 5.0) -> bool:
@@ -292,5 +422,7 @@ class AuditTrail:
             return {"target": shown_target(self.target) if self.enabled else OFF,
                     "ok": self._last_ok,
                     "written": self.written, "failed": self.failed, "dropped": self.dropped,
+                    "lost": self.failed + self.dropped, "torn": self.torn,
+                    "reopened": sum(self.reopens.values()), "reopens": dict(self.reopens),
                     "queued": self.queue.qsize(), "last_error": self.last_error,
                     "last_error_time": self.last_error_time}

@@ -463,6 +463,13 @@ class AuditStatus(BaseModel):
     written: int = Field(..., description="Audit lines written since the start.")
     failed: int = Field(..., description="Audit lines lost to failed writes (unwritable or full target).")
     dropped: int = Field(..., description="Audit lines dropped because GPNARX_AUDIT_QUEUE lines were waiting.")
+    lost: int = Field(0, description="Audit lines accepted but not in the trail: `failed` + `dropped`.")
+    torn: int = Field(0, description="Fragments of failed writes that could not be cut off from the file: each "
+                      "ended by a newline, alone on its line (every other line parses).")
+    reopened: int = Field(0, description="Times the trail's file was reopened: deleted or renamed (rotated) "
+                          "under the server, on SIGHUP, or after a failed write (by reason in `reopens`).")
+    reopens: dict[str, int] = Field(default_factory=dict, description="`reopened` by reason: `deleted`, "
+                                    "`rotated`, `signal`, `error`.")
     queued: int = Field(..., description="Audit lines waiting to be written.")
     last_error: str | None = Field(None, description="The last failed write's error.")
     last_error_time: str | None = Field(None, description="When it failed (UTC, ISO 8601).")

@@ -15,7 +15,8 @@ Prometheus registry (``service.metrics``):
   window's answers, every operation, with a non-empty ``out_of_range``) and
   ``gpnarx_drift_window_answers{model,kind}`` (answers and scores the window holds now);
 - the audit trail (``service.audit``): ``gpnarx_audit_lines_total{outcome}`` (written, failed,
-  dropped), ``gpnarx_audit_write_failures_total`` and ``gpnarx_audit_queue_lines``.
+  dropped), ``gpnarx_audit_lines_lost_total``, ``gpnarx_audit_write_failures_total``,
+  ``gpnarx_audit_reopens_total{reason}``, ``gpnarx_audit_torn_lines_total`` and ``gpnarx_audit_queue_lines``.
 
 A rising ``gpnarx_novelty_score_window{quantile="0.5"}`` against ``gpnarx_novelty_threshold`` shows
 a slowly loosening bolt before single verdicts turn ``novel``; a rising out-of-range ratio shows a
@@ -144,6 +145,16 @@ class _Collector:
         yield lines
         yield CounterMetricFamily("gpnarx_audit_write_failures", "Failed writes to the audit target (each loses "
                                   "the lines it held)", value=self.audit.failures)
+        yield CounterMetricFamily("gpnarx_audit_lines_lost", "Audit lines accepted but not in the trail: failed "
+                                  "writes and full-queue drops", value=a["lost"])
+        reopens = CounterMetricFamily("gpnarx_audit_reopens", "Reopens of the audit trail's file: deleted or "
+                                      "rotated (renamed) under the server, on a signal (SIGHUP), after a failed "
+                                      "write", labels=["reason"])
+        for reason, n in a["reopens"].items():
+            reopens.add_metric([reason], n)
+        yield reopens
+        yield CounterMetricFamily("gpnarx_audit_torn_lines", "Fragments of failed audit writes that could not be "
+                                  "cut off (each ended by a newline, alone on its line)", value=a["torn"])
         yield GaugeMetricFamily("gpnarx_audit_queue_lines", "Audit lines waiting to be written", value=a["queued"])
 
 
