@@ -251,3 +251,18 @@ def test_coverage_two_ways_predictive_vs_measured_and_latent_vs_noise_free(tmp_p
                                        (["verify"], "held-out"), (["damaged"], "held-out"), (None, None)])
 def test_record_use_from_config_roles(roles, use):
     assert rmet.record_use(roles) == use
+
+
+def test_use_note_names_the_configs_own_trained_checks_not_bouc_wens(tmp_path):
+    """The note under the per-record table says which of this report's scored records trained the model,
+    from the records' roles; a user's report never quotes the Bouc-Wen config's records."""
+    user = [_sine_record("probe-a", roles=["verify"], role="verify"),
+            _sine_record("run-b", roles=["lags", "validate"], role="validate")]
+    html_text = rp.write_report(tmp_path / "u", "u", {}, user)["html"].read_text()
+    assert "Bouc-Wen" not in html_text and "10/80 N" not in html_text
+    both = [_sine_record("sweep-10N", roles=["train", "verify"], role="verify"),
+            _sine_record("sweep-80N", roles=["train", "verify"], role="verify"),
+            _sine_record("run-b", roles=["validate"], role="validate")]
+    html_text = rp.write_report(tmp_path / "b", "b", {}, both)["html"].read_text()
+    assert "Bouc-Wen" not in html_text
+    assert "sweep-10N and sweep-80N (verify) are training records" in html_text, html_text

@@ -161,6 +161,23 @@ def _img(fn: str, alt: str, embedded: dict) -> str:
     return f"<img src='{esc(src)}' data-file='{esc(fn)}' alt='{esc(alt)}'>"
 
 
+def _trained_checks(rec_entries) -> str:
+    """The part of the use note naming the scored records that also trained the model (their config roles),
+    or '' when none did."""
+    by_role: dict = {}
+    for e in rec_entries:
+        if e["metrics"].get("use") == "training" and e.get("role") and e.get("role") != "train":
+            by_role.setdefault(str(e["role"]), []).append(str(e["name"]))
+    if not by_role:
+        return ""
+    said = []
+    for role, names in by_role.items():
+        listed = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+        verb = "is a training record" if len(names) == 1 else "are training records"
+        said.append(f"{html.escape(listed)} ({html.escape(role)}) {verb}")
+    return "; here " + "; ".join(said)
+
+
 def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag_png, embedded=None) -> str:
     esc = html.escape
     embedded = embedded or {}
@@ -213,8 +230,8 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
             r += [_fmt(m.get("fit_clean")), _fmt(m.get("coverage_latent"))]
         rows.append(r)
     parts.append(_table(head, rows, left_cols=3 if has_use else 2))
-    parts.append("<p class='note'>Use: training (the record's rows trained the model; Bouc-Wen's verify 10/80 N "
-                 "sweeps are the training records), lag-selection (the lag surface was judged on it), calibration "
+    parts.append("<p class='note'>Use: training (the record's rows trained the model" + _trained_checks(rec_entries)
+                 + "), lag-selection (the lag surface was judged on it), calibration "
                  "(healthy records that set the novelty threshold), held-out (used for no fit and no choice). "
                  "Coverage: % of measured samples inside the predictive band (noise &sigma;<sub>y</sub><sup>2</sup> "
                  "included). Coverage latent: % of noise-free samples (simulated systems) inside the latent band "

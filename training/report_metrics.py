@@ -130,7 +130,7 @@ USES = {"training": "a training record (its rows trained the model)",
 
 def record_use(roles) -> str | None:
     """A record's part in the study from its config roles: 'training' (role train, whatever else it
-    is scored as, e.g. Bouc-Wen's verify 10/80 N sweeps), 'lag-selection' (lags), 'calibration'
+    is scored as, e.g. a verify record that is also trained on), 'lag-selection' (lags), 'calibration'
     (healthy: the novelty threshold's records), else 'held-out' (verify, validate, damaged)."""
     if not roles:
         return None
