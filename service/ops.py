@@ -11,7 +11,7 @@ from gpnarx.model.operations import CONFLICT, INVALID, OPERATIONS, TOO_LARGE, An
 
 from .problems import ProblemError
 from .settings import Settings
-from .worker import CancelToken
+from .worker import CancelToken, JobSize
 
 #: HTTP status of each kind of refusal
 STATUS = {INVALID: 422, TOO_LARGE: 413, CONFLICT: 409}
@@ -38,6 +38,16 @@ def plan(operation: str, req, bundle, settings: Settings, budget: int | None = N
         raise problem_of(exc) from None
 
 
+def job_size(plan: Plan) -> JobSize:
+    """What ``compute(plan)`` costs, for the worker pool's admission (``worker.CostModel``): its samples and
+    Monte Carlo path-steps, under a key naming what sets the cost per sample and per path-step (model and
+    version, operation, method, backend)."""
+    b = plan.bundle
+    samples = plan.work // plan.mc_paths if plan.mc_paths else plan.work
+    key = f"{b.name}:{b.version}:{plan.operation}:{plan.method}:{plan.backend}"
+    return JobSize.of(key, samples, plan.work if plan.mc_paths else 0)
+
+
 def compute(plan: Plan, req, token: CancelToken | None = None) -> Answer:
     """Run the operation; ``Answer.body`` is the answer, ``Answer.path_steps`` the Monte Carlo path-steps done.
 
@@ -51,4 +61,4 @@ def compute(plan: Plan, req, token: CancelToken | None = None) -> Answer:
         raise problem_of(exc) from None
 
 
-__all__ = ["OPERATIONS", "Answer", "Plan", "compute", "limits_of", "plan", "problem_of"]
+__all__ = ["OPERATIONS", "Answer", "Plan", "compute", "job_size", "limits_of", "plan", "problem_of"]

@@ -16,7 +16,7 @@ from gpnarx.storage.remote import StorageError
 from .metrics import ServiceMetrics
 from .problems import ProblemError
 from .settings import Settings
-from .worker import Abandoned, BoundedExecutor, CancelToken, Overloaded, QueueTimeout, TimedOut, WontStart
+from .worker import Abandoned, BoundedExecutor, CancelToken, JobSize, Overloaded, QueueTimeout, TimedOut, WontStart
 
 log = logging.getLogger("gpnarx.service")
 
@@ -229,22 +229,24 @@ class ServiceState:
             return self.lookup(name, version)
         return await asyncio.to_thread(self.lookup, name, version)
 
-    def retry_after(self) -> int:
-        """``Retry-After`` [s] of a busy answer: the time the queued work needs (``BoundedExecutor.
-        wait_estimate``), at least ``settings.retry_after``, at most an hour."""
-        wait = self.executor.wait_estimate()
-        base = self.settings.retry_after
-        return base if not wait else int(min(max(base, math.ceil(wait)), 3600))
+    def retry_after(self, after: float | None = None) -> int:
+        """``Retry-After`` [s] of a busy answer: ``after``, or else the predicted time until a request would be
+        admitted (a slot free, and the wait for a worker within the time limit: ``BoundedExecutor.
+        retry_after``), at least ``settings.retry_after``, at most an hour."""
+        if after is None:
+            after = self.executor.retry_after(0.0, self.settings.request_timeout or None)
+        return int(min(max(self.settings.retry_after, math.ceil(after)), 3600))
 
     def busy(self) -> ProblemError | None:
-        """The 503 a compute request gets before its body is read, when the queue is full or the work
-        queued ahead would keep it waiting past its deadline (``service.middleware``); else None."""
+        """The 503 a compute request gets before its body is read (its size unknown yet), when the queue is
+        full or the wait for a worker alone passes the time limit (``service.middleware``); else None. A
+        request whose own predicted time would not fit is refused once its size is known (``run``)."""
         ex, timeout = self.executor, self.settings.request_timeout
         if ex.pending >= ex.capacity:
             why = f"all {ex.workers} workers are busy and {ex.queue_size} jobs are waiting"
         else:
             wait = ex.wait_estimate()
-            if not (timeout and wait is not None and wait > timeout):
+            if not (timeout and wait > timeout):
                 return None
             why = f"the work queued ahead needs about {wait:.0f} s, more than the time limit of {timeout:g} s"
         self.metrics.shed.inc()
@@ -253,11 +255,11 @@ class ServiceState:
                             headers={"Retry-After": str(after)})
 
     async def run(self, fn, *args, request: Request | None = None, token: CancelToken | None = None,
-                  work: float = 1.0, too_slow: tuple[str, str] | None = None):
+                  work: JobSize | float = 1.0, too_slow: tuple[str, str] | None = None):
         """Run ``fn(*args)`` on the worker pool under the request deadline; cancel it if the client goes.
 
         ``token`` (the caller passes it to ``fn`` too) is set when a running job must stop; ``work``
-        (Monte Carlo path-steps) sizes the job for the queue's wait estimate; ``too_slow``: (advice, field) of
+        (a ``JobSize``: ``ops.job_size``) prices the job for admission; ``too_slow``: (advice, field) of
         the 504 when the job outlives the deadline, what this request can change to finish in time
         (``too_slow_advice``; default: a Monte Carlo record's).
         """
@@ -274,7 +276,7 @@ class ServiceState:
                                headers={"Retry-After": str(after)}, limit=timeout) from None
         except WontStart as exc:
             self.metrics.shed.inc()
-            after = self.retry_after()
+            after = self.retry_after(exc.retry_after)
             raise ProblemError(503, f"the service is busy ({exc}); retry after {after} s",
                                headers={"Retry-After": str(after)}, limit=timeout) from None
         except Overloaded as exc:

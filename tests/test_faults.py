@@ -462,23 +462,24 @@ def test_job_that_cannot_start_in_time_is_refused_at_once():
     import threading
     import time
 
-    from gpnarx.service.worker import BoundedExecutor, WontStart
+    from gpnarx.service.worker import BoundedExecutor, JobSize, WontStart
 
     async def scenario():
         ex = BoundedExecutor(1, 4)
         assert ex.wait_estimate() == 0.0  # a worker is free
         await ex.run(time.sleep, 0.2, work=1000)  # measured: about 0.2 ms per work unit
-        assert 1e-4 < ex._sec_per_work < 1e-3
+        await ex.run(time.sleep, 0.4, work=2000)
+        assert 0.8 < ex.model.estimate(JobSize.work(4000)) < 2.0
         release = threading.Event()
-        running = asyncio.ensure_future(ex.run(release.wait, 10, work=10000))  # about 2 s by the measure
+        running = asyncio.ensure_future(ex.run(release.wait, 10, work=5000))  # about 1 s by the measure
         await asyncio.sleep(0.1)
-        assert ex.wait_estimate() > 1.0
+        assert ex.wait_estimate() > 0.6
         t0 = time.perf_counter()
         try:
             await ex.run(time.sleep, 0, timeout=0.5, work=10)
             raise AssertionError("not refused")
         except WontStart as exc:
-            assert exc.timeout == 0.5 and exc.wait > 0.5
+            assert exc.timeout == 0.5 and exc.wait > 0.5 and exc.retry_after > 0
         assert time.perf_counter() - t0 < 0.1  # at once, not at its deadline
         assert ex.pending == 1  # the refused job took no slot
         release.set()
@@ -522,12 +523,19 @@ def test_queued_job_is_refused_once_the_estimate_shows_it_cannot_start():
 
 
 def test_busy_answer_before_the_body_is_read_with_retry_after_from_the_queue():
+    import time
+
+    from gpnarx.service.worker import JobSize, _Job
+
     app = create_app(built_registry().root, Settings(workers=1, queue_size=0, retry_after=2, registry_poll=0))
     state = app.state.service
     ex = state.executor
     with TestClient(app, raise_server_exceptions=False) as c:
         assert state.retry_after() == 2  # idle: the configured floor
-        ex._sec_per_work, ex._pending, ex._pending_work = 0.01, 1, 1000.0  # one job of about 10 s running
+        running = _Job(JobSize.work(1000))  # one job of about 10 s running
+        ex.model.observe(JobSize.work(1000), 10.0)
+        running.started = time.monotonic()
+        ex._jobs[0] = running
         r = c.post("/v1/models/boucwen/predict", content=b"{not json", headers={"content-type": "application/json"})
         assert r.status_code == 503, r.text  # not 400: the body was never parsed
         assert r.headers["Retry-After"] == "10" and r.headers["content-type"].startswith(PROBLEM)
@@ -535,7 +543,7 @@ def test_busy_answer_before_the_body_is_read_with_retry_after_from_the_queue():
         assert c.post("/v1/batch", content=b"{").status_code == 503
         assert c.get("/health/live").status_code == 200 and c.get("/v1/models").status_code == 200
         assert "gpnarx_requests_shed_total 2.0" in c.get("/metrics").text
-        ex._pending, ex._pending_work = 0, 0.0
+        ex._jobs.clear()
         assert c.post("/v1/models/boucwen/predict", json=_body()).status_code == 200
 
 

@@ -21,7 +21,7 @@ from ..problems import ProblemError, validation_problem
 from ..responses import parse_json
 from ..schemas import BatchItem, BatchResponse
 from ..state import too_slow_advice
-from ..worker import Cancelled, CancelToken
+from ..worker import Cancelled, CancelToken, JobSize
 
 log = logging.getLogger("gpnarx.service")
 
@@ -42,7 +42,7 @@ async def batch(request: Request, state: StateDep):
     if todo:
         token = CancelToken()
         done, steps = await state.run(run_items, state, request, todo, token, request=request, token=token,
-                                      work=sum(plan.work for _, plan, _ in todo),
+                                      work=sum((ops.job_size(plan) for _, plan, _ in todo), JobSize(())),
                                       too_slow=too_slow_advice(any(p.method == "mc" for _, p, _ in todo), batch=True))
         state.metrics.path_steps.inc(steps)
         for i, out in done:
@@ -113,8 +113,11 @@ async def plan_items(state, items: list) -> tuple[list, list]:
 def run_items(state, request, todo: list, token) -> tuple[list, int]:
     """Compute the planned records in order on a worker: ([(slot, answer or problem)], path-steps)."""
     done, steps = [], 0
+    total, before = sum(max(plan.work, 1) for _, plan, _ in todo), 0
     for i, plan, req in todo:
         token.check()  # deadline passed or client gone: stop between records
+        token.span = (before / total, max(plan.work, 1) / total)  # the batch's progress, not the record's
+        before += max(plan.work, 1)
         try:
             t0 = time.perf_counter()
             out = ops.compute(plan, req, token)

@@ -120,7 +120,7 @@ async def single(state: ServiceState, request: Request, operation: str, body: Re
     plan = ops.plan(operation, body, bundle, state.settings)
     token = CancelToken()
     out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter(), token,
-                                                   request=request, token=token, work=plan.work,
+                                                   request=request, token=token, work=ops.job_size(plan),
                                                    too_slow=too_slow_advice(plan.method == "mc"))
     state.metrics.path_steps.inc(steps)
     state.metrics.answered(operation, out)
