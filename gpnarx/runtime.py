@@ -7,18 +7,26 @@ settings matter for them. They are the process's, not the method's, so the packa
 
 * BLAS threads: on a machine whose cores are shared, multi-threaded OpenBLAS pays a scheduler
   wake-up per small product; one thread is the default (``GPNARX_BLAS_THREADS``, 0 = leave BLAS
-  as it is). Measured by ``bench/bench_predict_e2e.py`` (tuned vs untuned subprocess).
+  as it is). Measured by ``bench/bench_predict_e2e.py`` (tuned vs untuned subprocess). The CLI and the
+  service set it for the process (``tune_for_free_run``, ``limit_blas``); the Python API's free run
+  (``GPNARX.simulate``) sets it around itself (``free_run_blas``), in a process that has not decided,
+  and restores the caller's settings after (``bench/bench_estimator_blas.py``).
 * glibc's mmap threshold: temporaries of a few hundred KiB to MiB per step are otherwise served by
   fresh mmaps (page faults every step). ``GPNARX_MMAP_THRESHOLD`` bytes (default 32 MiB, 0 = leave
   malloc as it is) sets M_MMAP_THRESHOLD, and M_TRIM_THRESHOLD to 4x that.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+import threading
 
 MiB = 1024 * 1024
 _LIMITERS = []
+_DECIDED: list = []  # the BLAS threads this process was set to by limit_blas (0: left as it is), once decided
+_SCOPED = {"depth": 0, "limiter": None}  # free_run_blas blocks running now and the limit the first one set
+_SCOPED_LOCK = threading.Lock()
 
 
 BLAS_THREADS_ENV = "GPNARX_BLAS_THREADS"
@@ -56,20 +64,60 @@ def mmap_threshold_from_env(environ=None) -> int:
 
 
 def limit_blas(n: int) -> bool:
-    """Limit BLAS to n threads in this process (0: leave as it is). Returns whether a limit was set."""
+    """Limit BLAS to n threads in this process (0: leave as it is). Returns whether a limit was set. Either way
+    the process has decided: ``free_run_blas`` blocks leave its BLAS alone from then on."""
+    _DECIDED.append(int(n))
     if not n:
         return False
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - threadpoolctl is a declared dependency
         return False
-    # threadpoolctl limits the libraries loaded now: load numpy's and scipy's BLAS (separate OpenBLAS builds,
-    # both used by free runs) first, so a limit set before the model is imported holds for both
+    _load_blas()  # first, so a limit set before the model is imported holds for both
+    _LIMITERS.append(threadpool_limits(limits=int(n), user_api="blas"))
+    return True
+
+
+def _load_blas() -> None:
+    # threadpoolctl limits the libraries loaded now: numpy's and scipy's BLAS (separate OpenBLAS builds, both
+    # used by free runs)
     import numpy  # noqa: F401
     import scipy.linalg  # noqa: F401
 
-    _LIMITERS.append(threadpool_limits(limits=int(n), user_api="blas"))
-    return True
+
+@contextlib.contextmanager
+def free_run_blas(blas_threads: int | None = None):
+    """BLAS limited to the free-run setting while the block runs, the caller's settings restored after: the
+    tuning of ``tune_for_free_run`` (``blas_threads``, else ``GPNARX_BLAS_THREADS``, default 1; 0 leaves BLAS as
+    it is) for a process that never set it (the Python API: ``GPNARX.simulate`` runs its free run in this
+    block). A process whose BLAS was already decided (``limit_blas``: the CLI, the service) is left alone.
+    Blocks nested or running at once in several threads share one limit: the first in sets it, the last out
+    restores it (BLAS thread counts are the process's)."""
+    n = None
+    if not _DECIDED:
+        n = blas_threads_from_env() if blas_threads is None else int(blas_threads)
+    if not n:
+        yield
+        return
+    with _SCOPED_LOCK:
+        if _SCOPED["depth"] == 0:
+            try:
+                from threadpoolctl import threadpool_limits
+            except ImportError:  # pragma: no cover - threadpoolctl is a declared dependency
+                limiter = None
+            else:
+                _load_blas()
+                limiter = threadpool_limits(limits=n, user_api="blas")
+            _SCOPED["limiter"] = limiter
+        _SCOPED["depth"] += 1
+    try:
+        yield
+    finally:
+        with _SCOPED_LOCK:
+            _SCOPED["depth"] -= 1
+            if _SCOPED["depth"] == 0 and _SCOPED["limiter"] is not None:
+                _SCOPED["limiter"].restore_original_limits()
+                _SCOPED["limiter"] = None
 
 
 def tune_malloc(mmap_threshold: int) -> bool:

@@ -10,6 +10,8 @@ import time
 
 import numpy as np
 
+from gpnarx.runtime import free_run_blas
+
 from . import freerun
 from .backend import check_backend
 from .discrepancy import calibrate_scale, check_discrepancy, widen_chunk
@@ -409,14 +411,21 @@ class GPNARX(ParamsMixin):
         count in ``diverged_paths`` the paths that left the training envelope (``model.envelope``).
         When the band was calibrated (``calibrate_band``), std and both bands include the
         model-discrepancy term of ``model.discrepancy``. ``FreeRun.state`` is where the run ended.
+
+        BLAS threads: the free run is thousands of small products, which a multi-threaded BLAS (OpenBLAS's
+        default: every core) runs many times slower on shared cores. In a process that has not set them (the
+        Python API; the CLI and the service set them for the process) the run limits BLAS to
+        ``GPNARX_BLAS_THREADS`` threads (default 1; 0 leaves BLAS as it is) with ``threadpoolctl`` and restores
+        the caller's settings when it returns (``gpnarx.runtime.free_run_blas``, the CLI's tuning).
         """
         self._check_fitted()
         backend = check_backend(backend)
         if state is not None and backend != "numpy":
             raise ValueError("state: continuing a stream runs on the numpy backend only, got backend "
                              f"{backend!r}")
-        run = self._simulate(u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,
-                             backend, state, local)
+        with free_run_blas():
+            run = self._simulate(u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress,
+                                 cov_window, backend, state, local)
         disc = getattr(self, "band_discrepancy_", None)
         if not disc:
             return run

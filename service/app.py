@@ -61,7 +61,7 @@ log = logging.getLogger("gpnarx.service")
 
 def limit_blas_threads(n: int) -> None:
     """Limit BLAS to ``n`` threads in this process (0: leave it); see ``service.settings``."""
-    if n and not limit_blas(n):  # pragma: no cover - threadpoolctl comes with scikit-learn
+    if not limit_blas(n) and n:  # pragma: no cover - threadpoolctl comes with scikit-learn
         log.warning("threadpoolctl is not installed: BLAS threads are not limited")
 
 
