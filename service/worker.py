@@ -211,7 +211,7 @@ class CostModel:
             b = self._bucket(samples, path_steps)
             cur = buckets.get(b)
             seq = next(self._seq)
-            if cur is None or (cur[3] and not provisional) or (cur[3] and provisional):
+            if cur is None or cur[3]:  # new, or a provisional one: replaced whole
                 buckets[b] = [samples, path_steps, seconds, provisional, seq]
             elif provisional:  # a measured bucket is not moved by a running job's guess
                 return
