@@ -36,7 +36,7 @@ from .metrics import summary
 from .novelty import UnusableProbeContract, assess_novelty, novelty_start
 from .novelty_window import HTTP_WINDOW_SECONDS, RollingWindow
 from .restoring import loop_area, loop_units, restoring_force
-from .stream_token import StateMismatch, StateTokenError, decode_state, encode_state
+from .stream_token import StateMismatch, StateTokenError, decode_state, encode_state, max_state_bytes
 
 OPERATIONS = ("predict", "loops", "novelty")
 
@@ -267,12 +267,15 @@ def _stream_state(req, bundle, limits: Limits, method: str, paths: int, backend:
                              "return_state")
     if token is None:
         return None
+    model = bundle.model
+    window = (getattr(model, "band_discrepancy_", None) or {}).get("window") or 0
+    largest = max_state_bytes(model.ny, model.nu, bundle.fs, paths if method == "mc" else 0, window)
     try:
-        state = decode_state(token, bundle.name, bundle.version, limits.stream_key)
+        state = decode_state(token, bundle.name, bundle.version, limits.stream_key, max_bytes=largest)
     except StateMismatch as exc:
         raise OperationError(str(exc), "state", kind=CONFLICT) from None
     except StateTokenError as exc:
-        raise OperationError(str(exc), "state") from None
+        raise OperationError(str(exc), "state", limit=exc.limit) from None
     try:  # the model's own rule (method, paths, lags), checked here before the call queues
         check_state(state, method, bundle.model.ny, bundle.model.nu, None, paths)
     except ValueError as exc:

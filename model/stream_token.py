@@ -10,12 +10,20 @@ The header names the model and version the state belongs to, so a token for anot
 (``StateMismatch``), and the arrays are read back without pickle. ``key``: a deployment's secret
 (``GPNARX_STREAM_KEY``) makes the signature an authentication: a client cannot forge or edit a state;
 without one, the signature is a checksum of the fixed public key ``PUBLIC_KEY`` and catches truncated or
-damaged tokens only. Sizes: ``MAX_TOKEN_CHARS`` bounds a token, ``MAX_BODY_BYTES`` its decompressed body.
-A linearised state holds ny means, nu - 1 inputs and an L x L covariance (L = ny, or a loops call's
+damaged tokens only.
+
+Sizes. A linearised state holds ny means, nu - 1 inputs and an L x L covariance (L = ny, or a loops call's
 cycle window): a few kB to a few hundred kB. A Monte Carlo state holds every path's ny lags: about
 8 P ny bytes before compression (200 kB at P = 1024, ny = 24). An operation's ``carry`` adds its arrays
 (loops: the unfinished cycle, ``model.cycle_stream``; novelty: the rolling window,
-``model.novelty_window``) and JSON values (in the header).
+``model.novelty_window``) and JSON values (in the header). ``max_state_bytes`` adds these up for a call (its
+model's lags and fs, its Monte Carlo paths): the most a legitimate state of that call holds, ``max_bytes`` of
+``decode_state``. A token is hostile input (without a secret key anyone can sign one), so ``decode_state``
+decides every size before it inflates or allocates anything (``model.archive_bounds``): the token's length
+(``max_token_chars``), its zlib body inflated at most to that bound, the archive's member count
+(``MAX_MEMBERS``), each member's declared shape and dtype (float64 arrays of at most 2 dimensions and a uint8
+JSON header, together at most ``max_bytes``) and the header's nesting (``MAX_HEADER_DEPTH``). Each refusal is
+a ``StateTokenError`` naming what and, for a size, the limit (``.limit``).
 """
 from __future__ import annotations
 
@@ -25,22 +33,40 @@ import hashlib
 import hmac
 import io
 import json
+import math
+import re
 import zlib
 
 import numpy as np
 
+from .archive_bounds import NPY_READ_ERRORS, ArchiveError, member, member_name, open_archive, read
+from .cycle_stream import MARGIN, MAX_CYCLE_SAMPLES, STREAM_COV_WINDOW
 from .freerun_core import FreeRunState
+from .novelty_window import HTTP_WINDOW_SECONDS
 
 MAGIC = b"GS1"
 PUBLIC_KEY = b"gpnarx-stream-state"  # the checksum key when a deployment sets no secret
-MAX_TOKEN_CHARS = 16 * 1024 * 1024  # characters of base64 text
-MAX_BODY_BYTES = 64 * 1024 * 1024  # decompressed body
+MAX_TOKEN_CHARS = 16 * 1024 * 1024  # characters of base64 text (the request schema's bound)
+MAX_BODY_BYTES = 64 * 1024 * 1024  # arrays and header of a state decoded without a call's own bound
+#: most members of a token's archive: the header, the state's 7 arrays and 4 arrays of each of 2 carries
+MAX_MEMBERS = 32
+#: deepest nesting of a token's JSON header (a state's nests 6 deep: header, carry, novelty, chunks, chunk, flags)
+MAX_HEADER_DEPTH = 16
 _ARRAYS = ("u_tail", "mean_tail", "cov", "paths", "path_peak", "amp_tail", "amp_hold")
 _CARRY = "carry."  # array names of an operation's carry: carry.OPERATION.KEY
+_ARCHIVE_BYTES = MAX_MEMBERS * 1024  # zip entries and .npy headers around the arrays, at most
+_HEADER_BYTES = 64 * 1024  # JSON header besides its carries' lists
+_ENTRY_BYTES = 256  # JSON of one entry of a carry's list (a loops cut, a novelty chunk and its flags)
+_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')  # a JSON string
 
 
 class StateTokenError(ValueError):
-    """The token is not a state this server can read (damaged, truncated, forged or too large)."""
+    """The token is not a state this server can read (damaged, truncated, forged or too large); ``limit``: the
+    bound it exceeds, when it is one of size."""
+
+    def __init__(self, detail: str, limit: int | None = None):
+        super().__init__(detail)
+        self.limit = limit
 
 
 class StateMismatch(ValueError):
@@ -76,12 +102,47 @@ def encode_state(state: FreeRunState, model: str, version: str, key: bytes | str
     return base64.urlsafe_b64encode(MAGIC + sig + body).decode("ascii")
 
 
-def decode_state(token: str, model: str, version: str, key: bytes | str | None = None) -> FreeRunState:
-    """The ``FreeRunState`` in ``token``; ``StateTokenError`` or ``StateMismatch`` when it cannot be used here."""
+def max_state_bytes(ny: int, nu: int, fs: float, paths: int = 0, amp_window: int = 0) -> int:
+    """The most bytes of arrays and JSON header a legitimate state of a call holds (``decode_state``'s
+    ``max_bytes``): ny, nu: the model's lags; fs: its sampling frequency [Hz]; paths: the call's Monte Carlo paths
+    (0 when linearised); amp_window: its band discrepancy window [samples] (0 without one). The sum, 8 bytes a
+    value, of the free run's lags (nu - 1 inputs, ny means and an L x L covariance, L = max(ny,
+    ``STREAM_COV_WINDOW``); paths x (ny + 1) for Monte Carlo), the discrepancy tail, a loops carry
+    (``MAX_CYCLE_SAMPLES + 2 MARGIN + 2`` samples of 3 + max(paths, L) values) and a novelty carry (4 series of
+    ``HTTP_WINDOW_SECONDS`` x fs samples), with the header's JSON for each carried sample."""
+    lags = max(int(ny), STREAM_COV_WINDOW)
+    held = MAX_CYCLE_SAMPLES + 2 * MARGIN + 2
+    window = math.ceil(HTTP_WINDOW_SECONDS * float(fs))
+    values = (int(nu) - 1 + int(ny) + lags * lags + int(paths) * (int(ny) + 1) + int(amp_window) + 1
+              + held * (3 + max(int(paths), lags)) + 4 * window)
+    return 8 * values + _HEADER_BYTES + _ENTRY_BYTES * (held + window + 2)
+
+
+def _inflated_max(max_bytes: int) -> int:
+    """Bytes of a token's zlib body inflated: its arrays and header, and the archive around them."""
+    return max_bytes + _ARCHIVE_BYTES
+
+
+def max_token_chars(max_bytes: int) -> int:
+    """Characters of the longest token of a state of ``max_bytes`` (zlib's bound on what it writes for that
+    many bytes, then the prefix, the signature and base64)."""
+    n = _inflated_max(max_bytes)
+    body = n + (n >> 12) + (n >> 14) + (n >> 25) + 13  # zlib's compressBound
+    return 4 * math.ceil((len(MAGIC) + 32 + body) / 3)
+
+
+def decode_state(token: str, model: str, version: str, key: bytes | str | None = None,
+                 max_bytes: int = MAX_BODY_BYTES) -> FreeRunState:
+    """The ``FreeRunState`` in ``token``; ``StateTokenError`` or ``StateMismatch`` when it cannot be used here.
+
+    max_bytes: the most bytes of arrays and header the state may hold (``max_state_bytes`` of the call that
+    continues it); every size is checked against it before anything is inflated or allocated (module doc)."""
     if not isinstance(token, str) or not token:
         raise StateTokenError("state must be a non-empty token string (a previous answer's 'state')")
-    if len(token) > MAX_TOKEN_CHARS:
-        raise StateTokenError(f"state token of {len(token)} characters exceeds the limit of {MAX_TOKEN_CHARS}")
+    chars = min(MAX_TOKEN_CHARS, max_token_chars(max_bytes))
+    if len(token) > chars:
+        raise StateTokenError(f"state token of {len(token)} characters exceeds the limit of {chars} (the longest "
+                              f"token of a state of this call)", chars)
     try:
         raw = base64.urlsafe_b64decode(token.encode("ascii"))
     except (binascii.Error, ValueError, UnicodeEncodeError):
@@ -92,25 +153,16 @@ def decode_state(token: str, model: str, version: str, key: bytes | str | None =
     if not hmac.compare_digest(sig, hmac.new(_key(key), body, hashlib.sha256).digest()):
         raise StateTokenError("state token failed its signature check (damaged, truncated, edited, or signed "
                               "with another GPNARX_STREAM_KEY)")
+    arrays = _unpack(_inflate(body, _inflated_max(max_bytes)), max_bytes)
+    header = _header(arrays.pop("header"))
     try:
-        d = zlib.decompressobj()
-        data = d.decompress(body, MAX_BODY_BYTES)
-        if d.unconsumed_tail:
-            raise StateTokenError(f"state token body exceeds {MAX_BODY_BYTES} bytes decompressed")
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            header = json.loads(bytes(z["header"]).decode())
-            if not isinstance(header, dict):
-                raise StateTokenError("state token header is not a JSON object")
-            arrays = {k: np.array(z[k], dtype=np.float64) for k in _ARRAYS if k in z.files}
-            carry = {op: dict(d) for op, d in (header.get("carry") or {}).items()}
-            for name in z.files:
-                if name.startswith(_CARRY):
-                    op, _, k = name[len(_CARRY):].partition(".")
-                    carry.setdefault(op, {})[k] = np.array(z[name], dtype=np.float64)
-    except StateTokenError:
-        raise
-    except Exception as exc:  # a signed body that does not parse: written by an incompatible version
-        raise StateTokenError(f"state token body is unreadable ({type(exc).__name__})") from None
+        carry = {op: dict(d) for op, d in (header.get("carry") or {}).items()}
+        for name, a in arrays.items():
+            if name.startswith(_CARRY):
+                op, _, k = name[len(_CARRY):].partition(".")
+                carry.setdefault(op, {})[k] = a
+    except (TypeError, ValueError, AttributeError):
+        raise StateTokenError("state token header holds a malformed carry") from None
     if header.get("model") != model or header.get("version") != str(version):
         raise StateMismatch(f"state belongs to model {header.get('model')}:{header.get('version')}, this call "
                             f"uses {model}:{version}; start the stream anew (no state) or send it to that version")
@@ -126,6 +178,91 @@ def decode_state(token: str, model: str, version: str, key: bytes | str | None =
                             amp_tail=arrays.get("amp_tail"), amp_hold=arrays.get("amp_hold"), carry=carry or None)
     except (TypeError, ValueError, KeyError, OverflowError) as exc:
         raise StateTokenError(f"state token holds a malformed state: {exc}"[:300]) from None
+
+
+def _inflate(body: bytes, limit: int) -> bytes:
+    """The token's zlib body inflated, at most to ``limit`` bytes (a longer one is refused while inflating)."""
+    d = zlib.decompressobj()
+    try:
+        data = d.decompress(body, limit + 1)
+    except zlib.error as exc:
+        raise StateTokenError(f"state token body is unreadable (zlib: {exc})"[:300]) from None
+    if len(data) > limit:
+        raise StateTokenError(f"state token body inflates past {limit} bytes, the limit for a state of this call",
+                              limit)
+    return data
+
+
+def _unpack(data: bytes, max_bytes: int) -> dict:
+    """The arrays of the token's archive ``data`` (``header``: the JSON header's bytes), each member's name, dtype
+    and declared size checked first (module doc)."""
+    try:
+        zf = open_archive(data, MAX_MEMBERS)
+    except ArchiveError as exc:
+        raise StateTokenError(f"state token: {exc}", exc.limit) from None
+    except NPY_READ_ERRORS as exc:
+        raise StateTokenError(f"state token body is unreadable ({type(exc).__name__})") from None
+    with zf:
+        members, total = {}, 0
+        for info in zf.infolist():
+            name = member_name(info)
+            if name != "header" and name not in _ARRAYS and not name.startswith(_CARRY):
+                raise StateTokenError(f"state token holds an unknown array {name[:60]!r}")
+            if name in members:
+                raise StateTokenError(f"state token holds the array {name[:60]!r} twice")
+            try:
+                m = member(zf, info)
+            except ArchiveError as exc:
+                raise StateTokenError(f"state token holds a {exc}"[:300]) from None
+            except NPY_READ_ERRORS as exc:
+                raise StateTokenError(f"state token array {name[:60]!r} is unreadable ({type(exc).__name__})") \
+                    from None
+            if m is None:
+                raise StateTokenError(f"state token member {name[:60]!r} is not an .npy array")
+            total += m.nbytes
+            if total > max_bytes:
+                raise StateTokenError(f"state token array {name[:60]!r} declares {m.nbytes} bytes (shape {m.shape}, "
+                                      f"dtype {m.dtype}): a state of this call holds at most {max_bytes} bytes",
+                                      max_bytes)
+            kind, ndim = (np.dtype(np.uint8), 1) if name == "header" else (np.dtype(np.float64), 2)
+            if m.dtype != kind or len(m.shape) > ndim:
+                raise StateTokenError(f"state token array {name[:60]!r} is {m.dtype} of shape {m.shape}; a state "
+                                      f"holds {kind} arrays of at most {ndim} dimension(s)")
+            members[name] = m
+        if "header" not in members:
+            raise StateTokenError("state token lacks its header")
+        try:
+            return {name: read(zf, m) for name, m in members.items()}
+        except NPY_READ_ERRORS as exc:
+            raise StateTokenError(f"state token body is unreadable ({type(exc).__name__})") from None
+
+
+def _header(raw: np.ndarray) -> dict:
+    """The JSON header (a dict), its nesting checked before it is parsed (``MAX_HEADER_DEPTH``)."""
+    try:
+        text = raw.tobytes().decode()
+    except UnicodeDecodeError:
+        raise StateTokenError("state token header is not UTF-8 JSON") from None
+    depth = _nesting(text)
+    if depth > MAX_HEADER_DEPTH:
+        raise StateTokenError(f"state token header nests {depth} levels deep; a state's nests at most "
+                              f"{MAX_HEADER_DEPTH}", MAX_HEADER_DEPTH)
+    try:
+        header = json.loads(text)
+    except ValueError as exc:
+        raise StateTokenError(f"state token header is not JSON ({exc})"[:300]) from None
+    if not isinstance(header, dict):
+        raise StateTokenError("state token header is not a JSON object")
+    return header
+
+
+def _nesting(text: str) -> int:
+    """The deepest nesting of arrays and objects in the JSON ``text`` (brackets inside strings not counted), from
+    the text itself: no recursion, whatever the depth."""
+    bare = _STRING.sub("", text).encode()
+    codes = np.frombuffer(bare, dtype=np.uint8)
+    step = np.isin(codes, (ord("["), ord("{"))).astype(np.int64) - np.isin(codes, (ord("]"), ord("}")))
+    return int(np.cumsum(step).max(initial=0))
 
 
 #: largest position (samples) a state may carry: 2^53, a float64's exact integers (over 2.7 million years at 1 kHz)

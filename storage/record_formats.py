@@ -25,16 +25,16 @@ from __future__ import annotations
 
 import csv
 import io
-import lzma
 import math
+import re
 import struct
-import tokenize
 import zipfile
 import zlib
 from pathlib import PurePath
 
 import numpy as np
 
+from gpnarx.model.archive_bounds import NPY_READ_ERRORS, ArchiveError, member, npy_header, open_archive
 from gpnarx.model.record import Record, RecordError
 
 from .record_formats_lab import LAB_FORMATS
@@ -232,10 +232,11 @@ class RecordTooLarge(RecordFileError):
     variable of the file) holds ``size`` ``unit`` (``"samples"``, values of a signal or of another array,
     or ``"bytes"``, decompressed) and ``limit`` is the most, in the same unit. Raised from the headers."""
 
-    def __init__(self, path, what: str, size: int, limit: int, unit: str):
+    def __init__(self, path, what: str, size: int, limit: int, unit: str, counted: bool = True):
         self.what, self.size, self.limit, self.unit = what, int(size), int(limit), unit
         if unit == "samples":
-            held = f"{what} holds {self.size} {'samples' if what in ('u', 'y', 'the array') else 'values'}"
+            n = self.size if counted else f"more than {self.limit}"  # counted: all of them, else up to the limit
+            held = f"{what} holds {n} {'samples' if what in ('u', 'y', 'the array') else 'values'}"
             super().__init__(path, f"{held}; the limit is {self.limit}")
         else:
             super().__init__(path, f"decompressing {what} brings the file to {self.size} bytes; the limit is "
@@ -256,8 +257,13 @@ def check_bounds(data, filename: str, *, max_samples=None, max_bytes=None, sourc
     each variable's tag, class, dimensions and name (a compressed variable's first bytes only; its
     stream is then inflated, at most to its declared size, to check the cells and structs it nests
     against their declared element counts); HDF5 / MATLAB v7.3: the shape and item size of the
-    datasets read (a chunked dataset may be compressed or never written, read as its fill value). CSV,
-    UFF-58 and TDMS hold their samples uncompressed: the size of the upload bounds them.
+    datasets read (a chunked dataset may be compressed or never written, read as its fill value) and, for a
+    chunked one, its stored chunks (HDF5 inflates each whole, at its chunk shape x item size); once those are
+    within bounds, each stored deflate chunk is inflated (1 MiB at a time, discarded) at most to its chunk size, and
+    a filter other than deflate, shuffle and fletcher32 is refused (``record_formats_lab.hdf5_chunk_check``: a
+    :class:`RecordFileError`). ``.csv``: its data rows (lines holding something other than blanks, not starting
+    with ``#``, less the header), counted in the bytes before parsing. UFF-58 and TDMS hold their samples
+    uncompressed: the size of the upload bounds them.
 
     Raises :class:`RecordTooLarge` (a ``RecordFileError``) naming the array and the limit; a file whose
     headers cannot be read is left to the parser, which fails on the same headers without loading.
@@ -269,20 +275,23 @@ def check_bounds(data, filename: str, *, max_samples=None, max_bytes=None, sourc
     fh.seek(0)
     try:
         if ext == ".npz":
-            arrays = _npz_arrays(src, fh)
+            _check_sizes(src, _npz_arrays(src, fh), max_samples, max_bytes)
         elif ext == ".npy":
-            arrays = _npy_arrays(src, fh, max_samples)
+            _check_sizes(src, _npy_arrays(src, fh, max_samples), max_samples, max_bytes)
         elif ext == ".mat" and not _is_hdf5_mat(fh):
-            arrays = _mat_arrays(src, fh, max_samples, max_bytes)
+            _check_sizes(src, _mat_arrays(src, fh, max_samples, max_bytes), max_samples, max_bytes)
         elif ext in (".h5", ".hdf5", ".mat"):
             from . import record_formats_lab as lab
 
-            arrays = lab.hdf5_arrays(fh)
-        else:
-            arrays = []
+            _check_sizes(src, lab.hdf5_arrays(fh), max_samples, max_bytes)
+            try:  # the sizes are within bounds: the stored chunks are checked against them
+                lab.hdf5_chunk_check(fh)
+            except lab.LabFormatError as exc:
+                raise RecordFileError(src, str(exc)) from None
+        elif ext == ".csv" and max_samples is not None:
+            _check_csv_rows(src, fh, max_samples)
     finally:
         fh.seek(0)
-    _check_sizes(src, arrays, max_samples, max_bytes)
 
 
 def _check_sizes(p, arrays, max_samples, max_bytes, total=0) -> int:
@@ -293,73 +302,58 @@ def _check_sizes(p, arrays, max_samples, max_bytes, total=0) -> int:
             raise RecordTooLarge(p, what, count, max_samples, "samples")
     total += sum(nbytes for _, _, nbytes in arrays)
     if max_bytes is not None and total > max_bytes:
-        names = [what for what, _, nbytes in arrays if nbytes]
+        names = [what for what, _, nbytes in sorted(arrays, key=lambda a: -a[2]) if nbytes]  # the largest first
         shown = ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
         raise RecordTooLarge(p, shown, total, max_bytes, "bytes")
     return total
 
 
-#: largest .npy header read [bytes] (numpy's own default: what np.load reads)
-_NPY_HEADER_MAX = 10000
-
-
-#: what reading a damaged .npy member of a zip archive can raise: the zip layer (a bad CRC, an unknown or encrypted
-#: method, a damaged deflate, bzip2 or LZMA stream) and numpy's .npy header parser (its tokenizer and literal
-#: evaluation)
-NPY_READ_ERRORS = (ValueError, EOFError, OSError, zipfile.BadZipFile, NotImplementedError, RuntimeError, zlib.error,
-                   lzma.LZMAError, tokenize.TokenError, SyntaxError, RecursionError, TypeError, KeyError)
-
-
-def npy_header(fh, max_header_size: int = _NPY_HEADER_MAX):
-    """(shape, dtype) of the .npy array at ``fh``'s position, read from its header only (at most
-    ``max_header_size`` bytes); ``fh`` is left at the start of its data. None when ``fh`` does not start with the
-    .npy magic (np.load then reads the member as raw bytes). Raises one of ``NPY_READ_ERRORS`` on a damaged
-    header."""
-    fmt = np.lib.format
-    magic = fh.read(fmt.MAGIC_LEN)
-    if magic[:len(fmt.MAGIC_PREFIX)] != fmt.MAGIC_PREFIX:
-        return None
-    version = tuple(magic[len(fmt.MAGIC_PREFIX):])
-    if version not in ((1, 0), (2, 0), (3, 0)):
-        raise ValueError(f"unsupported .npy version {version}")
-    reader = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
-    shape, _, dtype = reader(fh, max_header_size=max_header_size)
-    return shape, dtype
+#: most members of an .npz record (its arrays): the zip directory is read only when it declares at most this many
+MAX_NPZ_MEMBERS = 1024
 
 
 def _npz_arrays(p, fh) -> list:
     """(name, values, data bytes) of each member ``_read_npz`` reads; the directory and the headers agree."""
     try:
-        zf = zipfile.ZipFile(fh)
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError):
+        zf = open_archive(fh, MAX_NPZ_MEMBERS)
+    except ArchiveError as exc:  # a directory of more entries than a record holds: not a record
+        raise RecordFileError(p, f"not an .npz record: {exc}") from None
+    except NPY_READ_ERRORS:
         return []  # np.load refuses it too
     out = []
     with zf:
         members = zf.namelist()
         for key in ("u", "y", "fs", "units_u", "units_y", "name"):  # found as np.load's NpzFile finds them
-            member = key if key in members else (f"{key}.npy" if f"{key}.npy" in members else None)
-            if member is None:
+            name = key if key in members else (f"{key}.npy" if f"{key}.npy" in members else None)
+            if name is None:
                 continue
-            info = zf.getinfo(member)
+            info = zf.getinfo(name)
             try:
-                with zf.open(info) as m:
-                    head = npy_header(m)
-                    header_bytes = m.tell()
+                m = member(zf, info)
+            except ArchiveError as exc:
+                raise RecordFileError(p, str(exc)) from None
             except NPY_READ_ERRORS:
                 continue  # np.load fails on the same header, before allocating
-            if head is None:  # not a .npy member: np.load returns its bytes
+            if m is None:  # not a .npy member: np.load returns its bytes
                 out.append((key, 1, info.file_size))
-                continue
-            shape, dtype = head
-            if dtype.hasobject:
-                continue  # refused without pickle before its data is read
-            count = math.prod(shape)
-            nbytes = count * dtype.itemsize
-            if header_bytes + nbytes != info.file_size:
-                raise RecordFileError(p, f"corrupt array {key!r}: its .npy header says {nbytes} data bytes, "
-                                         f"the zip directory {info.file_size - header_bytes}")
-            out.append((key, count, nbytes))
+            elif not m.dtype.hasobject:  # an object array is refused without pickle before its data is read
+                out.append((key, m.count, m.nbytes))
     return out
+
+
+#: the start of a CSV line holding data (or the header): not blank, not a # comment
+_CSV_ROW = re.compile(rb"(?:\A|(?<=[\r\n]))[ \t]*[^#\s]")
+
+
+def _check_csv_rows(p, fh, max_samples) -> None:
+    """RecordTooLarge when the CSV file holds more than ``max_samples`` data rows (the header line not counted),
+    counted in its bytes: its lines when they are few enough, else its rows up to the first one over."""
+    raw = fh.read()
+    if max(raw.count(b"\n"), raw.count(b"\r")) <= max_samples:
+        return
+    for rows, _ in enumerate(_CSV_ROW.finditer(raw)):  # rows: data rows before this line (the header is row 0)
+        if rows > max_samples:
+            raise RecordTooLarge(p, "u", rows, max_samples, "samples", counted=False)
 
 
 def _npy_arrays(p, fh, max_samples) -> list:

@@ -33,6 +33,7 @@ import importlib
 import math
 import os
 import tempfile
+import zlib
 
 import numpy as np
 
@@ -100,6 +101,10 @@ def read_uff(p, fh) -> dict:
         incs.append(inc)
         if np.iscomplexobj(s.get("data")):
             raise LabFormatError(f"{label}: complex data (a spectrum or FRF?); a time record is required")
+        declared, held = s.get("num_pts"), int(np.size(s.get("data")))
+        if declared is not None and int(declared) != held:
+            raise LabFormatError(f"{label}: the data set declares {int(declared)} points (num_pts), the file holds "
+                                 f"{held} (truncated or corrupt)")
     if len(incs) == 2 and abs(incs[0] - incs[1]) > 1e-5 * incs[0]:
         raise LabFormatError(f"u and y have different sample periods ({incs[0]:g} s and {incs[1]:g} s)")
     fs = float(f"{1.0 / incs[0]:.6g}")
@@ -178,28 +183,121 @@ def _attr_str(v) -> str:
 HDF5_READ = ("u", "y", "fs", "units_u", "units_y")
 
 
-def hdf5_arrays(fh) -> list:
-    """(name, values, bytes) of each dataset ``read_hdf5`` reads, from the dataset's shape and item size
-    alone (a chunked dataset may be compressed, or never written and read as its fill value: its declared
-    size is what reading it allocates). Empty when h5py is missing or cannot open the file (``read_hdf5``
+#: HDF5 filters a chunk may be stored with (their ids): deflate (gzip; each stored chunk inflated here first, at most
+#: to its chunk size, as HDF5's own filter inflates whatever the stream holds), shuffle and fletcher32 (their output
+#: is their input's size). The others (LZF, SZIP, scale-offset, N-bit, plug-ins) size their output from what the
+#: file says, unchecked: refused
+H5_DEFLATE, H5_SHUFFLE, H5_FLETCHER32 = 1, 2, 3
+H5_FILTERS = {H5_DEFLATE: "deflate (gzip)", H5_SHUFFLE: "shuffle", H5_FLETCHER32: "fletcher32"}
+
+
+def _h5_open(fh):
+    """The h5py module and ``fh`` opened read-only, or None when h5py is missing or cannot open it (``read_hdf5``
     then fails the same way, before reading a dataset)."""
     try:
         import h5py
     except ImportError:
-        return []
+        return None
     fh.seek(0)
     try:
-        f = h5py.File(fh, "r")
+        return h5py, h5py.File(fh, "r")
     except Exception:  # noqa: BLE001 - read_hdf5 reports it
+        return None
+
+
+def _stored_chunks(ds) -> list:
+    """StoreInfo (chunk_offset, filter_mask, byte_offset, size) of each stored chunk of the chunked dataset ``ds``."""
+    if hasattr(ds.id, "chunk_iter"):
+        out: list = []
+        ds.id.chunk_iter(out.append)
+        return out
+    return [ds.id.get_chunk_info(i) for i in range(ds.id.get_num_chunks())]
+
+
+def hdf5_arrays(fh) -> list:
+    """(name, values, bytes) of what reading each dataset ``read_hdf5`` reads inflates and allocates, from the
+    dataset's shape, item size and chunk layout alone (nothing is read): the dataset itself (shape x item size: a
+    chunked dataset may be compressed, or never written and read as its fill value, and reading it allocates its
+    declared size), and for a chunked dataset its stored chunks, each inflated whole at its chunk shape x item size
+    (named ``dataset 'NAME' (N stored chunks of B bytes)``). Empty when h5py is missing or cannot open the file."""
+    opened = _h5_open(fh)
+    if opened is None:
         return []
+    h5py, f = opened
     out = []
     with f:
         for key in HDF5_READ:
             ds = f.get(key)
-            if isinstance(ds, h5py.Dataset):
-                count = int(ds.size or 0)
-                out.append((key, count, count * ds.dtype.itemsize))
+            if not isinstance(ds, h5py.Dataset):
+                continue
+            count = int(ds.size or 0)
+            out.append((key, count, count * ds.dtype.itemsize))
+            if ds.chunks is not None:
+                chunk = math.prod(ds.chunks) * ds.dtype.itemsize
+                stored = ds.id.get_num_chunks()
+                out.append((f"dataset '{key}' ({stored} stored chunk{'s' if stored != 1 else ''} of {chunk} bytes)",
+                            0, stored * chunk))
     return out
+
+
+def hdf5_chunk_check(fh) -> None:
+    """LabFormatError when a stored chunk of a dataset ``read_hdf5`` reads would inflate past its chunk size, or uses
+    a filter whose decoded size is not checked (``H5_FILTERS``). Each deflate stream is inflated here in pieces of
+    1 MiB, discarded, at most to its chunk size (call it once ``hdf5_arrays``' sizes are within bounds: it inflates
+    what they declare)."""
+    opened = _h5_open(fh)
+    if opened is None:
+        return
+    h5py, f = opened
+    with f:
+        for key in HDF5_READ:
+            ds = f.get(key)
+            if not isinstance(ds, h5py.Dataset) or ds.chunks is None:
+                continue
+            plist = ds.id.get_create_plist()
+            filters = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+            other = [plist.get_filter(i)[3].decode(errors="replace") or str(code)
+                     for i, code in enumerate(filters) if code not in H5_FILTERS]
+            if other:
+                raise LabFormatError(f"dataset '{key}' is stored with the HDF5 filter {other[0]!r}, whose decoded size "
+                                     f"is not checked before reading; records read {', '.join(H5_FILTERS.values())} "
+                                     f"(save it with compression='gzip')")
+            if H5_DEFLATE not in filters:
+                continue
+            at = filters.index(H5_DEFLATE)
+            if H5_SHUFFLE in filters[at + 1:]:
+                raise LabFormatError(f"dataset '{key}' shuffles its chunks after compressing them; records read "
+                                     f"chunks shuffled, then compressed (as h5py and MATLAB write them)")
+            checksum = 1 << filters.index(H5_FLETCHER32) if H5_FLETCHER32 in filters[at + 1:] else 0
+            size = math.prod(ds.chunks) * ds.dtype.itemsize
+            for info in _stored_chunks(ds):
+                mask, raw = ds.id.read_direct_chunk(info.chunk_offset)
+                if mask & (1 << at):  # stored without deflate
+                    continue
+                if checksum and not mask & checksum:
+                    raw = raw[:-4]
+                if _inflates_past(raw, size):
+                    raise LabFormatError(f"dataset '{key}': a stored chunk inflates past the {size} bytes of its chunk "
+                                         f"(chunk shape {ds.chunks}, {ds.dtype}): a corrupt or forged file")
+
+
+def _inflates_past(stream: bytes, size: int) -> bool:
+    """Whether the zlib ``stream`` inflates to more than ``size`` bytes (inflated 1 MiB at a time, discarded; a
+    damaged stream is left to HDF5, which fails on it)."""
+    d = zlib.decompressobj()
+    out = 0
+    try:
+        while stream and not d.eof:
+            out += len(d.decompress(stream, 1 << 20))
+            if out > size:
+                return True
+            if not d.unconsumed_tail and not d.eof:
+                out += len(d.flush())
+                break
+            stream = d.unconsumed_tail
+    except zlib.error:
+        return False
+    return out > size
 
 
 def _refuse_outside_data(h5py, f) -> None:

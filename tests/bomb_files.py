@@ -56,6 +56,16 @@ def zip_with_bomb(small: dict, name: str, shape, descr="<f8") -> bytes:
     return b.getvalue()
 
 
+def zip_directory_bomb(n: int = 200_000, declared: int | None = 1) -> bytes:
+    """A zip archive that is only a central directory of ``n`` entries (47 bytes each; no member data): ``zipfile``
+    makes an object of each (about 400 bytes). Its end record declares ``declared`` entries (None: ``n``)."""
+    entry = struct.pack("<4s4B4HL2L5H2L", b"PK\x01\x02", 20, 3, 20, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0)
+    directory = (entry + b"x") * n  # stored, empty, named "x"
+    count = n if declared is None else declared
+    end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, min(count, 0xFFFF), min(count, 0xFFFF), len(directory), 0, 0)
+    return directory + end
+
+
 # ------------------------------------------------------------------------------------------------ stream tokens
 def sign(body: bytes, key: bytes = PUBLIC_KEY) -> str:
     """A stream token of ``body`` (the zlib-compressed NPZ), signed as any client can when no GPNARX_STREAM_KEY
@@ -79,24 +89,29 @@ def token_bomb(model: str, version: str, declared: int = 128 << 20, member: str 
     return sign(zlib.compress(inner, 9))
 
 
-def token_of(header: dict, arrays: dict) -> str:
-    """A token holding ``header`` and ``arrays`` as ``model.stream_token.encode_state`` writes them."""
+def token_of(header: dict | str, arrays: dict) -> str:
+    """A token holding ``header`` (a dict, or its JSON text) and ``arrays`` as ``model.stream_token.encode_state``
+    writes them."""
+    text = header if isinstance(header, str) else json.dumps(header)
     buf = io.BytesIO()
-    np.savez(buf, header=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
+    np.savez(buf, header=np.frombuffer(text.encode(), dtype=np.uint8), **arrays)
     return sign(zlib.compress(buf.getvalue()))
 
 
-def nested(depth: int, leaf="1"):
-    """``leaf`` inside ``depth`` JSON objects {"s": {"s": ...}}."""
-    v = leaf
-    for _ in range(depth):
-        v = {"s": v}
-    return v
+def nested(depth: int, leaf: str = '"1"') -> str:
+    """JSON text of ``leaf`` inside ``depth`` objects {"s": {"s": ...}} (written, not dumped: deeper than
+    ``json.dumps`` recurses)."""
+    return '{"s": ' * depth + leaf + "}" * depth
+
+
+def with_value(header: dict, key: str, json_text: str) -> str:
+    """JSON text of ``header`` with ``header[key]`` replaced by ``json_text``."""
+    return json.dumps({**header, key: "@@"}).replace('"@@"', json_text)
 
 
 def deep_rng_token(model: str, version: str, depth: int = 700) -> str:
     """A token whose ``rng`` nests ``depth`` objects deep (a decoder that recurses over it overflows the stack)."""
-    return token_of(token_header(model, version, rng=nested(depth)), {"u_tail": np.zeros(16)})
+    return token_of(with_value(token_header(model, version), "rng", nested(depth)), {"u_tail": np.zeros(16)})
 
 
 def outer_zlib_bomb(model: str, version: str, declared: int = 512 << 20) -> str:
