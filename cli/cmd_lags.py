@@ -58,7 +58,10 @@ def run(args):
     ch = surface["chosen"]
     if surface["edge"]:
         print(f"gpnarx lags: warning: {edge_message(surface)}", file=sys.stderr)
+    if surface.get("figure_skipped"):
+        print(f"gpnarx lags: note: {surface['figure_skipped']}", file=sys.stderr)
     return {"chosen": {"ny": ch["ny"], "nu": ch["nu"], "fit": ch["fit"]},
             "best": {"ny": surface["best"]["ny"], "nu": surface["best"]["nu"], "fit": surface["best"]["fit"]},
             "edge": surface["edge"], "cells": len(surface["cells"]), "cached_cells": surface["cached_cells"],
-            "seconds": surface["seconds"], "files": [str(p) for p in paths]}
+            "seconds": surface["seconds"], "files": [str(p) for p in paths],
+            "figure_skipped": surface.get("figure_skipped")}

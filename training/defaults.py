@@ -102,12 +102,12 @@ def build_default(name: str, root, progress: bool = False, log=None, mc_paths: i
         raise ValueError(f"{name!r} is not a default bundle; choose among {', '.join(DEFAULT_BUNDLES)}")
     if name in DERIVED:
         return build_real_monitor(Path(root), bert_data_dir(), mc_paths=mc_paths, log=log)
-    # the core install (no extra train) still builds and serves the defaults, without their training reports
-    report = importlib.util.find_spec("matplotlib") is not None
-    if not report and log:
-        log(f"{name}: matplotlib is not installed (extra train), so the bundle has no training report")
+    # the core install (no extra train) builds and serves the defaults too, their reports without figures
+    if importlib.util.find_spec("matplotlib") is None and log:
+        log(f"{name}: matplotlib is not installed (extra train): the training report is written without figures "
+            f"(pip install 'gpnarx[train]', then gpnarx train {name} --registry REGISTRY for a version with them)")
     return train(shipped_config(name), Path(root), progress=progress, mc_paths=mc_paths, log=log,
-                 report_method=LIGHT_METHOD.get(name), report=report)
+                 report_method=LIGHT_METHOD.get(name), report=True)
 
 
 def ensure_default_registry(path=None, progress: bool = True, names=None, mc_paths: int = DEFAULT_MC,

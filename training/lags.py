@@ -115,7 +115,8 @@ def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler=
     if progress and todo:
         from gpnarx._progress import progress_bar
 
-        bar = progress_bar(total=len(grid), initial=len(grid) - len(todo), desc="lag surface", unit="cell")
+        bar = progress_bar(total=len(grid), initial=len(grid) - len(todo), desc="lag surface", unit="cell",
+                           lines=True)  # minutes per cell: a line per cell even without tqdm
 
     def store(res):
         write_atomic(cdir / f"ny{res['ny']}_nu{res['nu']}.json", json.dumps(res, allow_nan=True))
@@ -153,8 +154,13 @@ def lag_surface(config_path, ny_values, nu_values, *, jobs: int = -1, scheduler=
             "seconds": time.perf_counter() - t0, "cached_cells": len(grid) - len(todo)}
 
 
+#: why ``write_surface`` draws no heat map, and how to get one
+FIGURE_SKIPPED = "matplotlib is not installed (pip install 'gpnarx[train]'; the surface file is written)"
+
+
 def write_surface(surface: dict, out) -> list[Path]:
-    """Write the surface as JSON (or CSV when ``out`` ends in .csv) plus a heat-map PNG beside it."""
+    """Write the surface as JSON (or CSV when ``out`` ends in .csv) plus a heat-map PNG beside it; without
+    matplotlib no PNG, and ``surface["figure_skipped"]`` says why (``FIGURE_SKIPPED``)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -175,5 +181,5 @@ def write_surface(surface: dict, out) -> list[Path]:
                            surface.get("paper"), png)
         paths.append(png)
     except ImportError:
-        pass
+        surface["figure_skipped"] = f"{out.with_suffix('.png').name} not written: {FIGURE_SKIPPED}"
     return paths

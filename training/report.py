@@ -19,6 +19,10 @@ A *record* is a dict with keys
   ``band_label`` (default "99% band").
 
 ``physics`` (optional) = {"mass": kg, "input_gain": 1.0, "output": "displacement" | "velocity"}.
+
+The figures need matplotlib (the extra ``train``). Without it (the core install, e.g. the default bundles
+built on first use) the report is written without them: report.json and report.html with every table, and a
+note on the page saying why the figures are missing and how to get them (``FIGURES_MISSING``).
 """
 from __future__ import annotations
 
@@ -27,12 +31,12 @@ import html
 import json
 import math
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
 
 from gpnarx.training.lagchoice import edge_message, grid_edge
-from gpnarx.training.report_figures import FIGURE_LOCK, lag_surface_figure, record_figure
 from gpnarx.training.report_metrics import (
     finite_or_none,
     record_metrics,
@@ -40,7 +44,15 @@ from gpnarx.training.report_metrics import (
     to_report_json,
 )
 
+try:
+    from gpnarx.training.report_figures import FIGURE_LOCK, lag_surface_figure, record_figure
+except ImportError:  # the core install: reports without figures
+    FIGURE_LOCK, lag_surface_figure, record_figure = threading.Lock(), None, None
+
 GP_NAME = "GP-NARX"
+#: why a report has no figures, and how to get them (report.json ``figures_missing``, the page's note)
+FIGURES_MISSING = ("matplotlib is not installed where this report was written (the core install); "
+                   "pip install 'gpnarx[train]', then train again to get a report with figures")
 def _norm_lag_surface(lag_surface, paper: dict | None):
     """(rows, chosen, paper_point) from a lag_surface dict (keys surface/table/grid, chosen, paper) or list."""
     if lag_surface is None:
@@ -178,7 +190,8 @@ def _trained_checks(rec_entries) -> str:
     return "; here " + "; ".join(said)
 
 
-def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag_png, embedded=None) -> str:
+def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag_png, embedded=None,
+          missing: str | None = None) -> str:
     esc = html.escape
     embedded = embedded or {}
     parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{esc(title)}</title>"
@@ -281,6 +294,8 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
 
     # figures
     parts.append("<h2>Figures</h2>")
+    if missing:
+        parts.append(f"<p class='note missing-figures'>No figures: {esc(missing)}.</p>")
     if lag_png:
         parts.append(f"<figure>{_img(lag_png, 'lag surface', embedded)}<figcaption>Lag selection surface "
                      f"n<sub>y</sub> &times; n<sub>u</sub> &times; fit % (paper Figs. 1 / 14).</figcaption></figure>")
@@ -295,11 +310,30 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
     return "\n".join(parts)
 
 
-def render_record(rec: dict, physics: dict | None) -> tuple[dict, bytes]:
-    """One record's computed metrics and its figure as PNG bytes: the report's per-record work as one
-    task (a Dask worker runs it on the record sent to it; the client writes the files)."""
+def figures_missing(summary: dict | None = None) -> str | None:
+    """Why this process draws no report figures and how to get them (None: it draws them). ``summary``'s
+    ``config`` (the trained config's path) names the command that trains again: a shipped config by its name."""
+    if record_figure is not None:
+        return None
+    from gpnarx.configs import CONFIG_DIR
+
+    cfg = (summary or {}).get("config")
+    again = ""
+    if cfg:
+        p = Path(str(cfg))
+        ref = p.stem if p.parent.resolve() == CONFIG_DIR.resolve() else str(p)
+        again = f" (gpnarx train {ref} --registry REGISTRY writes a new version with them)"
+    return FIGURES_MISSING + again
+
+
+def render_record(rec: dict, physics: dict | None) -> tuple[dict, bytes | None]:
+    """One record's computed metrics and its figure as PNG bytes (None where matplotlib is missing): the
+    report's per-record work as one task (a Dask worker runs it on the record sent to it; the client writes
+    the files)."""
     computed = record_metrics(rec, physics)
     merged = {**to_report_json(rec.get("metrics") or {}), **computed}
+    if record_figure is None:
+        return computed, None
     with FIGURE_LOCK, tempfile.TemporaryDirectory() as tmp:
         png = record_figure(dict(rec, metrics=merged), physics, Path(tmp) / "record.png")
         return computed, png.read_bytes()
@@ -308,7 +342,8 @@ def render_record(rec: dict, physics: dict | None) -> tuple[dict, bytes]:
 def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], physics: dict | None = None,
                  lag_surface: dict | None = None, baselines: dict | None = None, paper: dict | None = None,
                  runner=None) -> dict:
-    """Write report.json, one PNG per record, lag_surface.png (if given) and report.html to ``out_dir``.
+    """Write report.json, one PNG per record, lag_surface.png (if given) and report.html to ``out_dir``;
+    without matplotlib no PNG, report.json's ``figures_missing`` and the page say why (``figures_missing``).
 
     ``lag_surface``: {"surface" (or "cells"): [{"ny", "nu", "fit"}...], "chosen": (ny, nu) or {"ny", "nu"},
     "paper": (ny, nu, fit) or {"ny", "nu", "fit"}} (training.lags.lag_surface output works as is)
@@ -325,6 +360,7 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
     out_dir.mkdir(parents=True, exist_ok=True)
     paths: dict = {"records": {}, "lag_surface": None}
 
+    missing = figures_missing(summary)
     rendered = None
     if runner is not None and runner.distributed:
         rendered = runner.run(render_record, [(runner.send(rec), physics) for rec in records])
@@ -342,18 +378,20 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
             k += 1
         used.add(fn)
         if rendered is None:
-            paths["records"][name] = record_figure(dict(rec, metrics=merged), physics, out_dir / fn)
-        else:
+            if missing is None:
+                paths["records"][name] = record_figure(dict(rec, metrics=merged), physics, out_dir / fn)
+                fig_names[name] = fn
+        elif rendered[i][1] is not None:
             (out_dir / fn).write_bytes(rendered[i][1])
             paths["records"][name] = out_dir / fn
-        fig_names[name] = fn
+            fig_names[name] = fn
         rec_entries.append({"name": name, "role": rec.get("role"), "fs": finite_or_none(rec.get("fs")),
-                            "units": dict(rec.get("units") or {}), "figure": fn, "metrics": merged,
+                            "units": dict(rec.get("units") or {}), "figure": fig_names.get(name), "metrics": merged,
                             "extra_metrics": extra, "band_label": rec.get("band_label", "99% band")})
 
     lag = _norm_lag_surface(lag_surface, paper)
     lag_png = None
-    if lag is not None and lag[0]:
+    if lag is not None and lag[0] and missing is None:
         paths["lag_surface"] = lag_surface_figure(lag[0], lag[1], lag[2], out_dir / "lag_surface.png")
         lag_png = "lag_surface.png"
 
@@ -388,6 +426,7 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
             {r: {**f, "best": max((m for m in f if finite_or_none(f[m]) is not None), key=lambda m: f[m], default=None)}
              for r, f in baselines_tab["rows"].items()}),
         "paper": to_report_json(paper) if paper else None,
+        "figures_missing": missing,
     }
     report = to_report_json(report)
     jpath = out_dir / "report.json"
@@ -398,6 +437,6 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
     embedded = {fn: _png_data_uri(out_dir / fn) for fn in [*fig_names.values(), *([lag_png] if lag_png else [])]}
     hpath = out_dir / "report.html"
     hpath.write_text(_html(title, report["summary"], rec_entries, lag, baselines_tab, paper, fig_names, lag_png,
-                           embedded), encoding="utf-8")
+                           embedded, missing), encoding="utf-8")
     paths["html"] = hpath
     return paths
