@@ -31,6 +31,7 @@ import zipfile
 
 import numpy as np
 
+from gpnarx.model.archive_bounds import ArchiveError, open_archive
 from gpnarx.storage.record_formats import NPY_READ_ERRORS, npy_header
 
 from .problems import ProblemError
@@ -79,15 +80,15 @@ def read_npz_body(raw: bytes, max_bytes: int, max_samples: int) -> dict:
     the samples of one array. Raises ``ProblemError`` (400, 413 or 422) naming the array.
     """
     try:
-        zf = zipfile.ZipFile(io.BytesIO(raw))
+        zf = open_archive(raw, MAX_MEMBERS)  # the directory's entries counted before zipfile reads them
+    except ArchiveError as exc:
+        raise ProblemError(422, f"{exc} (arrays {', '.join(NPZ_ARRAYS)} and fs)", "body", limit=MAX_MEMBERS) \
+            from None
     except NPY_READ_ERRORS as exc:  # a damaged archive or member
         raise ProblemError(400, f"the {NPZ_MEDIA_TYPE} body is not a zip archive (.npz): {exc}"[:300], "body") \
             from None
     with zf:
         infos = [i for i in zf.infolist() if not i.is_dir()]
-        if len(infos) > MAX_MEMBERS:
-            raise ProblemError(422, f"the archive holds {len(infos)} members; at most {MAX_MEMBERS} "
-                                    f"(arrays {', '.join(NPZ_ARRAYS)} and fs)", "body", limit=MAX_MEMBERS)
         declared = sum(i.file_size for i in infos)
         if declared > max_bytes:
             worst = max(infos, key=lambda i: i.file_size)

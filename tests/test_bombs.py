@@ -312,6 +312,12 @@ def test_npz_request_body_bomb_is_refused_fast_and_light(client):
     assert str(p["limit"]) in p["detail"], p["detail"]
 
 
+def test_npz_request_body_directory_bomb_is_refused_fast_and_light(client):
+    p = refused(lambda: client.post(f"/v1/models/{MODEL}/predict?fs={FS}", content=zip_directory_bomb(300_000),
+                                    headers={"content-type": "application/x-npz"}), 422, "body")
+    assert p["limit"] == 8 and "members" in p["detail"], p["detail"]
+
+
 def test_gzip_request_body_bomb_is_refused_fast_and_light():
     """Decoded up to the body cap (a plain body of that size is read too): under a 1 MiB cap, a gzip body of
     256 MiB of zeros costs what a 1 MiB body costs."""
