@@ -96,7 +96,9 @@ async def plan_items(state, items: list) -> tuple[list, list]:
             continue
         try:
             bundle = await state.alookup(req.model, req.version)
-            plan = ops.plan(req.operation, req, bundle, state.settings, budget=budget)
+            # a long stream token is decoded while planning: on a worker thread, as a large body is parsed
+            plan = await off_loop(len(req.state or ""), ops.plan, req.operation, req, bundle, state.settings,
+                                  budget)
         except ProblemError as exc:
             if exc.field in ("name", "version"):
                 exc.field = "model" if exc.field == "name" else "version"

@@ -117,7 +117,8 @@ async def single(state: ServiceState, request: Request, operation: str, body: Re
                  version: str | None):
     """One record's answer, computed on the worker pool (``Server-Timing``: queue and compute time)."""
     bundle = await state.alookup(name, version)
-    plan = ops.plan(operation, body, bundle, state.settings)
+    # a long stream token is decoded while planning: on a worker thread, as a large body is parsed
+    plan = await off_loop(len(body.state or ""), ops.plan, operation, body, bundle, state.settings)
     token = CancelToken()
     out, steps, waited, computed = await state.run(timed_compute, plan, body, time.perf_counter(), token,
                                                    request=request, token=token, work=ops.job_size(plan),
