@@ -49,8 +49,8 @@ def run(args):
 
     if not 0.0 < args.false_alarm_rate < 0.5:
         raise UsageError(f"--false-alarm-rate must be in (0, 0.5), got {args.false_alarm_rate}")
-    if args.mc is not None and not 1 <= args.mc <= 65536:
-        raise UsageError(f"--mc must be between 1 and 65536, got {args.mc}")
+    if args.mc is not None:
+        check_mc(args.mc)
     if len(args.records) < 2:
         raise UsageError(f"at least 2 healthy records are needed, got {len(args.records)}")
     tune_for_free_run(None)

@@ -156,14 +156,20 @@ def check_fs(rec, bundle, name: str | None = None):
 
 
 def check_mc(mc, bundle=None, operation: str = "predict") -> int:
-    """``--mc``, checked; when not given, the bundle's default for ``operation``
-    (``model.operations.default_mc_paths``, the rule of every interface)."""
-    from gpnarx.model.operations import DEFAULT_MC_PATHS, default_mc_paths
+    """``--mc``, checked against the one Monte Carlo path bound (``model.operations.mc_paths_max``, the HTTP
+    service's too); when not given, the bundle's default for ``operation`` (``model.operations.default_mc_paths``,
+    the rule of every interface)."""
+    from gpnarx.model.operations import DEFAULT_MC_PATHS, MC_PATHS_MAX_ENV, default_mc_paths, mc_paths_max
 
+    try:
+        limit = mc_paths_max()
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     if mc is None:
         mc = default_mc_paths(bundle, operation) if bundle is not None else DEFAULT_MC_PATHS
-    if not 1 <= mc <= 65536:
-        raise UsageError(f"--mc must be between 1 and 65536, got {mc}")
+    if not 1 <= mc <= limit:
+        raise UsageError(f"--mc must be between 1 and {limit} (Monte Carlo paths per record, {MC_PATHS_MAX_ENV}: "
+                         f"the HTTP service's bound too), got {mc}")
     return mc
 
 

@@ -64,10 +64,59 @@ def _terminate_as_interrupt():
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse parser whose usage errors are one line on stderr and exit code 2."""
+    """argparse parser whose usage errors are one line on stderr and exit code 2. An option it does not know is
+    named as such (with the closest known option) before any missing required one: ``--modle`` is an
+    unrecognized argument, not a missing ``--model``."""
+
+    _args: list = []
+
+    def parse_known_args(self, args=None, namespace=None):
+        self._args = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def _unknown_options(self) -> list[str]:
+        """The option-like words of this parser's arguments that name none of its options (an abbreviation of
+        one counts as known, as argparse takes it)."""
+        known = list(self._option_string_actions)
+        out = []
+        for arg in self._args:
+            if arg == "--":
+                break
+            if not arg.startswith("--") or len(arg) < 3:
+                continue
+            word = arg.split("=", 1)[0]
+            if word not in known and not any(k.startswith(word) for k in known if k.startswith("--")):
+                out.append(word)
+        return out
+
+    def _unrecognized(self, words: list[str]) -> str:
+        import difflib
+
+        options = [k for k in self._option_string_actions if k.startswith("--")]
+        parts = []
+        for w in words:
+            near = difflib.get_close_matches(w, options, n=1, cutoff=0.6)
+            parts.append(w + (f" (did you mean {near[0]}?)" if near else ""))
+        return f"unrecognized argument{'s' if len(words) > 1 else ''}: {', '.join(parts)}"
+
+    def _command_parser(self) -> "_Parser":
+        """The parser of the command named in the arguments (the top-level parser reports the arguments its
+        command's parser left over), else this one."""
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for arg in self._args:
+                    if arg in action.choices:
+                        return action.choices[arg]
+        return self
 
     def error(self, message):  # noqa: D401
-        raise UsageError(f"{message} (see '{self.prog} --help')")
+        parser = self
+        if message.startswith("the following arguments are required") or message.startswith("unrecognized arguments"):
+            parser = self._command_parser()
+            unknown = parser._unknown_options()
+            if unknown:
+                message = parser._unrecognized(unknown)
+        raise UsageError(f"{message} (see '{parser.prog} --help')")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -84,11 +133,43 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: significant digits of a number in the human-readable answer (``--json`` keeps every digit)
+HUMAN_DIGITS = 6
+#: longest list printed whole in the human-readable answer; a longer one is summarised
+HUMAN_LIST = 8
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _human(value) -> str:
+    """One value of an answer as the human-readable summary prints it: numbers to ``HUMAN_DIGITS`` significant
+    digits, a long numeric array as its length and range (the values themselves with ``--json``)."""
+    if value is None or isinstance(value, (bool, np.bool_, str)):
+        return str(value)
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return f"{float(value):.{HUMAN_DIGITS}g}"
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        if len(value) <= HUMAN_LIST:
+            return "[" + ", ".join(_human(v) for v in value) + "]"
+        if all(v is None or _is_number(v) for v in value):
+            finite = [float(v) for v in value if v is not None and np.isfinite(v)]
+            span = (f"from {_human(min(finite))} to {_human(max(finite))}" if finite else "none finite")
+            return f"{len(value)} values {span} (--json for all)"
+        return f"{len(value)} items (--json for all)"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {_human(v)}" for k, v in value.items()) + "}"
+    return str(value)
+
+
 def _print_human(result: dict) -> None:
     for key, value in result.items():
-        if isinstance(value, (list, np.ndarray)) and len(value) > 8:
-            continue
-        print(f"{key}: {value}")
+        print(f"{key}: {_human(value)}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -80,6 +80,18 @@ class Limits:
 
 #: Monte Carlo paths of a bundle whose manifest states none (training.config_schema's ``[predict] mc_paths``)
 DEFAULT_MC_PATHS = 1024
+#: Monte Carlo paths per record: the product's one bound, the HTTP service's ``mc_paths`` (its setting
+#: ``GPNARX_MC_PATHS_MAX``) and the CLI's ``--mc`` alike; ``MC_PATHS_MAX_ENV`` raises or lowers it for both
+MC_PATHS_MAX = 4096
+MC_PATHS_MAX_ENV = "GPNARX_MC_PATHS_MAX"
+
+
+def mc_paths_max(environ=None) -> int:
+    """The Monte Carlo path bound in force: ``GPNARX_MC_PATHS_MAX`` when set (an integer >= 1; a ValueError naming
+    it otherwise), else ``MC_PATHS_MAX``."""
+    from gpnarx.runtime import env_int
+
+    return env_int(MC_PATHS_MAX_ENV, MC_PATHS_MAX, environ, minimum=1)
 
 
 def default_mc_paths(bundle, operation: str = "predict") -> int:
@@ -169,11 +181,12 @@ def resample_advice(fs: float, model_fs: float) -> str:
     integers when it is a simple fraction."""
     from fractions import Fraction
 
-    ratio = Fraction(float(model_fs) / float(fs)).limit_denominator(1000)
-    if ratio > 0 and math.isclose(float(ratio), model_fs / fs, rel_tol=FS_RTOL):
-        how = f"scipy.signal.resample_poly(x, up={ratio.numerator}, down={ratio.denominator})"
-    else:
-        how = f"scipy.signal.resample(x, round(len(x) * {float(model_fs):g} / {float(fs):.12g}))"
+    how = f"scipy.signal.resample(x, round(len(x) * {float(model_fs):g} / {float(fs):.12g}))"
+    r = float(model_fs) / float(fs)
+    if math.isfinite(r) and r > 0:  # a rate next to 0 or the double range leaves no ratio of integers
+        ratio = Fraction(r).limit_denominator(1000)
+        if ratio > 0 and math.isclose(float(ratio), r, rel_tol=FS_RTOL):
+            how = f"scipy.signal.resample_poly(x, up={ratio.numerator}, down={ratio.denominator})"
     return f"resample u and y to {float(model_fs):g} Hz first, e.g. {how}"
 
 

@@ -10,7 +10,7 @@ from .observability import REQUEST_ID_HEADER, REQUEST_ID_MAX
 from .problems import PROBLEM_MEDIA_TYPE
 from .schemas import BatchRequest, Problem
 from .settings import DEFAULT_BOUNDS, Settings
-from .wire import GZIP_MIN_BYTES, NPZ_MEDIA_TYPE
+from .wire import GZIP_MIN_BYTES, NPZ_MEDIA_TYPE, OCTET_STREAM
 
 API_TITLE = "GP-NARX hysteresis surrogate service"
 DEFAULT_REQUEST_TIMEOUT = Settings.model_fields["request_timeout"].default
@@ -38,7 +38,8 @@ def api_description() -> str:
         "Retry-After if it was still queued; a client that disconnects cancels its job\n\n"
         f"Compression: an answer of {GZIP_MIN_BYTES} bytes or more is gzip-compressed when the request sends "
         "`Accept-Encoding: gzip` (`Content-Encoding: gzip`, `Vary: Accept-Encoding`). The record routes also take "
-        f"and give `{NPZ_MEDIA_TYPE}` (see each route's request body and 200 answer).\n\n"
+        f"NPZ bodies (`{NPZ_MEDIA_TYPE}` or `{OCTET_STREAM}`) and give `{NPZ_MEDIA_TYPE}` answers (see each route's "
+        "request body and 200 answer).\n\n"
         "Authentication: off by default. When GPNARX_API_KEY is set, every /v1 route needs the header "
         "`X-API-Key` (401 otherwise); /health/* and /metrics stay open.\n\n"
         "Pages served with the API, from the service's own files (they work offline): /ui (models, "

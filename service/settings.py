@@ -60,6 +60,7 @@ from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
 from pydantic_settings.sources.utils import parse_env_vars
 
+from gpnarx.model.operations import MC_PATHS_MAX
 from gpnarx.runtime import DEFAULT_BLAS_THREADS, DEFAULT_MMAP_THRESHOLD, env_int
 
 MiB = 1024 * 1024
@@ -137,7 +138,7 @@ class Settings(BaseSettings):
     mc_paths_default: int | None = _setting(None, ge=1, kind=_POSITIVE, bound=True, shown="the model's",
                                             label="Monte Carlo paths when a request names none (unset: the "
                                                   "model's config `[predict] mc_paths`, as the CLI uses)")
-    mc_paths_max: int = _setting(4096, ge=1, kind=_POSITIVE, bound=True, label="Monte Carlo paths per record",
+    mc_paths_max: int = _setting(MC_PATHS_MAX, ge=1, kind=_POSITIVE, bound=True, label="Monte Carlo paths per record",
                                  exceeded="422, field `mc_paths`")
     max_mc_work: int = _setting(2**24, ge=1, kind=_POSITIVE, bound=True, shown="2^24",
                                 label="path-steps (paths x samples) per HTTP request (a batch shares it)",

@@ -1,9 +1,13 @@
 """Wire formats beyond JSON: NPZ request bodies and answers, ETags and conditional GETs (and the gzip
 settings of answers, applied by ``service.app``).
 
-NPZ request bodies (``content-type: application/x-npz``) on the record routes (predict, loops,
-novelty): the archive holds the arrays ``u``, ``y``, ``y0`` (1-D, integer or floating point) and
-optionally the scalar ``fs`` [Hz]; every other field of the JSON body (``mc_paths``, ``seed``,
+NPZ request bodies (``content-type: application/x-npz``, or ``application/octet-stream``: the generic binary
+type, which the OpenAPI document names so that client generators understand it) on the record routes (predict,
+loops, novelty): the archive holds the arrays ``u``, ``y``, ``y0`` (1-D, integer or floating point) and
+optionally the scalar ``fs`` [Hz], and may hold the metadata of the package's own record files
+(``storage.record_files.write_record``, what ``gpnarx simulate --out FILE.npz`` writes): ``units_u`` and
+``units_y`` (unit labels, checked against the model's units: ``check_units``) and ``name`` (ignored), each a
+short unicode string; every other field of the JSON body (``mc_paths``, ``seed``,
 ``confidence``, ``method``, ``backend``, ``start``, and ``fs`` when the archive has none) is a query
 parameter. The archive is hostile input: it is read without pickle, at most ``MAX_MEMBERS``
 members, each array's size is checked from the archive directory and the ``.npy`` header *before*
@@ -41,8 +45,17 @@ GZIP_MIN_BYTES = 1024
 #: zlib level of those answers (1: fastest)
 GZIP_LEVEL = 1
 NPZ_MEDIA_TYPE = "application/x-npz"
+#: the generic binary type, taken as an NPZ request body too (the one the OpenAPI document names for it)
+OCTET_STREAM = "application/octet-stream"
+#: the content types of an NPZ request body
+NPZ_BODY_MEDIA_TYPES = (NPZ_MEDIA_TYPE, OCTET_STREAM)
 #: arrays an NPZ request body may hold
 NPZ_ARRAYS = ("u", "y", "y0")
+#: string members of the package's own record files an NPZ body may hold: unit labels (checked against the
+#: model's) and the record's name (ignored)
+NPZ_METADATA = ("units_u", "units_y", "name")
+#: longest such string [characters]
+MAX_METADATA_CHARS = 256
 #: members an NPZ body may hold (more is a 422)
 MAX_MEMBERS = 8
 #: largest .npy header read from a request [bytes]
@@ -73,11 +86,12 @@ def _npy_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, field: str):
         raise _bad(field, f"not a readable .npy array in the archive ({type(exc).__name__}: {exc})"[:300]) from None
 
 
-def read_npz_body(raw: bytes, max_bytes: int, max_samples: int) -> dict:
+def read_npz_body(raw: bytes, max_bytes: int, max_samples: int, units: dict | None = None) -> dict:
     """The fields of an NPZ request body (arrays as lists, ``fs`` as a float): see the module doc.
 
     max_bytes: bound on the decompressed size of all members together [bytes]; max_samples: bound on
-    the samples of one array. Raises ``ProblemError`` (400, 413 or 422) naming the array.
+    the samples of one array; units: a dict that receives the archive's unit labels (``{"u": ..., "y": ...}``,
+    those it holds) for ``check_units``. Raises ``ProblemError`` (400, 413 or 422) naming the array.
     """
     try:
         zf = open_archive(raw, MAX_MEMBERS)  # the directory's entries counted before zipfile reads them
@@ -95,14 +109,22 @@ def read_npz_body(raw: bytes, max_bytes: int, max_samples: int) -> dict:
             raise _bad(_member_name(worst), f"the archive decompresses to {declared} bytes; the limit is "
                                             f"{max_bytes} bytes (GPNARX_MAX_BODY_BYTES)", 413, limit=max_bytes)
         out: dict = {}
+        seen: set = set()
         for info in infos:
             field = _member_name(info)
-            if field not in (*NPZ_ARRAYS, "fs"):
+            if field not in (*NPZ_ARRAYS, "fs", *NPZ_METADATA):
                 raise _bad(field, f"unexpected array in the archive; an NPZ body holds {', '.join(NPZ_ARRAYS)} "
-                                  f"and fs (the other fields are query parameters)")
-            if field in out:
+                                  f"and fs (the other fields are query parameters), and may hold the metadata "
+                                  f"{', '.join(NPZ_METADATA)} of a record file")
+            if field in seen:
                 raise _bad(field, "appears twice in the archive")
+            seen.add(field)
             shape, dtype, header = _npy_header(zf, info, field)
+            if field in NPZ_METADATA:
+                label = _metadata(zf, info, field, shape, dtype, header)
+                if field != "name" and units is not None:
+                    units[field.removeprefix("units_")] = label
+                continue
             if dtype.hasobject or dtype.names is not None or dtype.kind not in "iuf":
                 raise _bad(field, f"must be an integer or floating-point array, got dtype {dtype.str!r}")
             count = int(np.prod(shape, dtype=np.int64)) if shape else 1
@@ -127,6 +149,50 @@ def read_npz_body(raw: bytes, max_bytes: int, max_samples: int) -> dict:
                     raise _bad(field, f"must be a 1-D array, got shape {arr.shape}")
                 out[field] = arr.astype(np.float64, copy=False).tolist()
         return out
+
+
+def _metadata(zf: zipfile.ZipFile, info: zipfile.ZipInfo, field: str, shape, dtype, header: int) -> str:
+    """A metadata member's string (``NPZ_METADATA``), its size checked from the header before it is read."""
+    count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+    if dtype.kind != "U" or count != 1:
+        raise _bad(field, f"must be one unicode string (a record file's metadata), got dtype {dtype.str!r} "
+                          f"shape {tuple(shape)}")
+    chars = dtype.itemsize // 4
+    if chars > MAX_METADATA_CHARS:
+        raise _bad(field, f"holds {chars} characters; the limit is {MAX_METADATA_CHARS}", limit=MAX_METADATA_CHARS)
+    if dtype.itemsize + header != info.file_size:
+        raise _bad(field, f"corrupt array: its header says {dtype.itemsize} data bytes, the archive "
+                          f"{info.file_size - header}")
+    try:
+        with zf.open(info) as fh:
+            arr = np.lib.format.read_array(fh, allow_pickle=False, max_header_size=MAX_NPY_HEADER)
+    except NPY_READ_ERRORS as exc:
+        raise _bad(field, f"corrupt array in the archive ({type(exc).__name__}: {exc})"[:300]) from None
+    return str(arr.reshape(()).item())
+
+
+def check_units(units: dict, bundle) -> None:
+    """The unit labels of an NPZ body (``read_npz_body``'s ``units``) against the model's (manifest ``units``): a
+    label that is stated on both sides must name the same unit (``storage.record_formats.normalize_unit``
+    spellings: ``N`` and ``newton`` agree); an empty label on either side is not checked. A 422 naming
+    ``units_u`` or ``units_y`` otherwise: the record must be converted to the model's units first."""
+    from gpnarx.storage.record_formats import RecordFileError, normalize_unit
+
+    model = (getattr(bundle, "manifest", None) or {}).get("units") or {}
+    for key, label in units.items():
+        field = f"units_{key}"
+        try:
+            given = normalize_unit(label, field)
+        except RecordFileError as exc:
+            raise _bad(field, f"{exc.problem}"[:300]) from None
+        try:
+            expected = normalize_unit(model.get(key), "model")
+        except RecordFileError:  # a label the model's trainer wrote but this package does not know: compare as is
+            expected = str(model.get(key) or "").strip()
+        if given and expected and given != expected:
+            raise _bad(field, f"the record's {'input' if key == 'u' else 'output'} is in {label!r}, the model "
+                              f"{bundle.name}:{bundle.version} takes {model.get(key)!r}; convert the record to the "
+                              f"model's units first")
 
 
 def query_fields(params) -> dict:
@@ -155,9 +221,10 @@ def query_fields(params) -> dict:
     return out
 
 
-def npz_request_fields(raw: bytes, params, max_bytes: int, max_samples: int) -> dict:
-    """The JSON-equivalent body of an NPZ request: the archive's arrays and the query's fields."""
-    body = read_npz_body(raw, max_bytes, max_samples)
+def npz_request_fields(raw: bytes, params, max_bytes: int, max_samples: int, units: dict | None = None) -> dict:
+    """The JSON-equivalent body of an NPZ request: the archive's arrays and the query's fields (``units``: receives
+    the archive's unit labels, ``read_npz_body``)."""
+    body = read_npz_body(raw, max_bytes, max_samples, units)
     extra = query_fields(params)
     for key in extra:
         if key in body:

@@ -103,3 +103,6 @@ def test_check_fs_is_the_one_rule():
         check_fs(750.0 * (1 + 1.1 * FS_RTOL), B)
     assert exc.value.field == "fs" and exc.value.limit == FS_RTOL
     assert operations.fs_matches(750.0, 750.002) and not operations.fs_matches(750.0, 750.1)
+    for far in (5e-324, 1e-300, 1e308):  # the advice never fails on a rate at the ends of the double range
+        with pytest.raises(OperationError, match="resample"):
+            check_fs(far, B)

@@ -16,11 +16,21 @@ from ..problems import ProblemError
 from ..responses import JSONBytesResponse
 from ..schemas import LoopsResponse, NoveltyRequest, NoveltyResponse, PredictResponse, RecordRequest
 from ..state import ServiceState, too_slow_advice
-from ..wire import NPZ_MEDIA_TYPE, npz_request_fields, render_npz, wants_npz
+from ..wire import (
+    NPZ_BODY_MEDIA_TYPES,
+    NPZ_MEDIA_TYPE,
+    OCTET_STREAM,
+    check_units,
+    npz_request_fields,
+    render_npz,
+    wants_npz,
+)
 from ..worker import CancelToken
 
 #: what a record route's body may be sent as (a ``+json`` suffix type counts as JSON, as FastAPI reads it)
-RECORD_MEDIA_TYPES = ("application/json", NPZ_MEDIA_TYPE)
+RECORD_MEDIA_TYPES = ("application/json", *NPZ_BODY_MEDIA_TYPES)
+#: the request scope's key of an NPZ body's unit labels (``wire.read_npz_body``), checked once the model is known
+NPZ_UNITS = "gpnarx.npz_units"
 
 
 def check_content_type(ctype: str) -> None:
@@ -53,10 +63,11 @@ class RecordRoute(APIRoute):
             ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
             check_content_type(ctype)
             size = declared_length(request)
-            if ctype == NPZ_MEDIA_TYPE:
+            units: dict = {}
+            if ctype in NPZ_BODY_MEDIA_TYPES:
                 settings = request.app.state.service.settings
                 fields = await run_in_threadpool(npz_request_fields, await request.body(), request.query_params,
-                                                 settings.max_body_bytes, settings.max_samples)
+                                                 settings.max_body_bytes, settings.max_samples, units)
             elif ctype == "application/json" and is_large(size):
                 fields = await off_loop(size, parse_or_none, await request.body())
                 if fields is None:  # not JSON: FastAPI answers it (400, its message)
@@ -66,7 +77,7 @@ class RecordRoute(APIRoute):
             body = await run_in_threadpool(validated, model, fields)
             headers = [(k, v) for k, v in request.scope["headers"] if k.lower() != b"content-type"]
             scope = {**request.scope, "headers": [*headers, (b"content-type", b"application/json")],
-                     "query_string": b""}
+                     "query_string": b"", NPZ_UNITS: units}
             as_json = Request(scope, request.receive)
             as_json._body = b"parsed"  # already read; FastAPI only needs it non-empty
             as_json._json = body
@@ -77,12 +88,16 @@ class RecordRoute(APIRoute):
 
 router = APIRouter(prefix="/v1", tags=["predict"], dependencies=V1, route_class=RecordRoute)
 
-#: the NPZ body and answer of the record routes, merged into their OpenAPI operations
+#: the NPZ body and answer of the record routes, merged into their OpenAPI operations. The body is documented
+#: under the generic binary type, which client generators understand (openapi-python-client makes it a ``File``
+#: body and warns on a vendor type); ``application/x-npz`` is the same body
 NPZ_OPENAPI = {
-    "requestBody": {"content": {NPZ_MEDIA_TYPE: {"schema": {
+    "requestBody": {"content": {OCTET_STREAM: {"schema": {
         "type": "string", "format": "binary",
-        "description": "An .npz archive with the 1-D arrays `u`, `y`, `y0` (integer or floating point) and the "
-                       "scalar `fs` [Hz]; the other fields are query parameters. Read without pickle; its "
+        "description": f"An .npz archive (also accepted as `{NPZ_MEDIA_TYPE}`) with the 1-D arrays `u`, `y`, `y0` "
+                       "(integer or floating point) and the scalar `fs` [Hz], and optionally the unit labels "
+                       "`units_u`, `units_y` (checked against the model's) and `name` (ignored) of a record file "
+                       "the package writes; the other fields are query parameters. Read without pickle; its "
                        "decompressed size is bounded by GPNARX_MAX_BODY_BYTES (413 naming the array); a body "
                        "that is not a zip archive is a 400, a corrupt member or a wrong dtype a 422 naming the "
                        "array."}}}},
@@ -117,6 +132,9 @@ async def single(state: ServiceState, request: Request, operation: str, body: Re
                  version: str | None):
     """One record's answer, computed on the worker pool (``Server-Timing``: queue and compute time)."""
     bundle = await state.alookup(name, version)
+    units = request.scope.get(NPZ_UNITS)
+    if units:  # an NPZ body's unit labels (a record file's): the model's units, or a 422 naming the label
+        check_units(units, bundle)
     # a long stream token is decoded while planning: on a worker thread, as a large body is parsed
     plan = await off_loop(len(body.state or ""), ops.plan, operation, body, bundle, state.settings)
     token = CancelToken()
