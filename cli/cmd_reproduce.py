@@ -34,6 +34,11 @@ def add_parser(sub):
     p.add_argument("--table-only", action="store_true",
                    help="bert-real: score the run folder --out's own bundle on every real record again with "
                         "--table-mc paths and re-render its page (and --docs), training nothing")
+    p.add_argument("--table-mc-class", default=None, metavar="CLASS",
+                   help="with --table-only: Monte Carlo on the records of one class only (e.g. noise), the others "
+                        "linearised")
+    p.add_argument("--bundle", default=None, metavar="DIR",
+                   help="with --table-only: score this bundle (trained from the shipped config) instead of the run's")
     p.add_argument("--from-run", action="store_true",
                    help="only re-render the results page (--docs) from the run folder --out, computing nothing")
     p.set_defaults(func=run)
@@ -63,7 +68,8 @@ def run(args):
         if not (Path(out) / "summary.json").is_file():
             raise CLIError(f"--table-only: no summary.json in {out} (run gpnarx reproduce bert-real --out {out})")
         log = None if args.json else (lambda m: print(m, file=sys.stderr, flush=True))
-        s = rescore_table(out, args.table_mc, jobs=args.jobs, docs_page=args.docs, log=log)
+        s = rescore_table(out, args.table_mc, jobs=args.jobs, docs_page=args.docs, log=log,
+                          mc_class=args.table_mc_class, bundle=args.bundle)
         return {"system": args.system, "out": out, "docs": args.docs, "real_table_checks": s["real_table"]["checks"]}
     if args.from_run:
         from gpnarx.cli.errors import CLIError, UsageError

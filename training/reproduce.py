@@ -37,7 +37,7 @@ from gpnarx.training.checkout import load_study
 from gpnarx.training.config import bert_data_dir, load_config, simulate_record
 from gpnarx.training.defaults import shipped_config
 from gpnarx.training.lags import edge_message, lag_surface, write_surface
-from gpnarx.training.pipeline import train
+from gpnarx.training.pipeline import fit, train
 from gpnarx.training.results_pages import PAGES
 from gpnarx.training.simulators.bert_standin import BertStandin
 
@@ -244,6 +244,14 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
         "fitted on the same training records. ARX class: a linear ARX fitted on the other records of the same "
         "class in the data folder (never on the record it scores). Targets on held-out records, per class: fit "
         "at least the better ARX's and coverage at least 90 %.\n\n" + markdown(table, table["checks"]))
+    if table.get("noise_lolo"):
+        page += ("\n## Leave one noise level out\n\nA plant sends noise levels the model never saw. For each noise run "
+                 "of the data folder, the config is refitted (its lags, its `[model]`, ML-II, the noise and band "
+                 "calibrations) with that run out of every role and the config's noise windows moved onto the other "
+                 "runs (`studies/noise_lolo.py`); the fold model predicts the held-out run whole, from rest. "
+                 "Class ARX: ny = nu = 16, least squares on the other noise runs, whole; it never saw the level "
+                 "either. Sharpness as above. Targets on every run: fit at least the class ARX's, coverage at "
+                 "least 90 %, sharpness at most 1.5.\n\n" + load_study("noise_lolo").markdown(table["noise_lolo"]))
     if table.get("frf_check"):
         page += ("\n## Between the recorded frequencies: the rig's FRF\n\nThe subset's sines are at 5-9.75, 17, 19 "
                  "and 20 Hz. At other drive frequencies the model's steady response to a 0.15 V sine (ramped in over "
@@ -281,7 +289,8 @@ def _surface_settings_words(settings: dict) -> str:
     return "with reduced settings (" + ", ".join(words.get(k, k + " {}").format(v) for k, v in reduced.items()) + ")"
 
 
-def every_record_table(model, cfg, *, quick: bool, mc_paths: int, jobs: int = -1, log=None) -> dict:
+def every_record_table(model, cfg, *, quick: bool, mc_paths: int, jobs: int = -1, log=None,
+                       lolo_mc: int | None = None) -> dict:
     """bert-real's every-record table (``studies.real_table``) with its checks: the ARX baseline searched on the
     protocol's own lag grid by its own rule, records cut to their first seconds in quick mode. The run and
     ``--table-only`` both score through here, so the re-scored table is the run's with other paths."""
@@ -291,22 +300,57 @@ def every_record_table(model, cfg, *, quick: bool, mc_paths: int, jobs: int = -1
                           lag_grid=QUICK["grid"] if quick else GRIDS["bert-real"],
                           lag_criterion=LAG_CRITERION["bert-real"])
     table["checks"] = rt.table_checks(table)
+    table["noise_lolo"] = noise_lolo_table(model, cfg, quick=quick, mc_paths=mc_paths if lolo_mc is None else lolo_mc,
+                                           log=log)
     return table
 
 
-def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=None) -> dict:
+def noise_lolo_table(model, cfg, *, quick: bool, mc_paths: int, log=None) -> dict:
+    """bert-real's leave-one-noise-level-out table (``studies.noise_lolo``): for each noise run, the config
+    refitted at ``model``'s lags without it (quick mode: the quick model settings and records cut short)."""
+    overrides = QUICK["model"] if quick else None
+
+    def fit_fold(fold_cfg):
+        return fit(fold_cfg, fold_cfg.records_for("train"), fold_cfg.records_for, ny=model.ny, nu=model.nu,
+                   model_overrides=overrides, log=log)
+
+    return load_study("noise_lolo").lolo_table(cfg, bert_data_dir(), mc_paths=int(mc_paths), fit=fit_fold,
+                                               max_seconds=QUICK["max_seconds"] if quick else None, log=log)
+
+
+def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=None, mc_class: str | None = None,
+                  bundle=None) -> dict:
     """bert-real: score the finished run's own bundle on every real record again with ``table_mc``
     Monte Carlo paths (0: linearised only), replace the table in OUT/summary.json and re-render the
-    page (OUT/results-bert-real.md and ``docs_page``). The model is the run's; only the table changes."""
+    page (OUT/results-bert-real.md and ``docs_page``). The model is the run's; only the table changes.
+
+    ``mc_class`` (a class of ``studies.real_table.CLASSES``, e.g. "noise"): every record linearised and only
+    that class's records by Monte Carlo as well (the leave-one-level-out folds are noise runs, so they keep
+    their Monte Carlo runs). ``bundle``: a bundle folder to score instead of the run's (the run's summary
+    then names it); it must have been trained from the shipped config."""
     out = Path(out_dir)
     summary = json.loads((out / "summary.json").read_text())
     if summary.get("system") != "bert-real":
         raise ValueError(f"{out} holds a {summary.get('system')} run; only a bert-real run has the every-record table")
     t0 = time.perf_counter()
-    bundle = load_bundle(summary["bundle"])
+    if bundle is not None:
+        summary["bundle"] = str(bundle)
+    model = load_bundle(summary["bundle"]).model
     cfg = load_config(shipped_config("bert-real"))
-    table = every_record_table(bundle.model, cfg, quick=bool(summary.get("quick")), mc_paths=int(table_mc),
-                               jobs=jobs, log=log)
+    quick = bool(summary.get("quick"))
+    if mc_class is None:
+        table = every_record_table(model, cfg, quick=quick, mc_paths=int(table_mc), jobs=jobs, log=log)
+    else:
+        rt = load_study("real_table")
+        if mc_class not in rt.CLASSES:
+            raise ValueError(f"mc_class must be one of {rt.CLASSES}, got {mc_class!r}")
+        table = every_record_table(model, cfg, quick=quick, mc_paths=0, jobs=jobs, log=log, lolo_mc=int(table_mc))
+        names = [n for n, r in table["records"].items() if r["class"] == mc_class]
+        rt.add_mc_rows(model, table, bert_data_dir(), names, int(table_mc), log=log)
+        table["mc_note"] = (f"Monte Carlo ({int(table_mc)} paths) on the {mc_class} records only (`gpnarx reproduce "
+                            f"bert-real --table-only --table-mc {int(table_mc)} --table-mc-class {mc_class}`); the "
+                            "other records are scored by the linearised method alone, their Monte Carlo columns n/a.")
+        table["checks"] = rt.table_checks(table)
     table["rescored_seconds"] = time.perf_counter() - t0
     summary["real_table"] = to_json_safe(table)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
