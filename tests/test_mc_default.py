@@ -68,13 +68,18 @@ def test_cli_http_and_page_use_the_bundle_config_paths(setup, capsys):
     assert client.post("/v1/models/boucwen/versions/2/predict", json=body).json()["mc_paths"] == 16
 
 
-def test_page_sends_no_paths_unless_asked():
+def test_page_paths_default_is_in_sight_and_novelty_runs_as_calibrated():
+    """The /ui page's paths field holds its interactive default, 64, where the user sees it (the model's default,
+    up to 4096 paths, made a run take a minute), and says what it costs next to it; emptied, the model's default
+    applies. Novelty is sent no paths or method: it runs as its threshold was calibrated. The requests the page
+    sends are checked in tests/test_ui_browser.py."""
     js = open(f"{STATIC}/app.js").read()
     html = open(f"{STATIC}/index.html").read()
     field = re.search(r'<input id="mc-paths"[^>]*>', html).group(0)
-    assert 'value=""' in field  # empty: the model's default
-    assert not re.search(r"mc_paths:\s*Math", js), "the page must not send a paths default of its own"
-    assert "default_mc_paths" in js  # shown from GET /v1/models/NAME
+    assert 'value="64"' in field
+    assert 'id="paths-note"' in html
+    assert not re.search(r"mc_paths:\s*Math", js), "the paths are those of the field, not a default in the code"
+    assert "default_mc_paths" in js  # the model's, from GET /v1/models/NAME, in the note
 
 
 def test_csv_without_time_needs_fs(setup, tmp_path, capsys):

@@ -149,6 +149,43 @@ def run_in_page(pg):
             "canvases": pg.locator("#time-plot canvas").count()}
 
 
+#: Monte Carlo paths the page sends to predict and loops unless its paths field is changed
+PAGE_PATHS = 64
+
+
+def steady_window(loops, fs):
+    """[first, end) samples of the steady cycles of a loops answer, as the page draws them."""
+    n = len(loops["predicted"]["x"])
+    cyc = loops["cycles"]
+    return int(np.floor(cyc[0]["start"] * fs)), min(n, int(np.ceil(cyc[-1]["end"] * fs)) + 1)
+
+
+def page_loops(loops, fs, fc, guard=5):
+    """The loops the page draws by default, computed with scipy: over the steady cycles, each low-passed at fc by
+    a zero-phase order-4 Butterworth run over the stretch with up to three periods of fc of the record on each
+    side (not within ``guard`` samples of its ends) and as much odd padding (static/ui/dsp.js lowpassStretch)."""
+    from scipy import signal
+
+    n = len(loops["predicted"]["x"])
+    i0, i1 = steady_window(loops, fs)
+    m = int(np.ceil(3 * fs / fc))
+    a, b = min(i0, max(guard, i0 - m)), max(i1, min(n - guard, i1 + m))
+    sos = signal.butter(4, fc, fs=fs, output="sos")
+
+    def smooth(v):
+        return signal.sosfiltfilt(sos, np.asarray(v, float)[a:b], padlen=min(m, b - a - 1))[i0 - a:i1 - a]
+
+    return {k: (smooth(loops[k]["x"]), smooth(loops[k]["force"])) for k in ("lower", "upper", "measured", "predicted")}
+
+
+def robust_view(arrays):
+    """The page's axis limits: 0.5-99.5 % quantiles of all the values, widened 8 % of their span."""
+    v = np.sort(np.concatenate(arrays))
+    q = [v[int(np.floor(p * (v.size - 1) + 0.5))] for p in (0.005, 0.995)]
+    pad = 0.08 * (q[1] - q[0])
+    return [q[0] - pad, q[1] + pad]
+
+
 # ------------------------------------------------------------------------------------------ the page
 def test_uploaded_record_plot_and_verdict_match_the_api(page, live, tmp_path, shots):
     page.goto(f"{live}/ui")
@@ -270,20 +307,184 @@ def test_novelty_card_explains_a_probe_mismatch(page, live_monitor, tmp_path, sh
     assert "[J]" in note and "N m" not in note
     lo, hi = (float(v) for v in note.split("band edges ")[1].split(",")[0].split(" to "))
     assert lo <= hi
-    # the loop view: axes fitted to the steady cycles, so the free run's start-up from rest lies outside
-    view = json.loads(page.get_attribute("#loops-plot", "data-view"))
-    clipped = int(page.get_attribute("#loops-plot", "data-clipped"))
-    loops = httpx.post(f"{live_monitor}/v1/models/monitor/versions/1/loops", json=body, timeout=120).json()
-    force = np.asarray(loops["predicted"]["force"])
-    i0, i1 = int(loops["cycles"][0]["start"] * FS), int(loops["cycles"][-1]["end"] * FS)
-    steady = force[i0:i1]
-    assert view["y"][0] <= steady.min() and steady.max() <= view["y"][1]  # the predicted steady loop is inside
-    shown = np.concatenate([np.asarray(loops[k]["force"])[i0:i1] for k in ("predicted", "measured", "lower", "upper")])
-    assert view["y"][1] - view["y"][0] <= 1.2 * (shown.max() - shown.min())  # the steady loops fill the view
-    assert force.min() < view["y"][0] or force.max() > view["y"][1]  # the whole record's extremes are clipped
-    outside = int(np.sum((force < view["y"][0]) | (force > view["y"][1])))
-    assert outside <= clipped and (clipped == 0 or "start-up transient" in note)
+    # the loops drawn: the steady cycles only, so the free run's start-up from rest is left out
+    loops = httpx.post(f"{live_monitor}/v1/models/monitor/versions/1/loops", json={**body, "mc_paths": PAGE_PATHS},
+                       timeout=120).json()
+    window = json.loads(page.get_attribute("#loops-plot", "data-window"))
+    assert window == list(steady_window(loops, FS)) and window[0] > 0 and "start-up transient" in note
     assert page.watch.blocked == [] and page.watch.errors == []
+
+
+def test_loops_are_band_limited_over_the_steady_cycles_and_the_measured_cloud_is_hidden(page, live, tmp_path):
+    """The measured loop R = g u - m y'' holds the noisy output differentiated twice: a cloud that hid the
+    prediction. By default the page draws the loops of the API's answer over its steady cycles only, each low-passed
+    (zero-phase) at 3.5 x the sine drive's frequency, with axes that fit those loops; the unfiltered measured loop
+    is drawn only when asked, and never sets the axes. The loops, window and axes equal a scipy computation of the
+    same answer. Predict and loops are sent the page's 64 paths, novelty none (its calibration's)."""
+    sent = {}
+    page.on("request", lambda r: sent.__setitem__(r.url.rsplit("/", 1)[1], r.post_data_json)
+            if r.method == "POST" and r.url.endswith(("/predict", "/loops", "/novelty")) else None)
+    page.goto(f"{live}/ui")
+    page.wait_for_selector("#models tbody tr.selected[data-name='boucwen']")
+    n = 1536
+    u = 10.0 * np.sin(2 * np.pi * 30.0 * np.arange(n) / FS)
+    path = write_record(tmp_path / "sine30.csv", Record(u, noisy(simulate(u), 9), FS, {"u": "N", "y": "m"}, "sine30"))
+    page.set_input_files("#file", str(path))
+    page.wait_for_selector(f"#record-info[data-samples='{n}']")
+    assert page.input_value("#mc-paths") == str(PAGE_PATHS)
+    assert "64 Monte Carlo paths" in page.inner_text("#paths-note") and "calibrated" in page.inner_text("#paths-note")
+    run_in_page(page)
+    assert sent["predict"]["mc_paths"] == sent["loops"]["mc_paths"] == PAGE_PATHS
+    assert "mc_paths" not in sent["novelty"] and "method" not in sent["novelty"]  # as calibrated
+    loops = httpx.post(f"{live}/v1/models/boucwen/versions/2/loops", json=sent["loops"], timeout=120).json()
+
+    plot = "#loops-plot"
+    series = json.loads(page.get_attribute(plot, "data-series"))
+    fc = float(page.get_attribute(plot, "data-cutoff"))
+    assert loops["cycle_basis"]["basis"] == "drive"  # a sine: its first harmonics kept
+    assert fc == pytest.approx(3.5 * loops["cycle_basis"]["frequency"], rel=5e-3)
+    assert series == [f"{k}, low-passed {fc:g} Hz" for k in ("band lower", "band upper", "measured", "predicted mean")]
+    assert "measured, unfiltered" not in series and not page.is_checked("#loops-raw")
+    i0, i1 = steady_window(loops, FS)
+    assert json.loads(page.get_attribute(plot, "data-window")) == [i0, i1] and i0 > 0 and i1 < n
+    drawn = page_loops(loops, FS, fc)
+    view = json.loads(page.get_attribute(plot, "data-view"))
+    np.testing.assert_allclose(view["x"], robust_view([x for x, _ in drawn.values()]), rtol=1e-9)
+    np.testing.assert_allclose(view["y"], robust_view([f for _, f in drawn.values()]), rtol=1e-9)
+    # the measured loop as the API computes it is a cloud several times the loops' height; low-passed, it is a loop
+    raw = np.asarray(loops["measured"]["force"])[i0:i1]
+    height = view["y"][1] - view["y"][0]
+    assert np.ptp(raw) > 2 * height, (np.ptp(raw), height)
+    assert np.ptp(drawn["measured"][1]) < height
+    # and the start-up transient of the free run from rest lies outside the steady window
+    force = np.asarray(loops["predicted"]["force"])
+    assert np.abs(force[:i0]).max() > view["y"][1]
+    assert "low-passed at" in page.inner_text("#loops-note") and "steady cycles" in page.inner_text("#loops-note")
+
+    page.check("#loops-raw")  # the cloud, when asked for: drawn, the axes kept
+    page.wait_for_function("() => document.querySelector('#loops-plot').dataset.series.includes('unfiltered')")
+    assert json.loads(page.get_attribute(plot, "data-view")) == view
+    page.check("#loops-whole")
+    page.wait_for_function(f"() => document.querySelector('#loops-plot').dataset.window === '[0,{n}]'")
+    page.uncheck("#loops-filter")
+    page.wait_for_function("() => document.querySelector('#loops-plot').dataset.cutoff === ''")
+    assert "measured" in json.loads(page.get_attribute(plot, "data-series"))
+
+    # the PSD axis: the top 7 decades below the peak (a clean simulation reaches round-off 15 decades down)
+    lo, hi = json.loads(page.get_attribute("#psd-plot", "data-range"))
+    assert np.log10(hi / lo) == pytest.approx(8)
+    from scipy import signal
+
+    peak = signal.welch(np.asarray(sent["predict"]["y"]), fs=FS, nperseg=512)[1].max()
+    assert lo < peak < hi
+    assert page.watch.blocked == [] and page.watch.errors == [] and page.watch.failed == []
+
+
+def test_page_lowpass_matches_scipy_sosfiltfilt(page, live):
+    from scipy import signal
+
+    page.goto(f"{live}/ui")
+    rng = np.random.default_rng(5)
+    x = np.sin(2 * np.pi * 30.0 * np.arange(2000) / FS) + 0.3 * rng.normal(size=2000)
+    got = page.evaluate("async ([x, fs]) => { const m = await import('/static/ui/dsp.js'); "
+                        "return [Array.from(m.lowpass(x, 105, fs)), Array.from(m.lowpassStretch(x, 300, 1700, 60, fs)),"
+                        " m.butterLowpass(4, 105, fs)]; }", [x.tolist(), FS])
+    sos = signal.butter(4, 105, fs=FS, output="sos")
+    np.testing.assert_allclose(got[0], signal.sosfiltfilt(sos, x), rtol=0, atol=1e-12)
+    # the same cascade (scipy orders its sections and splits the gain otherwise)
+    assert np.prod([s[0] + s[1] + s[2] for s in got[2]]) / np.prod([1 + s[3] + s[4] for s in got[2]]) \
+        == pytest.approx(1.0, rel=1e-12)
+    m = int(np.ceil(3 * FS / 60))
+    want = signal.sosfiltfilt(signal.butter(4, 60, fs=FS, output="sos"), x[300 - m:1700 + m], padlen=m)[m:-m]
+    np.testing.assert_allclose(got[1], want, rtol=0, atol=1e-12)
+    assert page.watch.errors == []
+
+
+@pytest.fixture
+def live_audited(registry, tmp_path):
+    """A server whose audit trail is a file, so the page's trend has points."""
+    trail = tmp_path / "audit.jsonl"
+    with LiveServer(create_app(registry, Settings(workers=2, queue_size=8, audit_log=str(trail)))) as srv:
+        yield srv.url, trail
+
+
+def _history(url, n, timeout=30.0):
+    """The history once it holds ``n`` points (the audit trail is written off the request path)."""
+    import time
+
+    t0 = time.monotonic()
+    while True:
+        h = httpx.get(f"{url}/v1/models/boucwen/novelty/history").json()
+        if len(h["points"]) >= n or time.monotonic() - t0 > timeout:
+            return h
+        time.sleep(0.1)
+
+
+def test_novelty_trend_is_drawn_from_the_audit_trail(page, live_audited, tmp_path):
+    url, _ = live_audited
+    with httpx.Client(base_url=url, timeout=120) as c:
+        for seed, scale in ((31, 1.0), (32, 1.0), (33, 1.3)):
+            u, y = short_record(512, seed)
+            r = c.post("/v1/models/boucwen/novelty", json={"u": u.tolist(), "y": (scale * y).tolist(), "fs": FS})
+            assert r.status_code == 200, r.text
+    h = _history(url, 3)
+    assert [p["verdict"] for p in h["points"]] == ["healthy", "healthy", "novel"]
+    page.goto(f"{url}/ui")
+    page.wait_for_selector("#models tbody tr.selected[data-name='boucwen']")
+    page.wait_for_selector("#trend-plot[data-ready='1'][data-points='3']")
+    assert page.locator("#trend-plot canvas").count() >= 1
+    note = page.inner_text("#trend-note")
+    assert "3 verdicts" in note and "2 healthy, 1 novel, 0 unjudged" in note
+    # a run in the page adds its verdict to the trend
+    u, y = short_record(1500, 21)
+    path = write_record(tmp_path / "healthy.csv", Record(u, y, FS, {"u": "N", "y": "m"}, "healthy"))
+    page.set_input_files("#file", str(path))
+    page.wait_for_selector("#record-info[data-samples='1500']")
+    shown = run_in_page(page)
+    page.wait_for_selector("#trend-plot[data-ready='1'][data-points='4']", timeout=30_000)
+    last = json.loads(page.get_attribute("#trend-plot", "data-last"))
+    assert last["verdict"] == shown["verdict"] and last["score"] == pytest.approx(shown["score"], rel=1e-12)
+    assert _history(url, 4)["points"][-1]["score"] == pytest.approx(shown["score"], rel=1e-12)
+    assert page.watch.blocked == [] and page.watch.errors == [] and page.watch.failed == []
+
+
+def test_a_failed_run_says_it_failed(page, live, tmp_path):
+    """A record the API refuses: the run says it failed, with each call's status and problem detail, not that it
+    "answered in" some time. A run where only some calls fail says which, and shows what did answer."""
+    page.goto(f"{live}/ui")
+    page.wait_for_selector("#models tbody tr.selected[data-name='boucwen']")
+    n = 1200
+    u, y = short_record(n, 41)
+    path = write_record(tmp_path / "at1000.csv", Record(u, y, 1000.0, {"u": "N", "y": "m"}, "at1000"))
+    page.set_input_files("#file", str(path))
+    page.wait_for_selector(f"#record-info[data-samples='{n}']")
+    page.click("#run")
+    page.wait_for_selector("#run-state[data-outcome]", timeout=RUN_TIMEOUT_MS)
+    state = page.inner_text("#run-state")
+    body = {"u": u.tolist(), "y": y.tolist(), "fs": 1000.0, "seed": 0, "mc_paths": PAGE_PATHS}
+    api = httpx.post(f"{live}/v1/models/boucwen/versions/2/predict", json=body, timeout=60)
+    assert api.status_code == 422 and api.json()["field"] == "fs"
+    assert page.get_attribute("#run-state", "data-outcome") == "failed"
+    assert sorted(page.get_attribute("#run-state", "data-failed").split(",")) == ["loops", "novelty", "predict"]
+    assert state.startswith("Run failed") and "answered in" not in state
+    assert f"predict: 422 {api.json()['title']}: {api.json()['detail']} (field fs)" in state
+    assert "the predict call failed: 422" in page.inner_text("#predict-metrics")
+    assert page.inner_text("#verdict").strip().lower() == "failed"
+    assert api.json()["detail"] in page.inner_text("#error")
+
+    # only predict and loops refused (too many paths for them; novelty runs as calibrated): said so, verdict shown
+    u, y = short_record(n, 42)
+    path = write_record(tmp_path / "ok.csv", Record(u, y, FS, {"u": "N", "y": "m"}, "ok"))
+    page.set_input_files("#file", str(path))
+    page.wait_for_selector("#record-info:has-text('ok (csv)')")
+    page.fill("#mc-paths", "100000")
+    page.click("#run")
+    page.wait_for_selector("#run-state[data-outcome]", timeout=RUN_TIMEOUT_MS)
+    state = page.inner_text("#run-state")
+    assert sorted(page.get_attribute("#run-state", "data-failed").split(",")) == ["loops", "predict"]
+    assert state.startswith("Run partly failed (") and "mc_paths" in state and "novelty" in state.split("Answered:")[1]
+    page.wait_for_selector("#verdict[data-verdict]")
+    assert page.watch.blocked == []
 
 
 def test_api_key_example_and_training_report(page, live_keyed, shots):

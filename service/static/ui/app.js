@@ -2,11 +2,11 @@
 // restoring-force loops and novelty verdict, all through the service's /v1 API.
 
 import { ApiError, apiKey, enc, getJSON, getText, parseRecord, postJSON, root, setApiKey, staticBlob } from "./api.js";
-import { welch } from "./dsp.js";
-import { fmt, loopsPlot, psdPlot, timePlot } from "./plots.js";
+import { lowpassStretch, welch } from "./dsp.js";
+import { fmt, LOOP_COLOURS, loopsPlot, psdPlot, timePlot, trendPlot } from "./plots.js";
 
 const $ = (id) => document.getElementById(id);
-const state = { models: [], model: null, detail: null, record: null, examples: [], reportUrl: null };
+const state = { models: [], model: null, detail: null, record: null, examples: [], reportUrl: null, loops: null };
 
 // ------------------------------------------------------------------------------------------ helpers
 function showError(err) {
@@ -92,9 +92,10 @@ async function loadVersion() {
     showError(null);
     const mcDefault = d.default_mc_paths?.predict;
     $("mc-paths").placeholder = mcDefault ? `${mcDefault}` : "model's";
-    $("mc-paths").title = `Monte Carlo paths; empty: the model's default${mcDefault ? ` (${mcDefault} for predict and loops, `
-      + `${d.default_mc_paths.novelty} for novelty)` : ""}`;
+    $("mc-paths").title = `Monte Carlo paths of predict and loops; empty: the model's default${mcDefault ? ` (${mcDefault})` : ""}`;
     $("model-detail").hidden = false;
+    pathsNote();
+    loadTrend();
     kvTable($("meta"), d, [["name", "name"], ["version", "version"], ["created", "created"], ["mode", "mode"],
       ["fs", "fs [Hz]"], ["units", "units"], ["lags", "lags"], ["n_train", "training points"], ["physics", "physics"],
       ["noise_calibration", "noise calibration"]]);
@@ -105,6 +106,67 @@ async function loadVersion() {
     checkRecord();
   } catch (err) {
     showError(err);
+  }
+}
+
+/** What the paths field costs, and what novelty runs with (its calibration's paths, whatever the field says). */
+function pathsNote() {
+  const d = state.detail;
+  if (!d) return;
+  const field = $("mc-paths").value.trim();
+  const model = d.default_mc_paths?.predict;
+  const paths = field ? Math.round(Number(field)) : model;
+  const parts = [];
+  if ($("method").value === "linear") {
+    parts.push("Linearised: one propagation of the mean and covariance, no Monte Carlo paths.");
+  } else if (paths) {
+    parts.push(`Predict and loops run ${paths} Monte Carlo paths${field ? "" : " (the model's default)"}: their time `
+      + "grows with paths x samples (64 paths answer a few thousand samples in seconds)"
+      + (model > paths ? `; the model's default, ${model} paths, takes up to ${Math.round(model / paths)} times as long `
+        + "and gives a smoother band (its edges are quantiles across the paths)." : "."));
+  }
+  if (d.novelty) {
+    parts.push(`Novelty runs as its threshold was calibrated (method ${d.default_method?.novelty || "of the calibration"}, `
+      + `${d.default_mc_paths?.novelty || "the calibration's"} paths), whatever these fields say, so its verdict is the `
+      + "one a monitoring system gets for the same record; it is drawn when it arrives.");
+  }
+  $("paths-note").textContent = parts.join(" ");
+}
+
+/** The novelty trend of the selected model (GET /v1/models/NAME/novelty/history), when it has a calibration. */
+async function loadTrend() {
+  const box = $("trend-box"), note = $("trend-note"), plot = $("trend-plot");
+  const d = state.detail;
+  box.hidden = !d?.novelty;
+  if (!d?.novelty) return;
+  const model = state.model;
+  delete plot.dataset.ready;
+  try {
+    const h = await getJSON(`/v1/models/${enc(model)}/novelty/history?limit=200`);
+    if (state.model !== model) return;
+    const pts = h.points.filter((p) => p.score != null && p.score > 0);
+    plot.hidden = !pts.length;
+    if (!pts.length) {
+      plot.replaceChildren();
+      plot.dataset.points = "0";
+      plot.dataset.ready = "1";
+      note.textContent = `No verdict to draw: ${h.reason || "none in the audit trail"}.`;
+      return;
+    }
+    trendPlot(plot, pts);
+    const last = pts[pts.length - 1];
+    plot.dataset.last = JSON.stringify({ verdict: last.verdict, score: last.score, request_id: last.request_id });
+    const count = (v) => pts.filter((p) => p.verdict === v).length;
+    const versions = [...new Set(pts.map((p) => p.version))].join(", ");
+    note.textContent = `${pts.length} verdict${pts.length > 1 ? "s" : ""} from ${pts[0].time} to ${pts[pts.length - 1].time} `
+      + `(UTC; version ${versions}): ${count("healthy")} healthy, ${count("novel")} novel, ${count("unjudged")} unjudged`
+      + `; the dashed line is the threshold each was judged against. Read from ${h.target}`
+      + (h.older_unread ? "; older verdicts lie beyond what one call reads" : "")
+      + (h.skipped_lines ? `; ${h.skipped_lines} damaged line(s) skipped` : "") + ".";
+  } catch (err) {
+    plot.replaceChildren();
+    plot.hidden = true;
+    note.textContent = `The trend could not be read: ${err.message}`;
   }
 }
 
@@ -269,16 +331,29 @@ function requestBody() {
   return { body, i0, n };
 }
 
-/** A "running..." state on every result panel while the calls are out (they take seconds). */
-function loading(on) {
-  for (const id of ["verdict-card", "predict-card", "time-plot", "psd-plot", "loops-plot"]) $(id).classList.toggle("loading", on);
-  if (on) {
+const PANELS = { predict: ["predict-card", "time-plot", "psd-plot"], loops: ["loops-plot"], novelty: ["verdict-card"] };
+
+/** A "running..." state on a call's result panels while it is out (it takes seconds). */
+function loading(op, on) {
+  for (const id of PANELS[op]) $(id).classList.toggle("loading", on);
+  if (op === "novelty" && on) {
     $("verdict").className = "verdict";
     $("verdict").textContent = "running...";
     $("novelty-reasons").replaceChildren();
     $("gauge").hidden = true;
   }
 }
+
+/** A failed call's HTTP status and problem detail, as the page says them. */
+function problemText(err) {
+  if (err instanceof ApiError) {
+    const p = err.problem || {};
+    return `${err.status} ${p.title || "error"}: ${p.detail || "no detail"}${p.field ? ` (field ${p.field})` : ""}`;
+  }
+  return String(err?.message || err);
+}
+
+const failure = (op, err) => `${op}: ${problemText(err)}`;
 
 async function run() {
   showError(null);
@@ -289,36 +364,57 @@ async function run() {
   const base = versionBase();
   const wantLoops = d.physics && d.physics.mass != null;
   const wantNovelty = !!d.novelty && !!body.y;
+  // novelty as its threshold was calibrated: the model's method and paths for novelty (none sent)
+  const { mc_paths: _paths, method: _method, ...noveltyBody } = body;
   $("run").disabled = true;
   $("results").hidden = false;
   // what a reader (or a test) waits for is cleared until this run's answers are drawn
   for (const id of ["time-plot", "psd-plot", "loops-plot"]) delete $(id).dataset.ready;
   delete $("verdict").dataset.verdict;
+  delete $("verdict").dataset.failed;
   delete $("predict-metrics").dataset.samples;
+  delete $("run-state").dataset.outcome;
   const narrowed = body.u.length < state.record.n_samples;
   const span = narrowed ? `${body.u.length} of the record's ${state.record.n_samples} samples (from ${fmt(i0 / body.fs)} s, `
     + `narrowed by "from" and "samples")` : `the whole record, ${body.u.length} samples`;
   $("run-state").dataset.narrowed = String(narrowed);
   $("run-state").textContent = `running on ${span}...`;
-  loading(true);
   const t0 = performance.now();
-  const [pred, loops, nov] = await Promise.allSettled([
-    postJSON(`${base}/predict`, body),
-    wantLoops ? postJSON(`${base}/loops`, body) : Promise.resolve(null),
-    wantNovelty ? postJSON(`${base}/novelty`, body) : Promise.resolve(null),
-  ]);
-  loading(false);
-  $("run-state").textContent = `answered in ${fmt((performance.now() - t0) / 1000)} s, on ${span}`;
+  const took = {}, failed = {};
+  const call = (op, path, b, render) => {
+    loading(op, true);
+    return postJSON(path, b).then((v) => { took[op] = (performance.now() - t0) / 1000; loading(op, false); render(v); },
+      (err) => { failed[op] = err; loading(op, false); render(null, err); });
+  };
+  const calls = [call("predict", `${base}/predict`, body, (p, err) => renderPrediction(p, body, i0, err))];
+  if (wantLoops) calls.push(call("loops", `${base}/loops`, body, (lp, err) => renderLoops(lp, true, body, err)));
+  else renderLoops(null, false, body);
+  if (wantNovelty) calls.push(call("novelty", `${base}/novelty`, noveltyBody, (nv, err) => renderNovelty(nv, true, body, err)));
+  else renderNovelty(null, false, body);
+  await Promise.all(calls);
   $("run").disabled = false;
-  const errors = [pred, loops, nov].filter((r) => r.status === "rejected").map((r) => r.reason.message);
-  if (errors.length) showError({ message: errors.join("\n") });
-
-  renderNovelty(nov.status === "fulfilled" ? nov.value : null, wantNovelty, body);
-  if (pred.status === "fulfilled") renderPrediction(pred.value, body, i0);
-  renderLoops(loops.status === "fulfilled" ? loops.value : null, wantLoops);
+  const ops = Object.keys(failed);
+  const answered = Object.keys(took).map((op) => `${op} ${fmt(took[op])} s`).join(", ");
+  if (ops.length) {
+    const problems = ops.map((op) => failure(op, failed[op]));
+    $("run-state").dataset.outcome = "failed";
+    $("run-state").dataset.failed = ops.join(",");
+    $("run-state").textContent = `${ops.length === calls.length ? "Run failed" : `Run partly failed (${ops.join(", ")})`} `
+      + `on ${span}: ${problems.join("; ")}` + (answered ? `. Answered: ${answered}.` : ".");
+    showError({ message: problems.join("\n") });
+  } else {
+    $("run-state").dataset.outcome = "ok";
+    $("run-state").textContent = `answered in ${fmt((performance.now() - t0) / 1000)} s (${answered}), on ${span}`;
+  }
+  if (wantNovelty && !failed.novelty) setTimeout(loadTrend, 500);  // the new verdict's audit line, once written
 }
 
-function renderPrediction(p, body, i0) {
+function renderPrediction(p, body, i0, err) {
+  if (!p) {
+    kvTable($("predict-metrics"), { note: `the predict call failed: ${problemText(err)}` });
+    for (const id of ["time-plot", "psd-plot"]) $(id).replaceChildren();
+    return;
+  }
   kvTable($("predict-metrics"), { "samples (API n_samples)": p.n_samples, "fit [%]": p.fit, RMSE: p.rmse,
     [`coverage of the ${Math.round(p.confidence * 1000) / 10} % band [%]`]: p.coverage, method: p.method,
     "Monte Carlo paths": p.mc_paths, seed: p.seed, start: p.start, "diverged paths": p.diverged_paths,
@@ -383,7 +479,7 @@ function noveltyReasons(nv) {
   return items;
 }
 
-function renderNovelty(nv, wanted, body) {
+function renderNovelty(nv, wanted, body, err) {
   const v = $("verdict"), table = $("novelty");
   v.className = "verdict";
   $("gauge").hidden = true;
@@ -392,7 +488,11 @@ function renderNovelty(nv, wanted, body) {
   if (!nv) {
     v.textContent = "-";
     kvTable(table, { note: !state.detail.novelty ? "this version has no novelty calibration"
-      : !body.y ? "the record has no measured y" : wanted ? "the novelty call failed" : "-" });
+      : !body.y ? "the record has no measured y" : wanted ? `the novelty call failed: ${problemText(err)}` : "-" });
+    if (wanted && err) {
+      v.textContent = "failed";
+      v.dataset.failed = "1";
+    }
     return;
   }
   v.textContent = nv.verdict;
@@ -410,7 +510,8 @@ function renderNovelty(nv, wanted, body) {
   kvTable(table, { score: nv.score, threshold: nv.threshold, "score / threshold": nv.score / nv.threshold,
     "probe match": nv.probe_match == null ? "no probe contract" : nv.probe_match ? "yes" : "no",
     "false-alarm rate": nv.false_alarm_rate, "score method": nv.score_method, "out of range": nv.out_of_range,
-    "samples scored": nv.n_samples, NLPD: nv.nlpd, start: nv.start });
+    "samples scored": nv.n_samples, NLPD: nv.nlpd, start: nv.start,
+    "method, paths (as calibrated)": `${nv.method}${nv.method === "mc" ? `, ${nv.mc_paths}` : ""}` });
 }
 
 /** Units of a loop as the API states them (model.restoring.loop_units), from the bundle's units and physics. */
@@ -421,60 +522,87 @@ function loopUnits(units, physics) {
   return { x: xs, force: "N", energy: xs === "m" ? "J" : `N ${xs}`, stiffness: `N/${xs}` };
 }
 
-/** Axis limits of a loop view that the start-up transient of a free run from rest does not stretch: the
- * 0.5-99.5 % quantiles of the loops (predicted, measured, band edges) over the steady cycles (the answer's
- * `cycles`) when there are any, else over the whole record; widened 8 %. */
-function robustView(lp, fs) {
-  const loops = [lp.predicted, lp.measured, lp.lower, lp.upper].filter(Boolean);
+/** The samples of the steady cycles (the loops answer's `cycles`: the start-up cycles of a free run from rest and
+ * the record's ends are not among them), as [first, end) indices; the whole record when there is none. */
+function steadyWindow(lp, fs) {
   const n = lp.predicted.x.length;
-  let i0 = 0, i1 = n;
-  const steady = Array.isArray(lp.cycles) && lp.cycles.length;
-  if (steady) {
-    i0 = Math.max(0, Math.floor(lp.cycles[0].start * fs));
-    i1 = Math.min(n, Math.ceil(lp.cycles[lp.cycles.length - 1].end * fs) + 1);
+  if (!Array.isArray(lp.cycles) || !lp.cycles.length) return { i0: 0, i1: n, steady: false };
+  const i0 = Math.max(0, Math.floor(lp.cycles[0].start * fs));
+  const i1 = Math.min(n, Math.ceil(lp.cycles[lp.cycles.length - 1].end * fs) + 1);
+  return i1 - i0 > 1 ? { i0, i1, steady: true } : { i0: 0, i1: n, steady: false };
+}
+
+/** The low-pass cut-off of the loops [Hz]: a sine drive (the loops answer's cycle basis 'drive') keeps its first
+ * harmonics, 3.5 x its frequency; a broadband drive is cut 1.25 x above the top of its band (the frequency below
+ * which 99 % of u's power lies, Welch PSD); at most 0.4 fs. */
+function autoCutoff(lp, u, fs) {
+  let top;
+  if (lp.cycle_basis?.basis === "drive" && lp.cycle_basis.frequency > 0) {
+    top = 3.5 * lp.cycle_basis.frequency;
+  } else {
+    const { f, p } = welch(u, fs);
+    const total = p.reduce((a, b) => a + b, 0);
+    let acc = 0, k = 0;
+    while (k < p.length - 1 && acc + p[k] < 0.99 * total) acc += p[k++];
+    top = 1.25 * f[k];
   }
+  return Number((Math.min(top, 0.4 * fs)).toPrecision(3));
+}
+
+/** Axis limits that fit the 0.5-99.5 % quantiles of the given loops, widened 8 %: a start-up transient or a
+ * noisy loop's outliers do not stretch them. */
+function robustView(loops) {
   const span = (key) => {
     const v = [];
-    for (const l of loops) for (let i = i0; i < i1; i++) if (Number.isFinite(l[key][i])) v.push(l[key][i]);
+    for (const l of loops) for (const a of l[key]) if (Number.isFinite(a)) v.push(a);
     v.sort((a, b) => a - b);
     if (!v.length) return null;
     const q = (p) => v[Math.min(v.length - 1, Math.max(0, Math.round(p * (v.length - 1))))];
-    let [lo, hi] = [q(0.005), q(0.995)];
+    const [lo, hi] = [q(0.005), q(0.995)];
     const pad = 0.08 * (hi - lo || Math.abs(hi) || 1);
     return [lo - pad, hi + pad];
   };
   const x = span("x"), y = span("force");
-  if (!x || !y) return null;
-  // points of the whole record that the view leaves out (the start-up transient)
-  let outside = 0;
-  for (let i = 0; i < n; i++) {
-    const a = lp.predicted.x[i], b = lp.predicted.force[i];
-    if (a < x[0] || a > x[1] || b < y[0] || b > y[1]) outside++;
-  }
-  return { x, y, outside, basis: steady ? "the steady cycles" : "the bulk of the record" };
+  return x && y ? { x, y } : null;
 }
 
 const ordered = (a, b) => (a != null && b != null && a > b ? [b, a] : [a, b]);
 
-function renderLoops(lp, wanted) {
+/** The loops drawn from the loops answer: predicted mean, band edges and measured, low-passed (zero-phase) when
+ * the filter is on, over the steady cycles unless "whole record" is ticked; the measured loop as the API gives it
+ * (the raw record differentiated twice: a cloud of noise) only when "measured, unfiltered" is ticked. */
+function loopSeries(lp, fs, fc, filter, whole) {
+  const win = whole ? { i0: 0, i1: lp.predicted.x.length, steady: false } : steadyWindow(lp, fs);
+  const cut = (a) => Array.prototype.slice.call(a, win.i0, win.i1);
+  const on = filter && fc > 0 && fc < fs / 2 && win.i1 - win.i0 > 15;
+  const smooth = (a) => (on ? Array.from(lowpassStretch(a, win.i0, win.i1, fc, fs, whole ? 0 : 5)) : cut(a));
+  const tag = on ? `, low-passed ${fmt(fc)} Hz` : "";
+  const out = [];
+  const add = (key, label, stroke, width) => {
+    const l = lp[key];
+    if (l) out.push({ key, label: `${label}${tag}`, x: smooth(l.x), force: smooth(l.force), stroke, width });
+  };
+  add("lower", "band lower", LOOP_COLOURS.edge, 0.6);
+  add("upper", "band upper", LOOP_COLOURS.edge, 0.6);
+  add("measured", "measured", LOOP_COLOURS.meas, 1);
+  add("predicted", "predicted mean", LOOP_COLOURS.pred, 1.4);
+  return { loops: out, win, filtered: on };
+}
+
+function renderLoops(lp, wanted, body, err) {
   const note = $("loops-note");
   const box = $("cycles-box");
   box.hidden = true;
+  state.loops = lp ? { lp, fs: body.fs, u: body.u } : null;
   if (!lp) {
     $("loops-plot").replaceChildren();
-    note.textContent = wanted ? "the loops call failed" : "this version has no physical constants (mass): no restoring force";
+    note.textContent = wanted ? `the loops call failed: ${problemText(err)}`
+      : "this version has no physical constants (mass): no restoring force";
     return;
   }
+  $("loops-fc").value = autoCutoff(lp, body.u, body.fs);
+  drawLoops();
   const units = { ...loopUnits(state.detail?.units, state.detail?.physics), ...(lp.units || {}) };
-  const view = robustView(lp, state.record?.fs || state.detail?.fs || 1);
-  loopsPlot($("loops-plot"), lp, units, view);
-  const area = (l) => (l ? fmt(l.area) : "-");
-  const [lo, hi] = ordered(lp.lower?.area, lp.upper?.area);
-  note.textContent = `loop area (whole record) [${units.energy}]: predicted ${area(lp.predicted)}, band edges `
-    + `${fmt(lo)} to ${fmt(hi)}` + (lp.measured ? `, measured ${area(lp.measured)}` : "")
-    + (view && view.outside ? `. Axes fitted to ${view.basis}: ${view.outside} of ${lp.predicted.x.length} points `
-      + "(the start-up transient) lie outside; drag to zoom, double-click for the whole record." : "");
-  $("loops-plot").dataset.clipped = String(view ? view.outside : 0);
   if (Array.isArray(lp.cycles) && lp.cycles.length) {
     const U = { start: "s", end: "s", energy: units.energy, energy_lower: units.energy, energy_upper: units.energy,
                 stiffness: units.stiffness, measured_energy: units.energy, measured_stiffness: units.stiffness };
@@ -489,6 +617,54 @@ function renderLoops(lp, wanted) {
       ...rows.map((c) => el("tr", {}, ...cols.map((k) => el("td", { className: "num", textContent: fmt(c[k]) })))));
     box.hidden = false;
   }
+}
+
+/** (Re)draw the loops of the last loops answer with the loop controls' settings. */
+function drawLoops() {
+  if (!state.loops) return;
+  const { lp, fs } = state.loops;
+  const plot = $("loops-plot");
+  const units = { ...loopUnits(state.detail?.units, state.detail?.physics), ...(lp.units || {}) };
+  const fc = Number($("loops-fc").value);
+  const whole = $("loops-whole").checked;
+  const { loops, win, filtered } = loopSeries(lp, fs, fc, $("loops-filter").checked, whole);
+  // the axes fit the loops drawn by default (never the unfiltered measured cloud)
+  const view = robustView(loops);
+  if ($("loops-raw").checked && lp.measured) {
+    const cut = (a) => Array.prototype.slice.call(a, win.i0, win.i1);
+    loops.unshift({ key: "measured-raw", label: "measured, unfiltered", x: cut(lp.measured.x),
+                    force: cut(lp.measured.force), stroke: LOOP_COLOURS.raw, width: 0.6 });
+  }
+  loopsPlot(plot, loops, units, view);
+  const n = lp.predicted.x.length;
+  let outside = 0;
+  const pred = loops.find((l) => l.key === "predicted");
+  if (view && pred) {
+    for (let i = 0; i < pred.x.length; i++) {
+      const a = pred.x[i], b = pred.force[i];
+      if (a < view.x[0] || a > view.x[1] || b < view.y[0] || b > view.y[1]) outside++;
+    }
+  }
+  plot.dataset.window = JSON.stringify([win.i0, win.i1]);
+  plot.dataset.cutoff = filtered ? String(fc) : "";
+  plot.dataset.clipped = String(outside);
+  const area = (l) => (l ? fmt(l.area) : "-");
+  const [lo, hi] = ordered(lp.lower?.area, lp.upper?.area);
+  const cycles = Array.isArray(lp.cycles) ? lp.cycles.length : 0;
+  const shown = win.steady
+    ? `Drawn: the ${cycles} steady cycle${cycles === 1 ? "" : "s"} of the loops answer (${fmt(win.i0 / fs)} to `
+      + `${fmt(win.i1 / fs)} s; ${n - (win.i1 - win.i0)} of ${n} samples, the start-up transient and the record's `
+      + "ends, left out: tick whole record to draw them)"
+    : `Drawn: the whole record (${n} samples)${outside ? `; axes fitted to the bulk of the loops, ${outside} points `
+      + "of the predicted loop (the start-up transient) lie outside: drag to zoom, double-click to fit all" : ""}`;
+  const filt = filtered
+    ? `, every loop low-passed at ${fmt(fc)} Hz (zero-phase Butterworth, order 4): R = g u - m x'' holds the output `
+      + "differentiated twice, which lifts its noise by (2 pi f)^2; the measured loop unfiltered is a cloud (tick "
+      + "measured, unfiltered to draw it)"
+    : ", unfiltered";
+  $("loops-note").textContent = `${shown}${filt}. Loop area (whole record, unfiltered) [${units.energy}]: predicted `
+    + `${area(lp.predicted)}, band edges ${fmt(lo)} to ${fmt(hi)}` + (lp.measured ? `, measured ${area(lp.measured)}` : "")
+    + "; the per-cycle energies below never differentiate the output.";
 }
 
 // ------------------------------------------------------------------------------------------ wiring
@@ -512,6 +688,8 @@ function init() {
   });
   $("load-example").addEventListener("click", loadExample);
   $("run").addEventListener("click", run);
+  for (const id of ["loops-filter", "loops-fc", "loops-raw", "loops-whole"]) $(id).addEventListener("change", drawLoops);
+  for (const id of ["mc-paths", "method"]) $(id).addEventListener("change", pathsNote);
   document.body.dataset.root = root;
   loadModels();
   loadExamples();

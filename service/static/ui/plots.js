@@ -59,24 +59,44 @@ export function timePlot(el, { t, y, mean, lower, upper, unit, bandLabel }) {
   return chart;
 }
 
-/** PSD of measured and predicted outputs (log power). */
+/** Decades of power the PSD plot shows below its peak: a Welch estimate of a clean simulated record reaches
+ * round-off, 15 or more decades down, which would squash every feature that matters into the top of the plot. */
+export const PSD_DECADES = 7;
+
+/** Axis limits of a log-power plot: from at least PSD_DECADES below the largest finite positive value to just
+ * above it, both powers of ten (uPlot's log axis ticks need them); null when there is none. */
+export function psdRange(...powers) {
+  let peak = 0;
+  for (const p of powers) if (p) for (const v of p) if (Number.isFinite(v) && v > peak) peak = v;
+  if (!(peak > 0)) return null;
+  const pow = (k) => Number(`1e${k}`);  // exactly the decimal power, as the axis's tick table holds it
+  const top = Math.ceil(Math.log10(peak));
+  return [pow(Math.floor(Math.log10(peak) - PSD_DECADES)), pow(top === Math.log10(peak) ? top + 1 : top)];
+}
+
+/** PSD of measured and predicted outputs (log power), the top PSD_DECADES decades below the peak. */
 export function psdPlot(el, { f, measured, predicted, unit }) {
   const series = [{ label: "f [Hz]", value: (u, v) => fmt(v) }];
   const data = [f];
-  const floor = (p) => Array.from(p, (v) => (v > 0 ? v : null));
+  const range = psdRange(measured, predicted);
+  // values below the range are drawn at its floor rather than far below the plot
+  const floor = (p) => Array.from(p, (v) => (v > 0 ? Math.max(v, range ? range[0] : v) : null));
   if (measured) {
     series.push({ label: "measured", stroke: C.meas, width: 1, value: (u, v) => fmt(v) });
     data.push(floor(measured));
   }
   series.push({ label: "predicted mean", stroke: C.mean, width: 1.2, value: (u, v) => fmt(v) });
   data.push(floor(predicted));
+  const y = { distr: 3 };
+  if (range) y.range = () => range;
   mount(el, {
     height: 300,
-    scales: { x: { time: false }, y: { distr: 3 } },
+    scales: { x: { time: false }, y },
     axes: [{ label: "frequency [Hz]" }, { label: `PSD [${unit || "-"}²/Hz]`, size: 70, values: ticks }],
     series,
     cursor: { drag: { x: true, y: true, uni: 40 } },
   }, data);
+  el.dataset.range = JSON.stringify(range);
   el.dataset.ready = "1";
 }
 
@@ -95,21 +115,16 @@ function xyPath(u, seriesIdx) {
   return { stroke, fill: null, clip: null, band: null, gaps: null, flags: 0 };
 }
 
-/** Restoring force against displacement: predicted mean, band edges and the measured loop. ``view``
- * ({x: [lo, hi], y: [lo, hi]}) sets the axes (a double-click goes back to the whole record). */
+/** Restoring force against displacement: one x-y series per loop ({label, x, force, stroke, width}), joined
+ * in time order. ``view`` ({x: [lo, hi], y: [lo, hi]}) sets the axes (a double-click fits every point). */
 export function loopsPlot(el, loops, units, view) {
   const series = [{}];
   const data = [null];
-  const add = (label, loop, stroke, width) => {
-    if (!loop) return;
-    series.push({ label, stroke, width, paths: xyPath, points: { show: false },
+  for (const l of loops) {
+    series.push({ label: l.label, stroke: l.stroke, width: l.width, paths: xyPath, points: { show: false },
                   facets: [{ scale: "x", auto: true }, { scale: "y", auto: true }] });
-    data.push([loop.x, loop.force]);
-  };
-  add("band lower", loops.lower, C.edge, 0.6);
-  add("band upper", loops.upper, C.edge, 0.6);
-  add("measured", loops.measured, C.measLoop, 1);
-  add("predicted mean", loops.predicted, C.pred, 1.4);
+    data.push([l.x, l.force]);
+  }
   const chart = mount(el, {
     mode: 2,
     height: 300,
@@ -127,6 +142,40 @@ export function loopsPlot(el, loops, units, view) {
     });
     el.dataset.view = JSON.stringify(view);
   }
+  el.dataset.series = JSON.stringify(loops.map((l) => l.label));
+  el.dataset.ready = "1";
+}
+
+export const LOOP_COLOURS = { pred: C.pred, edge: C.edge, meas: C.measLoop, raw: "rgba(90, 90, 90, 0.35)" };
+
+const VERDICT_COLOURS = { healthy: "#1b7a3a", novel: "#b3261e", unjudged: "#c9a227" };
+
+/** Novelty scores over time, one marker colour per verdict, and the threshold each was judged against
+ * (log score axis: a changed structure scores decades above a healthy one). ``points``: the history's points. */
+export function trendPlot(el, points) {
+  const t = points.map((p) => Date.parse(p.time) / 1000);
+  const pos = (v) => (v != null && v > 0 ? v : null);
+  const series = [{ label: "time" },
+    { label: "score", stroke: "rgba(80, 80, 80, 0.45)", width: 1, value: (u, v) => fmt(v), spanGaps: true,
+      points: { show: false } }];
+  const data = [t, points.map((p) => pos(p.score))];
+  for (const v of ["healthy", "novel", "unjudged"]) {
+    series.push({ label: v, stroke: VERDICT_COLOURS[v], fill: VERDICT_COLOURS[v], width: 0, paths: () => null,
+                  points: { show: true, size: 8, stroke: VERDICT_COLOURS[v], fill: VERDICT_COLOURS[v] },
+                  value: (u, x) => fmt(x) });
+    data.push(points.map((p) => (p.verdict === v ? pos(p.score) : null)));
+  }
+  series.push({ label: "threshold", stroke: "#222", width: 1, dash: [6, 4], value: (u, v) => fmt(v),
+                points: { show: false }, spanGaps: true });
+  data.push(points.map((p) => pos(p.threshold)));
+  mount(el, {
+    height: 220,
+    scales: { x: { time: true }, y: { distr: 3 } },
+    axes: [{}, { label: "novelty score", size: 70, values: ticks }],
+    series,
+    cursor: { drag: { x: true, y: false } },
+  }, data);
+  el.dataset.points = String(points.length);
   el.dataset.ready = "1";
 }
 
