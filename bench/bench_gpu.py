@@ -53,8 +53,8 @@ def quick_setup():
 
 def main() -> None:
     args = C.parse_args(__doc__, _args)
-    from gpnarx.model import freerun_jax
     from gpnarx.model.backend import jax_device
+    from gpnarx.model.freerun import jax_backend as freerun_jax
 
     if args.unroll:
         freerun_jax.SCAN_UNROLL = int(args.unroll)

@@ -38,7 +38,7 @@ def _args(ap):
 
 
 def _program(jax, jnp, model, P, variant):
-    from gpnarx.model.freerun_core import LAG_CLIP
+    from gpnarx.model.freerun import LAG_CLIP
     from gpnarx.model.kernels.jax_forms import jax_kernel, kernel_theta
 
     post = model.posterior_
@@ -123,7 +123,7 @@ def _time_variant(jax, jnp, model, Ulag, P, steps, variant):
 def main() -> None:
     args = C.parse_args(__doc__, _args)
     from gpnarx.model.backend import jax_device, require_jax
-    from gpnarx.model.freerun_core import lagged_inputs
+    from gpnarx.model.freerun.results import lagged_inputs
 
     jax = require_jax()
     jnp = jax.numpy

@@ -59,7 +59,7 @@ from mc_baseline import simulate_mc_baseline
 
 import _common as C
 from gpnarx.model.freerun import simulate_mc
-from gpnarx.model.freerun_reference import simulate_mc_reference
+from gpnarx.model.freerun.reference import simulate_mc_reference
 
 
 def quick_model():

@@ -58,7 +58,7 @@ import numpy as np
 import _common as C
 
 BASELINE_CODE = (
-    "import sys; import gpnarx.model.freerun as F; import gpnarx.model.freerun_reference as R; "
+    "import sys; import gpnarx.model.freerun as F; import gpnarx.model.freerun.reference as R; "
     "F.simulate_linear = R.simulate_linear_reference; "
     "from gpnarx.cli.main import main; sys.argv = ['gpnarx'] + sys.argv[1:]; sys.exit(main())"
 )
@@ -148,7 +148,7 @@ def open_run(registry: Path, name: str, record: Path):
 def accuracy(model, rec, quick: bool, window: float = 4.0) -> dict:
     """Linearised and few-path MC bands against the reference MC on 4 s windows (quick: 300 samples)."""
     from gpnarx.model.discrepancy import widen
-    from gpnarx.model.freerun_reference import simulate_mc_reference
+    from gpnarx.model.freerun.reference import simulate_mc_reference
 
     args = (model.posterior_, model.x_scaler_, model.y_scaler_, model.ny, model.nu)
     disc = getattr(model, "band_discrepancy_", None)
@@ -187,8 +187,8 @@ def pass_profile(model, rec) -> dict:
     triangular products |Linv k|^2 (rows x N^2 flops, the exact posterior; 0 for another posterior), and pass 3
     (the covariance recursion). Their sum over two cores is the least wall time two cores can give the free run
     (perfect overlap), whatever the scheduling."""
-    from gpnarx.model import freerun
     from gpnarx.model import gp as gpmod
+    from gpnarx.model.freerun import linear as freerun
 
     post = model.posterior_
     spent = {"pass1": 0.0, "nested": 0.0, "trmm": 0.0, "pass3": 0.0}

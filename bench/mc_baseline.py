@@ -19,7 +19,7 @@ from gpnarx.model.freerun import (
     LOCAL_TOL_MEAN,
     LOCAL_TOL_VAR,
 )
-from gpnarx.model.freerun_core import (
+from gpnarx.model.freerun.results import (
     LAG_CLIP,
     FreeRun,
     FreeRunState,

@@ -446,7 +446,7 @@ class GPNARX(ParamsMixin):
                                or not 1 <= n_paths <= MAX_PATHS):
             raise ValueError(f"n_paths must be an integer between 1 and {MAX_PATHS}, got {n_paths!r}")
         if backend == "jax":
-            from . import freerun_jax  # here: the optional backend stays out of a numpy process
+            from .freerun import jax_backend as freerun_jax  # here: the optional backend stays out of a numpy process
 
             if method == "mc":
                 return freerun_jax.simulate_mc_jax(

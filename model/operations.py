@@ -31,7 +31,7 @@ from .cycle_stream import STREAM_COV_WINDOW
 from .cycle_stream import advance as stream_cycles
 from .cycles import cov_window_for, cycles
 from .envelope import assess, out_of_range
-from .freerun_core import FreeRunState, check_state
+from .freerun import FreeRunState, check_state
 from .metrics import summary
 from .novelty import UnusableProbeContract, assess_novelty, novelty_start
 from .novelty_window import HTTP_WINDOW_SECONDS, RollingWindow

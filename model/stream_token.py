@@ -41,7 +41,7 @@ import numpy as np
 
 from .archive_bounds import NPY_READ_ERRORS, ArchiveError, member, member_name, open_archive, read
 from .cycle_stream import MARGIN, MAX_CYCLE_SAMPLES, STREAM_COV_WINDOW
-from .freerun_core import FreeRunState
+from .freerun import FreeRunState
 from .novelty_window import HTTP_WINDOW_SECONDS
 
 MAGIC = b"GS1"

@@ -10,8 +10,9 @@
 import numpy as np
 import pytest
 
-from gpnarx.model import freerun, freerun_reference
 from gpnarx.model.estimator import GPNARX
+from gpnarx.model.freerun import linear as freerun
+from gpnarx.model.freerun import reference as freerun_reference
 from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, Sum, White
 from gpnarx.model.kernels.base import _r2_from_gram
 

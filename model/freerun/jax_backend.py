@@ -32,10 +32,10 @@ import time
 
 import numpy as np
 
-from .backend import require_jax
-from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, check_confidence, lagged_inputs, start_index
-from .kernels.jax_forms import jax_kernel, kernel_structure, kernel_theta
-from .normal import band_z
+from ..backend import require_jax
+from ..kernels.jax_forms import jax_kernel, kernel_structure, kernel_theta
+from ..normal import band_z
+from .results import LAG_CLIP, VAR_CAP, FreeRun, check_confidence, lagged_inputs, start_index
 
 BLOCK_ELEMENTS = 1 << 23  # samples (steps x paths) of one block kept on the device: 64 MiB in float64
 MAX_BLOCK_STEPS = 4096

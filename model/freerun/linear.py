@@ -31,7 +31,12 @@ import time
 
 import numpy as np
 
-from .freerun_core import (
+from ..gp import LocalModel, has_local_model, two_cpus
+from ..kernels import LinearisableKernel, require
+from ..normal import band_z
+from ..posterior import Posterior
+from .reference import simulate_linear_reference
+from .results import (
     LAG_CLIP,
     VAR_CAP,
     FreeRun,
@@ -43,11 +48,6 @@ from .freerun_core import (
     next_u_tail,
     start_index,
 )
-from .freerun_reference import simulate_linear_reference
-from .gp import LocalModel, has_local_model, two_cpus
-from .kernels import LinearisableKernel, require
-from .normal import band_z
-from .posterior import Posterior
 
 # Tolerances of the local model's check (``simulate_mc``), at the checked paths (the farthest from the
 # mean regressor: the model's error grows as |d|^3, so these bound it for all paths). The 0.5 % and

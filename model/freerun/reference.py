@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 
-from .freerun_core import LAG_CLIP, VAR_CAP, FreeRun, McPaths, check_confidence, lagged_inputs, start_index
-from .normal import band_z
+from ..normal import band_z
+from .results import LAG_CLIP, VAR_CAP, FreeRun, McPaths, check_confidence, lagged_inputs, start_index
 
 
 def simulate_linear_reference(
