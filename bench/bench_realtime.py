@@ -187,7 +187,7 @@ def pass_profile(model, rec) -> dict:
     triangular products |Linv k|^2 (rows x N^2 flops, the exact posterior; 0 for another posterior), and pass 3
     (the covariance recursion). Their sum over two cores is the least wall time two cores can give the free run
     (perfect overlap), whatever the scheduling."""
-    from gpnarx.model import gp as gpmod
+    from gpnarx.model import linalg as gpmod
     from gpnarx.model.freerun import linear as freerun
 
     post = model.posterior_

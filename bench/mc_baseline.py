@@ -19,6 +19,7 @@ from gpnarx.model.freerun import (
     LOCAL_TOL_MEAN,
     LOCAL_TOL_VAR,
 )
+from gpnarx.model.freerun.mc_local import has_local_model
 from gpnarx.model.freerun.results import (
     LAG_CLIP,
     FreeRun,
@@ -29,7 +30,6 @@ from gpnarx.model.freerun.results import (
     next_u_tail,
     start_index,
 )
-from gpnarx.model.gp import has_local_model
 
 
 def simulate_mc_baseline(

@@ -177,7 +177,7 @@ class _NoProfile(Matern32):
 
 @pytest.mark.parametrize("fused", [True, False])
 def test_fused_local_model_matches_local_model(sparse_model, exact_model, fused):
-    from gpnarx.model.gp import LocalModel, local_model
+    from gpnarx.model.freerun.mc_local import LocalModel, local_model
 
     for m in (sparse_model, exact_model):
         post = m.posterior_
@@ -188,34 +188,34 @@ def test_fused_local_model_matches_local_model(sparse_model, exact_model, fused)
         x = post.points[3] + 0.01
         Xc = post.points[:5] + 0.02
         H, mc, vc = lm(x, Xc)
-        m0, gm, Hm, v0, gv, Hv, mc0, vc0 = local_model(post, x, m.ny, Xc)
+        t = local_model(post, x, m.ny, Xc)
         ny, a = m.ny, m.ny + 1
         rng = np.random.default_rng(0)
         d = np.c_[0.05 * rng.normal(size=(7, ny)), np.ones(7)]
         mu = np.einsum("ij,jk,ik->i", d, H[:, :a], d)
         var = np.einsum("ij,jk,ik->i", d, H[:, a:], d)
         dy = d[:, :ny]
-        mu0 = m0 + dy @ gm + 0.5 * np.einsum("ij,jk,ik->i", dy, Hm, dy)
-        var0 = v0 + dy @ gv + 0.5 * np.einsum("ij,jk,ik->i", dy, Hv, dy)
+        mu0 = t.m0 + dy @ t.gm + 0.5 * np.einsum("ij,jk,ik->i", dy, t.Hm, dy)
+        var0 = t.v0 + dy @ t.gv + 0.5 * np.einsum("ij,jk,ik->i", dy, t.Hv, dy)
         assert np.allclose(mu, mu0, rtol=1e-9, atol=1e-12)
-        assert np.allclose(var, var0, rtol=1e-6, atol=1e-6 * abs(v0))
-        assert np.allclose(mc, mc0, rtol=1e-9, atol=1e-12) and np.allclose(vc, vc0, rtol=1e-6)
+        assert np.allclose(var, var0, rtol=1e-6, atol=1e-6 * abs(t.v0))
+        assert np.allclose(mc, t.mean_c, rtol=1e-9, atol=1e-12) and np.allclose(vc, t.var_c, rtol=1e-6)
 
 
 def test_local_model_matches_posterior_at_its_centre(sparse_model, exact_model):
-    from gpnarx.model.gp import local_model
+    from gpnarx.model.freerun.mc_local import local_model
 
     for m in (sparse_model, exact_model):
         post = m.posterior_
         x = post.points[3] + 0.01
         Xc = post.points[:4] + 0.02
-        m0, gm, Hm, v0, gv, Hv, mc, vc = local_model(post, x, m.ny, Xc)
+        t = local_model(post, x, m.ny, Xc)
         mu, var = post.predict(np.vstack([x, Xc]))
-        assert m0 == pytest.approx(mu[0], rel=1e-9, abs=1e-12)
-        assert v0 == pytest.approx(var[0], rel=1e-6)
-        assert np.allclose(mc, mu[1:], rtol=1e-9, atol=1e-12) and np.allclose(vc, var[1:], rtol=1e-6)
+        assert t.m0 == pytest.approx(mu[0], rel=1e-9, abs=1e-12)
+        assert t.v0 == pytest.approx(var[0], rel=1e-6)
+        assert np.allclose(t.mean_c, mu[1:], rtol=1e-9, atol=1e-12) and np.allclose(t.var_c, var[1:], rtol=1e-6)
         _, _, g = post.mean_var_grad(x[None])
-        assert np.allclose(gm, g[0, : m.ny], rtol=1e-8, atol=1e-12)
+        assert np.allclose(t.gm, g[0, : m.ny], rtol=1e-8, atol=1e-12)
 
 
 def test_linear_pass2_workers_give_the_same_numbers(exact_model, sdof_data):
@@ -253,8 +253,10 @@ def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
     from scipy.linalg import blas
     from threadpoolctl import threadpool_limits
 
-    from gpnarx.model import gp as gpmod
-    from gpnarx.model.gp import LocalModel, lower_times_rows
+    from gpnarx.model import linalg
+    from gpnarx.model.freerun import mc_local
+    from gpnarx.model.freerun.mc_local import LocalModel
+    from gpnarx.model.linalg import lower_times_rows
 
     rng = np.random.default_rng(3)
     L = np.tril(rng.normal(size=(90, 90)))
@@ -268,9 +270,9 @@ def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
     # the local model's pair F [k | ...] and F^T F k: split over the helper thread (two CPUs) or in one thread
     back_want = L.T @ (L @ K[0])
     for two in (True, False):
-        monkeypatch.setattr(gpmod, "_two_threads", lambda two=two: two)
+        monkeypatch.setattr(linalg, "_two_threads", lambda two=two: two)
         for rows in (1, 7, 21, 29):
-            FB, back = gpmod.lower_times_rows_and_back(L, K[:rows] if rows <= 21 else np.vstack([K, K[:8]]))
+            FB, back = linalg.lower_times_rows_and_back(L, K[:rows] if rows <= 21 else np.vstack([K, K[:8]]))
             ref = want[:rows] if rows <= 21 else np.vstack([want, want[:8]])
             assert np.allclose(FB, ref, rtol=1e-13, atol=1e-13 * np.abs(ref).max())
             assert np.allclose(back, back_want, rtol=1e-12, atol=1e-12 * np.abs(back_want).max())
@@ -283,10 +285,10 @@ def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
     x = post.points[3] + 0.01
     Xc = post.points[:5] + 0.02
     calls = []
-    pair = gpmod.lower_times_rows_and_back
-    monkeypatch.setattr(gpmod, "lower_times_rows_and_back", lambda *a: calls.append(a) or pair(*a))
+    pair = mc_local.lower_times_rows_and_back
+    monkeypatch.setattr(mc_local, "lower_times_rows_and_back", lambda *a: calls.append(a) or pair(*a))
     with threadpool_limits(limits=1, user_api="blas"):
-        assert gpmod.blas_threads() == 1
+        assert linalg.blas_threads() == 1
         (Ht, mt, vt), (Hd, md, vd) = tri(x, Xc), dense(x, Xc)
     assert len(calls) == 1  # F B and F^T (F k) by dtrmm on one BLAS thread
     assert np.allclose(Ht, Hd, rtol=1e-9, atol=1e-12 * np.abs(Hd).max())
@@ -295,7 +297,7 @@ def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
     # from each other): no dtrmm, the same numbers
     calls.clear()
     with threadpool_limits(limits=2, user_api="blas"):
-        assert gpmod.blas_threads() == 2
+        assert linalg.blas_threads() == 2
         H2, m2, v2 = tri(x, Xc)
     assert not calls
     assert np.allclose(H2, Ht, rtol=1e-9, atol=1e-12 * np.abs(Ht).max())

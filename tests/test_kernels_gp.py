@@ -268,7 +268,8 @@ def test_kernels_meet_the_contracts_they_declare_and_consumers_refuse_the_others
     contract and the part (the linearised run), or leaves the optional fast path (ML-II's workspace, the
     Monte Carlo local model)."""
     from gpnarx.model import freerun, vfe
-    from gpnarx.model.gp import ExactPosterior, has_local_model
+    from gpnarx.model.freerun.mc_local import has_local_model
+    from gpnarx.model.gp import ExactPosterior
     from gpnarx.model.kernels import MeanTerms, require
     from gpnarx.model.ml2 import NLMLWorkspace
     from gpnarx.model.posterior import Posterior

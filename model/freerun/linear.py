@@ -31,10 +31,11 @@ import time
 
 import numpy as np
 
-from ..gp import LocalModel, has_local_model, two_cpus
 from ..kernels import LinearisableKernel, require
+from ..linalg import two_cpus
 from ..normal import band_z
 from ..posterior import Posterior
+from .mc_local import LocalModel, has_local_model
 from .reference import simulate_linear_reference
 from .results import (
     LAG_CLIP,
