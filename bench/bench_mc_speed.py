@@ -26,12 +26,15 @@ first S seconds (from rest), for a bundle whose whole records take too long (the
 Product: ``model.freerun.simulate_mc`` (default ``local=True``): each step a second-order model of
 eq. 8-9 around the paths' mean regressor in the output-lag coordinates (``gp.LocalModel``), checked
 against eq. 8-9 at 12 paths (the farthest and random ones), with exact evaluation of the farthest 1/16
-or 1/4 or of all paths when the check fails. Baseline (``ratio=``): the previous product code, kept
-verbatim in ``bench/mc_baseline.py`` (the same algorithm and checks; one call per kernel part for k, J
-and each Hessian, a (P x ny) lag shift per step), same posterior, paths, seed, segments, BLAS threads,
-in this process. Repetitions interleave product and baseline; ratio = median over repetitions of
-(baseline seconds / product seconds), all segments together; ``ratio_exact=`` is the same against
-``freerun_reference.simulate_mc_reference`` (eq. 8-9 at every path), timed once.
+or 1/4 or of all paths when the check fails. Baseline (``ratio=``): the previous product code, the
+``simulate_mc`` of git commit ``baseline.MC_BASELINE`` (``--baseline-ref``), imported from the git history
+beside the product (``bench/baseline.py``: the same algorithm and checks; one call per kernel part for k, J
+and each Hessian, a (P x ny) lag shift per step), on the same posterior (``baseline.fitted_copy``), paths,
+seed, segments, BLAS threads, in this process. Repetitions interleave product and baseline; ratio = median
+over repetitions of (baseline seconds / product seconds), all segments together; ``ratio_exact=`` is the
+same against ``freerun_reference.simulate_mc_reference`` (eq. 8-9 at every path), timed once. In a clone
+without that commit (a shallow clone) the baseline is skipped: ``baseline=nan ratio=nan
+baseline_skipped=CODE``, the reason on stderr.
 
 Accuracy, same seed and paths (the draws are the same random numbers, so paths differ only by the
 local model's error): the largest difference of the mean and of the 0.5 % / 99.5 % band edges against
@@ -43,7 +46,7 @@ reference out (about 10 minutes a record) and takes the standard error from the 
 seeds 0 and 1.
 
     python bench/bench_mc_speed.py [--quick] [--whole [--seconds S]] [--registry R] [--record PATH] [--reps N]
-                                   [--threads N]
+                                   [--threads N] [--baseline-ref REF]
 
 Without --registry a bundle is trained from configs/bert-real.toml into a cache (about 10 minutes;
 bench_realtime.py shares the cache). --quick: a small Bouc-Wen sparse model (M=64, fixed
@@ -51,11 +54,12 @@ hyperparameters), 256 paths, 60 steps; for the smoke test only.
 """
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
+import baseline as BL
 import numpy as np
-from mc_baseline import simulate_mc_baseline
 
 import _common as C
 from gpnarx.model.freerun import simulate_mc
@@ -129,6 +133,9 @@ def main():
                         help="the whole 0.10 V sweep and 0.10 / 0.25 V noise runs instead of segments")
         ap.add_argument("--seconds", type=float, default=None,
                         help="with --whole: only the first SECONDS of each record (from rest)")
+        ap.add_argument("--baseline-ref", default=BL.MC_BASELINE,
+                        help="git ref of the baseline's product code (default: the commit before the fused local "
+                             "model, bench/baseline.py MC_BASELINE)")
 
     args = C.parse_args(__doc__, extra)
     q = args.quick
@@ -138,37 +145,49 @@ def main():
         raise SystemExit("--seconds needs --whole and a positive number of seconds")
     model, segs, note, fs, fidelity = quick_model() if q else bert_model(args.registry, args.record, not args.sine_only,
                                                                 args.whole, args.seconds)
-    post = model.posterior_
+    try:
+        prev = previous_code(args.baseline_ref, model)
+        skipped = None
+    except BL.BaselineUnavailable as exc:
+        print(f"bench_mc_speed: baseline skipped ({exc.code}): {exc}", file=sys.stderr)
+        prev, skipped = None, exc.code
+    nan = float("nan")
 
-    def run(fn, seg, seed=0):
+    def run(fn, seg, seed=0, m=model):
         _, u, _, y0 = seg[:4]
         c0 = time.process_time()
-        r = fn(post, model.x_scaler_, model.y_scaler_, model.ny, model.nu, u, n_paths=P, seed=seed, y0=y0,
-               include_noise=model.include_noise)
+        r = fn(m.posterior_, m.x_scaler_, m.y_scaler_, m.ny, m.nu, u, n_paths=P, seed=seed, y0=y0,
+               include_noise=m.include_noise)
         r.cpu = time.process_time() - c0
         return r
+
+    def run_prev(seg, seed=0):
+        return run(prev[0], seg, seed, prev[1])
 
     for seg in segs:  # warm-up
         short = (seg[0], seg[1][:40], None, seg[3], seg[4])
         run(simulate_mc, short)
-        run(simulate_mc_baseline, short)
+        if prev:
+            run_prev(short)
         if not args.whole:
             run(simulate_mc_reference, short)
     load0 = C.load()
     t_new = [[0.0] * len(segs) for _ in range(reps)]
-    t_old = [[0.0] * len(segs) for _ in range(reps)]
+    t_old = [[nan] * len(segs) for _ in range(reps)]
     c_new = [[0.0] * len(segs) for _ in range(reps)]
-    c_old = [[0.0] * len(segs) for _ in range(reps)]
+    c_old = [[nan] * len(segs) for _ in range(reps)]
     loads = []
     last_new, last_old, local = {}, {}, {}
     steps = [0] * len(segs)
     for r in range(reps):
         for j, seg in enumerate(segs):
             a = run(simulate_mc, seg)
-            b = run(simulate_mc_baseline, seg)
-            t_new[r][j], t_old[r][j] = a.seconds, b.seconds
-            c_new[r][j], c_old[r][j] = a.cpu, b.cpu
-            last_new[j], last_old[j] = a, b
+            t_new[r][j], c_new[r][j] = a.seconds, a.cpu
+            last_new[j] = a
+            if prev:
+                b = run_prev(seg)
+                t_old[r][j], c_old[r][j] = b.seconds, b.cpu
+                last_old[j] = b
             local[j] = a.local_steps
             steps[j] = a.path_steps // P
             loads.append(C.load())
@@ -178,7 +197,8 @@ def main():
     ps_old = P * sum(steps) / C.median([sum(t) for t in t_old])
 
     print(f"bench_mc_speed: {note}; {P} paths; {reps} interleaved reps; load {load0:.1f} -> {load1:.1f} "
-          f"(median {C.median(loads):.1f}); BLAS threads {C.blas_threads()}")
+          f"(median {C.median(loads):.1f}); BLAS threads {C.blas_threads()}; baseline "
+          + (f"simulate_mc of git {prev[2]}" if prev else f"skipped ({skipped})"))
     print(f"  {'segment':<34} {'steps':>5} {'local':>5} {'new ps/s':>10} {'prev ps/s':>10} {'ratio':>6} "
           f"{'new cpu ms/step':>15} {'prev cpu ms/step':>16}")
     for j, seg in enumerate(segs):
@@ -191,14 +211,14 @@ def main():
 
     # accuracy: same seed (same draws); MC error from the exact reference (or, --whole, the previous code)
     # at seeds 0 and 1
-    worst = {"mean": 0.0, "edge": 0.0, "prev": 0.0}
+    worst = {"mean": 0.0, "edge": 0.0, "prev": 0.0 if prev else nan}
     cov_gap = 0.0
     rows = []
     t_ref = 0.0
     for j, seg in enumerate(segs):
-        a, o = last_new[j], last_old[j]
-        if args.whole:
-            b, b1 = o, run(simulate_mc_baseline, seg, seed=1)
+        a, o = last_new[j], last_old.get(j)
+        if args.whole:  # the previous code's bands at seeds 0 and 1 (without it: the product's own, no diff)
+            b, b1 = (o, run_prev(seg, seed=1)) if prev else (a, run(simulate_mc, seg, seed=1))
         else:
             b = run(simulate_mc_reference, seg)
             t_ref += b.seconds
@@ -210,8 +230,11 @@ def main():
         se_mean = np.median(np.abs(b.mean[sl] - b1.mean[sl])) / np.sqrt(2.0)
         d_edge = max(np.max(np.abs(a.lower[sl] - b.lower[sl])), np.max(np.abs(a.upper[sl] - b.upper[sl]))) / se
         d_mean = np.max(np.abs(a.mean[sl] - b.mean[sl])) / se_mean
-        d_prev = max(np.max(np.abs(a.mean[sl] - o.mean[sl])) / se_mean,
-                     np.max(np.abs(a.lower[sl] - o.lower[sl])) / se, np.max(np.abs(a.upper[sl] - o.upper[sl])) / se)
+        if b is a:
+            d_edge = d_mean = nan
+        d_prev = nan if o is None else max(
+            np.max(np.abs(a.mean[sl] - o.mean[sl])) / se_mean, np.max(np.abs(a.lower[sl] - o.lower[sl])) / se,
+            np.max(np.abs(a.upper[sl] - o.upper[sl])) / se)
         worst["edge"] = max(worst["edge"], d_edge)
         worst["mean"] = max(worst["mean"], d_mean)
         worst["prev"] = max(worst["prev"], d_prev)
@@ -219,7 +242,9 @@ def main():
         c_a, c_b, c_b1 = coverage(y, a), coverage(y, b), coverage(y, b1)
         cov_gap = max(cov_gap, abs(c_a - c_b))
         rows.append((seg[0], d_mean, d_edge, d_prev, c_a, c_b, c_b1))
-    what = "previous code" if args.whole else "exact reference"
+    if args.whole and not prev:  # nothing to compare with
+        worst["mean"] = worst["edge"] = cov_gap = nan
+    what = ("previous code" if prev else "product") if args.whole else "exact reference"
     print(f"  same seed, product vs {what} (MC standard error from the {what} at seeds 0 and 1):")
     for name, dm, de, dp, ca, cb, cb1 in rows:
         print(f"    {name:<34} max |mean diff| {dm:.2g} MC s.e.; max |band-edge diff| {de:.2g} MC s.e.; "
@@ -237,12 +262,23 @@ def main():
         per_class[f"cpu_ms_step_{cls}"] = 1e3 * C.median([sum(c[j] for j in js) for c in c_new]) / n_cls
         per_class[f"cpu_ms_step_prev_{cls}"] = 1e3 * C.median([sum(c[j] for j in js) for c in c_old]) / n_cls
     extra = {} if args.whole else {"ratio_exact": t_ref / C.median([sum(t) for t in t_new])}
+    if skipped:
+        extra["baseline_skipped"] = skipped
+    commit = prev[2] if prev else args.baseline_ref[:12]
     C.result(path_steps_per_s=ps_new, baseline=ps_old,
-             baseline_what="previous-simulate_mc-bench/mc_baseline.py-same-posterior-paths-seed",
+             baseline_what=f"simulate_mc-of-git-{commit}-same-posterior-paths-seed",
              ratio=C.median(ratios), paths=P, steps=sum(steps), local_steps=sum(local.values()),
              max_mean_diff_se=worst["mean"], max_edge_diff_se=worst["edge"], prev_max_diff_se=worst["prev"],
              cov_gap_points=cov_gap, load=C.median(loads), blas_threads=C.blas_threads(), **extra, **per_class,
              **fidelity)
+
+
+def previous_code(ref: str, model):
+    """The baseline's ``simulate_mc`` (git ``ref``'s, ``bench/baseline.py``), the product's fitted ``model`` as the
+    baseline's own estimator, and the baseline's commit (12 digits)."""
+    pkg = BL.load_model(ref)
+    commit = BL.resolve(ref)
+    return BL.submodule(pkg, "freerun").simulate_mc, BL.fitted_copy(pkg, model), commit[:12]
 
 
 if __name__ == "__main__":

@@ -137,8 +137,9 @@ METHOD_ROWS = (
      'one sequential client, same calls, same server, alternating'),
     ('`bench_mc_speed.py`',
      'Monte Carlo free run with the checked local model',
-     'the previous product code of the same algorithm (`bench/mc_baseline.py`), same posterior, paths and seed, '
-     'interleaved; `ratio_exact=`: `freerun_reference.simulate_mc_reference` (eqs. 8-9 at every path), timed once'),
+     'the previous product code of the same algorithm (`simulate_mc` of git commit 9ee9349f2ece, imported from the '
+     'history by `bench/baseline.py`), same posterior, paths and seed, interleaved; `ratio_exact=`: '
+     '`freerun_reference.simulate_mc_reference` (eqs. 8-9 at every path), timed once'),
     ('`bench_local_check.py`',
      'the Monte Carlo local model against eqs. 8-9 at every path, every step its check passed (errors in '
      'tolerance units; `exceed_steps=`: the check\'s misses)',
