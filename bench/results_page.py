@@ -77,6 +77,14 @@ library defaults) is not equal work: it is reported in separate fields, `user_ra
 `GPNARX.simulate`, so their `ratio=` compares the same algorithm; `bench_mc_speed.py` compares the default
 (the checked local model) with the previous code of the same algorithm, and `bench_predict_e2e.py` times the
 `gpnarx predict` process against a process evaluating every path, so its ratio includes that change of algorithm.
+A baseline that is earlier product code comes from the git history (`bench/baseline.py` imports a commit's
+`model/` beside the product), not from a copy in the tree; in a shallow clone that bench skips its baseline and
+says why (`baseline_skipped=`).
+
+`bench/` holds the benchmarks only. Tools that measure something else live in `tools/`: `tools/fault_probes.py`
+(the fault probes against `gpnarx serve`; stored run `docs/runs/faults/probes.txt`), `tools/install_sizes.py`
+(the install tiers' sizes, rendered into [deploy.md](deploy.md)) and `tools/answers_snapshot.py` (digests of the
+product's answers, to check that a refactor changes none).
 
 """
 
@@ -135,6 +143,11 @@ METHOD_ROWS = (
     ('`bench_load.py`',
      'concurrent clients against `gpnarx serve`',
      'one sequential client, same calls, same server, alternating'),
+    ('`bench_bombs.py`',
+     'decompression bombs against `gpnarx serve` (a forged stream token, an HDF5 upload of one 512 MiB gzip chunk): '
+     'peak RSS growth and the slowest `/health/live` while each is refused',
+     "the same routes with legitimate requests (this model's own token, a 10-sample HDF5 upload); ratio = the "
+     "bombs' largest RSS growth / the legitimate requests' (about 1: a bomb costs what a legitimate request costs)"),
     ('`bench_mc_speed.py`',
      'Monte Carlo free run with the checked local model',
      'the previous product code of the same algorithm (`simulate_mc` of git commit 9ee9349f2ece, imported from the '

@@ -3,7 +3,7 @@
 ``raw_post`` sends the body straight from a ``memoryview`` on a fresh connection, so the caller's
 side copies nothing: the memory a flood costs is the server's alone, which httpx (that encodes and
 buffers each request) would blur. It reads only the status line. Nothing in the product uses it;
-``tests/test_faults.py`` and ``bench/fault_probes.py`` do.
+``tests/test_faults.py`` and ``tools/fault_probes.py`` do.
 """
 from __future__ import annotations
 

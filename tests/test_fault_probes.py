@@ -1,4 +1,4 @@
-"""bench/fault_probes.py runs against a real ``gpnarx serve`` and prints its RESULT line (the Host-header
+"""tools/fault_probes.py runs against a real ``gpnarx serve`` and prints its RESULT line (the Host-header
 probe, the quickest; the stored run of all seven is docs/runs/faults/probes.txt)."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_host_header_probe_runs_and_reports():
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "fault_probes.py"), "--registry",
+    proc = subprocess.run([sys.executable, str(ROOT / "tools" / "fault_probes.py"), "--registry",
                            str(built_registry().root), "--only", "5"], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]

@@ -127,23 +127,23 @@ def test_tools_are_dependency_groups_and_the_test_extra_lists_them_again():
 
 
 def test_docs_install_sizes_are_the_render_of_the_stored_run_of_this_lock():
-    """docs/deploy.md's install sizes are bench/install_sizes.py's render of docs/runs/install/sizes.json, a run of
+    """docs/deploy.md's install sizes are tools/install_sizes.py's render of docs/runs/install/sizes.json, a run of
     the Dockerfile's steps on the requirements.lock in force: the image's packages are the lock's pins (same
     versions) and gpnarx; the core holds neither matplotlib nor tqdm, the core with `train` holds both."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("install_sizes", ROOT / "bench" / "install_sizes.py")
+    spec = importlib.util.spec_from_file_location("install_sizes", ROOT / "tools" / "install_sizes.py")
     sizes = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(sizes)
     run = json.loads(sizes.RUN.read_text())
     page = (ROOT / "docs" / "deploy.md").read_text()
     block = page[page.index(sizes.BEGIN):page.index(sizes.END) + len(sizes.END)]
-    assert block == sizes.render(run), "docs/deploy.md differs from the render: python bench/install_sizes.py --render"
+    assert block == sizes.render(run), "docs/deploy.md differs from the render: python tools/install_sizes.py --render"
     facts = sizes.dockerfile_facts((ROOT / "Dockerfile").read_text())
     assert (run["base_image"], run["image_spec"]) == (facts["base_image"], facts["spec"])
     image = run["tiers"]["image"]["packages"]
     assert {k: v for k, v in image.items() if k != "gpnarx"} == sizes.locked(), (
-        "requirements.lock changed since the stored run: python bench/install_sizes.py")
+        "requirements.lock changed since the stored run: python tools/install_sizes.py")
     core, train = run["tiers"]["core"], run["tiers"]["train"]
     assert not {"matplotlib", "tqdm"} & set(core["packages"]) and {"matplotlib", "tqdm"} <= set(train["packages"])
     assert set(core["packages"]) < set(train["packages"]) < set(image)

@@ -22,7 +22,7 @@ import pytest
 from venv_support import make_venv
 
 ROOT = Path(__file__).resolve().parents[1]
-GENERIC_TOP_LEVEL = {"model", "service", "training", "configs", "cli", "tests", "bench", "studies"}
+GENERIC_TOP_LEVEL = {"model", "service", "training", "configs", "cli", "tests", "bench", "studies", "tools"}
 # the repository's studies (studies/*.py): run from a checkout by gpnarx reproduce, never shipped
 STUDY_MODULES = {p.stem for p in (ROOT / "studies").glob("*.py") if p.stem != "__init__"}
 SHIPPED = {"bouc-wen", "bert-standin", "bert-standin-monitor", "bert-real"}

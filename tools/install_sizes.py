@@ -1,8 +1,8 @@
 """Install sizes: the core wheel, the core with the extra ``train`` (the core before the install tiers) and the
 Docker image's Python layer, each installed from the image's lock file with hashes, offline, into a fresh venv.
 
-    python bench/install_sizes.py [--out docs/runs/install/sizes.json] [--keep DIR]
-    python bench/install_sizes.py --render docs/deploy.md      # re-render the page's table from the stored run
+    python tools/install_sizes.py [--out docs/runs/install/sizes.json] [--keep DIR]
+    python tools/install_sizes.py --render docs/deploy.md      # re-render the page's table from the stored run
 
 There is no Docker engine on the development machines, so this runs the Dockerfile's steps directly:
 
@@ -39,7 +39,7 @@ RUN = ROOT / "docs" / "runs" / "install" / "sizes.json"
 LOCK = ROOT / "requirements.lock"
 DOCKERFILE = ROOT / "Dockerfile"
 # the page block this script renders (docs/deploy.md, "Install tiers")
-BEGIN = "<!-- install-sizes: rendered by bench/install_sizes.py from docs/runs/install/sizes.json -->"
+BEGIN = "<!-- install-sizes: rendered by tools/install_sizes.py from docs/runs/install/sizes.json -->"
 END = "<!-- /install-sizes -->"
 # what a fresh venv already holds (the base image's Python has them too)
 BASE_PACKAGES = {"pip", "setuptools", "wheel"}
@@ -175,7 +175,7 @@ def render(run: dict) -> str:
     core, train, image = t["core"], t["train"], t["image"]
     lines = [BEGIN, "",
              f"Installed from `requirements.lock` ({run['lock_pins']} pins with hashes; the wheels "
-             f"{_mb(run['wheels_bytes'])}) into fresh venvs, offline, by `bench/install_sizes.py` (Python "
+             f"{_mb(run['wheels_bytes'])}) into fresh venvs, offline, by `tools/install_sizes.py` (Python "
              f"{run['python']}, {run['machine']}); sizes are the bytes of the files each adds to an empty venv's "
              "site-packages, byte-compiled files included. Stored run: `docs/runs/install/sizes.json`.", "",
              "| install | packages | site-packages | of which `__pycache__` | largest |", "|---|---|---|---|---|"]

@@ -1,6 +1,6 @@
 """The seven fault probes of issue 33, on loopback, against real ``gpnarx serve`` processes.
 
-    python bench/fault_probes.py [--registry DIR] [--only 1,2,...] [--out FILE]
+    python tools/fault_probes.py [--registry DIR] [--only 1,2,...] [--out FILE]
 
 Without ``--registry`` the shipped ``bouc-wen`` model is built first (``gpnarx train bouc-wen``) into
 a temporary registry. Each probe starts its own server(s) on free 127.0.0.1 ports and prints one
