@@ -123,7 +123,7 @@ def _time_variant(jax, jnp, model, Ulag, P, steps, variant):
 def main() -> None:
     args = C.parse_args(__doc__, _args)
     from gpnarx.model.backend import jax_device, require_jax
-    from gpnarx.model.freerun.results import lagged_inputs
+    from gpnarx.model.freerun.spec import lagged_inputs
 
     jax = require_jax()
     jnp = jax.numpy

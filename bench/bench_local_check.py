@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 import _common as C
-from gpnarx.model.freerun import linear as freerun
+from gpnarx.model.freerun import mc as freerun
 
 RECORDS = (("Chirp/Chirp0to40Hz/Chirp0p10", "sweep"), ("Rand/Rand0p10", "noise"), ("Rand/Rand0p25", "noise"),
            ("Sine/Sine_20Hz", "sine"))

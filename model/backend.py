@@ -1,6 +1,6 @@
 """Which array backend runs the free run: ``numpy`` (the default, always there) or ``jax`` (optional).
 
-``jax`` runs the free run as one compiled program (``model.freerun_jax``) on whatever device JAX
+``jax`` runs the free run as one compiled program (``model.freerun.jax_backend``) on whatever device JAX
 sees: a GPU when the CUDA build of jaxlib is installed, else the CPU. It is installed by the
 extra ``pip install 'gpnarx[jax]'`` (CPU); docs/accelerator.md says how to add the CUDA build.
 

@@ -7,6 +7,7 @@ set in ``__init__``, learned attributes ending in ``_``.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -16,6 +17,7 @@ from . import freerun
 from .backend import check_backend
 from .discrepancy import calibrate_scale, check_discrepancy, widen_chunk
 from .envelope import check_envelope, divergence_limit, training_envelope
+from .freerun import Predictor, RunSpec
 from .gp import ExactPosterior, SparsePosterior, choose_inducing
 from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, kernel_from_dict, make_kernel
 from .ml2 import default_warm_start_subset, fit_ml2
@@ -391,9 +393,9 @@ class GPNARX(ParamsMixin):
             resolution of k(x, x) (about 1), and the band would be rounding noise.
         keep_paths: Monte Carlo only, keep every path in ``FreeRun.paths`` (n x n_paths).
         cov_window: linearised only, also return ``FreeRun.cov_band``, the output covariance over
-            that many lags (``freerun.simulate_linear``).
+            that many lags (``freerun.linear``).
         backend: 'numpy' or 'jax' (``model.backend``; None: ``GPNARX_BACKEND``, else numpy). 'jax'
-            runs the free run as one compiled program (``model.freerun_jax``): Monte Carlo with
+            runs the free run as one compiled program (``freerun.jax_backend``): Monte Carlo with
             eq. 8-9 exact at every path, on a GPU when JAX has one.
         state: the ``FreeRun.state`` of an earlier call, to continue that run with the next chunk of
             the same record (a stream; numpy backend): the chunks together give the record's run
@@ -406,7 +408,7 @@ class GPNARX(ParamsMixin):
             half-window of a chunk, what the chunk holds, so there the chunked band may differ
             slightly from the whole record's (elsewhere it is the same).
         local: Monte Carlo on the numpy backend, serve steps from the checked local model of eq. 8-9
-            (``freerun.simulate_mc``'s ``local``); False evaluates eq. 8-9 exactly at every path.
+            (``freerun.mc``); False evaluates eq. 8-9 exactly at every path.
         Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units); Monte Carlo runs
         count in ``diverged_paths`` the paths that left the training envelope (``model.envelope``).
         When the band was calibrated (``calibrate_band``), std and both bands include the
@@ -423,9 +425,11 @@ class GPNARX(ParamsMixin):
         if state is not None and backend != "numpy":
             raise ValueError("state: continuing a stream runs on the numpy backend only, got backend "
                              f"{backend!r}")
+        spec = RunSpec(method=method, backend=backend, n_paths=n_paths, seed=seed, confidence=confidence, y0=y0,
+                       state=state, include_noise=self.include_noise, float32=float32, keep_paths=keep_paths,
+                       local=local, cov_window=cov_window, progress=progress)
         with free_run_blas():
-            run = self._simulate(u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress,
-                                 cov_window, backend, state, local)
+            run = self._run(u, spec)
         disc = getattr(self, "band_discrepancy_", None)
         if not disc:
             return run
@@ -436,36 +440,31 @@ class GPNARX(ParamsMixin):
             out.state.amp_hold = None if last is None else np.array([last])
         return out
 
+    def predictor(self) -> Predictor:
+        """The fitted model as the free runs read it (``freerun.Predictor``): posterior, scalers, lags and the
+        divergence limit of the training envelope (``model.envelope``)."""
+        self._check_fitted()
+        limit = divergence_limit(check_envelope(getattr(self, "envelope_", None)))
+        return Predictor.of(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, diverge_limit=limit)
+
+    def _run(self, u, spec: RunSpec):
+        """The free run of ``spec`` on input u, without the band's discrepancy term (``simulate`` adds it)."""
+        u = _as_input(u)
+        predictor = self.predictor()
+        freerun.check_method(spec.method)
+        if spec.method == "mc":
+            n_paths = spec.n_paths
+            if isinstance(n_paths, bool) or not isinstance(n_paths, (int, np.integer)) or not 1 <= n_paths <= MAX_PATHS:
+                raise ValueError(f"n_paths must be an integer between 1 and {MAX_PATHS}, got {n_paths!r}")
+            spec = replace(spec, n_paths=int(n_paths))
+        return freerun.run(predictor, u, spec)
+
     def _simulate(self, u, n_paths, seed, y0, confidence, method, float32, keep_paths, progress, cov_window,
                   backend="numpy", state=None, local=True):
-        u = _as_input(u)
-        limit = divergence_limit(check_envelope(getattr(self, "envelope_", None)))
-        if method not in ("mc", "linear"):
-            raise ValueError(f"method must be 'mc' or 'linear', got {method!r}")
-        if method == "mc" and (isinstance(n_paths, bool) or not isinstance(n_paths, (int, np.integer))
-                               or not 1 <= n_paths <= MAX_PATHS):
-            raise ValueError(f"n_paths must be an integer between 1 and {MAX_PATHS}, got {n_paths!r}")
-        if backend == "jax":
-            from .freerun import jax_backend as freerun_jax  # here: the optional backend stays out of a numpy process
-
-            if method == "mc":
-                return freerun_jax.simulate_mc_jax(
-                    self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u, n_paths=int(n_paths),
-                    seed=seed, y0=y0, confidence=confidence, include_noise=self.include_noise, float32=float32,
-                    keep_paths=keep_paths, progress=progress, diverge_limit=limit)
-            return freerun_jax.simulate_linear_jax(
-                self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u, y0=y0, confidence=confidence,
-                include_noise=self.include_noise, progress=progress, cov_window=cov_window)
-        if method == "mc":
-            return freerun.simulate_mc(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
-                                       n_paths=int(n_paths), seed=seed, y0=y0, confidence=confidence,
-                                       include_noise=self.include_noise, float32=float32,
-                                       keep_paths=keep_paths, progress=progress, diverge_limit=limit, state=state,
-                                       local=local)
-        if method == "linear":
-            return freerun.simulate_linear(self.posterior_, self.x_scaler_, self.y_scaler_, self.ny, self.nu, u,
-                                           y0=y0, confidence=confidence, include_noise=self.include_noise,
-                                           progress=progress, cov_window=cov_window, state=state)
+        """``_run`` with the spec's fields as positional arguments (studies/split_study.py calls it)."""
+        return self._run(u, RunSpec(method=method, backend=backend, n_paths=n_paths, seed=seed, confidence=confidence,
+                                    y0=y0, state=state, include_noise=self.include_noise, float32=float32,
+                                    keep_paths=keep_paths, local=local, cov_window=cov_window, progress=progress))
 
     # ------------------------------------------------------------------------------------------
     # The fitted model as plain values: what a bundle stores (gpnarx.storage.bundle lays them out in files)

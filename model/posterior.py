@@ -1,5 +1,5 @@
-"""The posterior contract: what the free runs (``freerun``, ``freerun_jax``), the Monte Carlo local model
-(``gp.local_model``) and the JAX backend's solves (``ml2_jax``) read of a GP posterior, eqs. (8)-(9).
+"""The posterior contract: what the free runs (``freerun``, ``freerun.jax_backend``), the Monte Carlo local model
+(``freerun.mc_local``) and the JAX backend's solves (``ml2_jax``) read of a GP posterior, eqs. (8)-(9).
 
 A posterior writes its mean and latent variance over M points it conditions on (``points``: the
 training rows of an exact posterior, the inducing inputs of a sparse one; standardised regressors):

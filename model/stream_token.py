@@ -1,4 +1,4 @@
-"""A free run's state (``freerun_core.FreeRunState``) as an opaque, signed token a client carries between calls.
+"""A free run's state (``freerun.FreeRunState``) as an opaque, signed token a client carries between calls.
 
 A stream is a record sent in chunks: each answer can return the state where its free run ended, and the
 next call sends it back to continue that run exactly where it stopped (no server-side session: any

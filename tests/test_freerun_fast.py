@@ -1,18 +1,20 @@
 """The fast free-run paths agree with their reference implementations.
 
-* ``simulate_linear`` (mean recursion, batched eq. 9 and gradients, covariance recursion) gives the
-  numbers of ``freerun_reference.simulate_linear_reference`` (one ``mean_grad`` per step), sparse and exact posteriors.
-* ``simulate_mc`` (checked local model per step) gives, with the same seed, the bands of
-  ``freerun_reference.simulate_mc_reference`` up to far less than their Monte Carlo error; ``local=False`` and a
+* ``linear.simulate_linear`` (mean recursion, batched eq. 9 and gradients, covariance recursion) gives the
+  numbers of the stepwise run (``reference.simulate_linear_reference``: one ``mean_grad`` per step), sparse and
+  exact posteriors.
+* ``mc.simulate_mc`` (checked local model per step) gives, with the same seed, the bands of
+  ``reference.simulate_mc_reference`` up to far less than their Monte Carlo error; ``local=False`` and a
   check that always fails give the reference's numbers.
 * The kernels' batched gradient and second-order terms match finite differences.
+* ``GPNARX.simulate`` is ``freerun.run`` on the model's ``Predictor`` and a ``RunSpec``, through the runner table.
 """
 import numpy as np
 import pytest
 
+from gpnarx.model import freerun
 from gpnarx.model.estimator import GPNARX
-from gpnarx.model.freerun import linear as freerun
-from gpnarx.model.freerun import reference as freerun_reference
+from gpnarx.model.freerun import linear, mc, reference
 from gpnarx.model.kernels import RBF, CubicPolynomial, Matern32, Sum, White
 from gpnarx.model.kernels.base import _r2_from_gram
 
@@ -43,8 +45,8 @@ def test_linear_matches_reference(which, kw, sparse_model, exact_model, sdof_dat
     kw = dict(kw)
     if kw.get("y0") == "measured":
         kw["y0"] = sdof_data["y2"][:6]
-    new = freerun.simulate_linear(*_args(m, u), **kw)
-    ref = freerun_reference.simulate_linear_reference(*_args(m, u), **kw)
+    new = linear.simulate_linear(*_args(m, u), **kw)
+    ref = reference.simulate_linear_reference(*_args(m, u), **kw)
     scale = np.abs(ref.mean).max()
     assert np.allclose(new.mean, ref.mean, rtol=0, atol=1e-9 * scale)
     assert np.allclose(new.std, ref.std, rtol=1e-7, atol=1e-12 * scale)
@@ -60,9 +62,9 @@ def test_linear_matches_reference(which, kw, sparse_model, exact_model, sdof_dat
 def test_mc_local_matches_reference_same_seed(sparse_model, sdof_data):
     m = sparse_model
     u = sdof_data["u2"][:400]
-    new = freerun.simulate_mc(*_args(m, u), n_paths=256, seed=3)
-    ref = freerun_reference.simulate_mc_reference(*_args(m, u), n_paths=256, seed=3)
-    other = freerun_reference.simulate_mc_reference(*_args(m, u), n_paths=256, seed=4)
+    new = mc.simulate_mc(*_args(m, u), n_paths=256, seed=3)
+    ref = reference.simulate_mc_reference(*_args(m, u), n_paths=256, seed=3)
+    other = reference.simulate_mc_reference(*_args(m, u), n_paths=256, seed=4)
     assert new.local_steps > 0.9 * u.size  # the local model served (nearly) every step
     # Monte Carlo standard error of the band edges, from the reference at two seeds
     se = np.median(np.abs(np.r_[ref.lower - other.lower, ref.upper - other.upper])) / np.sqrt(2)
@@ -80,15 +82,15 @@ def test_mc_local_matches_reference_same_seed(sparse_model, sdof_data):
 def test_mc_exact_paths_equal_reference(sparse_model, sdof_data, monkeypatch):
     m = sparse_model
     u = sdof_data["u2"][:120]
-    ref = freerun_reference.simulate_mc_reference(*_args(m, u), n_paths=128, seed=1)
-    off = freerun.simulate_mc(*_args(m, u), n_paths=128, seed=1, local=False)
+    ref = reference.simulate_mc_reference(*_args(m, u), n_paths=128, seed=1)
+    off = mc.simulate_mc(*_args(m, u), n_paths=128, seed=1, local=False)
     assert off.local_steps == 0
     assert np.array_equal(off.mean, ref.mean) and np.array_equal(off.upper, ref.upper)
     assert np.array_equal(off.latent_lower, ref.latent_lower)
     est = m.simulate(u, n_paths=128, seed=1, local=False)  # GPNARX.simulate passes local= through
     assert est.local_steps == 0 and np.array_equal(est.mean, ref.mean) and np.array_equal(est.upper, ref.upper)
-    monkeypatch.setattr(freerun, "LOCAL_TOL_MEAN", -1.0)  # every check fails: every step exact
-    failed = freerun.simulate_mc(*_args(m, u), n_paths=128, seed=1)
+    monkeypatch.setattr(mc, "LOCAL_TOL_MEAN", -1.0)  # every check fails: every step exact
+    failed = mc.simulate_mc(*_args(m, u), n_paths=128, seed=1)
     assert failed.local_steps == 0
     assert np.array_equal(failed.mean, ref.mean) and np.array_equal(failed.lower, ref.lower)
 
@@ -96,11 +98,11 @@ def test_mc_exact_paths_equal_reference(sparse_model, sdof_data, monkeypatch):
 def test_mc_few_paths_and_measured_start(sparse_model, sdof_data):
     m = sparse_model
     u = sdof_data["u2"][:100]
-    few = freerun.simulate_mc(*_args(m, u), n_paths=16, seed=0)
+    few = mc.simulate_mc(*_args(m, u), n_paths=16, seed=0)
     assert few.local_steps == 0  # below LOCAL_MIN_PATHS: exact
     y0 = sdof_data["y2"][:6]
-    a = freerun.simulate_mc(*_args(m, u), n_paths=128, seed=0, y0=y0)
-    b = freerun_reference.simulate_mc_reference(*_args(m, u), n_paths=128, seed=0, y0=y0)
+    a = mc.simulate_mc(*_args(m, u), n_paths=128, seed=0, y0=y0)
+    b = reference.simulate_mc_reference(*_args(m, u), n_paths=128, seed=0, y0=y0)
     assert np.array_equal(a.mean[:6], b.mean[:6])
     assert np.allclose(a.upper, b.upper, rtol=0, atol=1e-3 * np.abs(b.upper).max())
 
@@ -187,7 +189,7 @@ def test_fused_local_model_matches_local_model(sparse_model, exact_model, fused)
             lm.fused = False
         x = post.points[3] + 0.01
         Xc = post.points[:5] + 0.02
-        H, mc, vc = lm(x, Xc)
+        H, mean_c, var_c = lm(x, Xc)
         t = local_model(post, x, m.ny, Xc)
         ny, a = m.ny, m.ny + 1
         rng = np.random.default_rng(0)
@@ -199,7 +201,7 @@ def test_fused_local_model_matches_local_model(sparse_model, exact_model, fused)
         var0 = t.v0 + dy @ t.gv + 0.5 * np.einsum("ij,jk,ik->i", dy, t.Hv, dy)
         assert np.allclose(mu, mu0, rtol=1e-9, atol=1e-12)
         assert np.allclose(var, var0, rtol=1e-6, atol=1e-6 * abs(t.v0))
-        assert np.allclose(mc, t.mean_c, rtol=1e-9, atol=1e-12) and np.allclose(vc, t.var_c, rtol=1e-6)
+        assert np.allclose(mean_c, t.mean_c, rtol=1e-9, atol=1e-12) and np.allclose(var_c, t.var_c, rtol=1e-6)
 
 
 def test_local_model_matches_posterior_at_its_centre(sparse_model, exact_model):
@@ -222,17 +224,17 @@ def test_linear_pass2_workers_give_the_same_numbers(exact_model, sdof_data):
     # pass 2 on worker threads while pass 1 runs (more than one chunk of steps): the serial run's numbers,
     # bit for bit, and the reference loop's to round-off
     m = exact_model
-    u = sdof_data["u2"][: 2 * freerun._PASS1_CHUNK + 300]
-    runs = [freerun.simulate_linear(*_args(m, u), workers=k, cov_window=9) for k in (0, 1, 2)]
+    u = sdof_data["u2"][: 2 * linear._PASS1_CHUNK + 300]
+    runs = [linear.simulate_linear(*_args(m, u), workers=k, cov_window=9) for k in (0, 1, 2)]
     for r in runs[1:]:
         for a in ("mean", "std", "lower", "upper", "latent_lower", "latent_upper", "cov_band"):
             assert np.array_equal(getattr(r, a), getattr(runs[0], a)), a
-    ref = freerun_reference.simulate_linear_reference(*_args(m, u), cov_window=9)
+    ref = reference.simulate_linear_reference(*_args(m, u), cov_window=9)
     scale = np.abs(ref.mean).max()
     assert np.allclose(runs[1].mean, ref.mean, rtol=0, atol=1e-9 * scale)
     assert np.allclose(runs[1].std, ref.std, rtol=1e-7, atol=1e-12 * scale)
     with pytest.raises(ValueError, match="workers"):
-        freerun.simulate_linear(*_args(m, u), workers=-1)
+        linear.simulate_linear(*_args(m, u), workers=-1)
 
 
 def test_linear_pass2_worker_error_reaches_the_caller(exact_model, sdof_data):
@@ -244,9 +246,9 @@ def test_linear_pass2_worker_error_reaches_the_caller(exact_model, sdof_data):
 
     post = m.posterior_
     bad = Failing(post.kernel, post.noise_var, post.X_train, post.alpha, post.Linv)
-    u = sdof_data["u2"][: freerun._PASS1_CHUNK + 50]
+    u = sdof_data["u2"][: linear._PASS1_CHUNK + 50]
     with pytest.raises(FloatingPointError, match="pass 2 failed"):
-        freerun.simulate_linear(bad, m.x_scaler_, m.y_scaler_, m.ny, m.nu, u, workers=1)
+        linear.simulate_linear(bad, m.x_scaler_, m.y_scaler_, m.ny, m.nu, u, workers=1)
 
 
 def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
@@ -306,7 +308,7 @@ def test_lower_times_rows_and_triangular_local_model(exact_model, monkeypatch):
 
 @pytest.mark.parametrize("n", [0, 1, 2])
 def test_workers_follow_each_task_in_submission_order(n):
-    """``freerun._Workers``' ``then`` (the linearised run's pass 3) runs on the calling thread, after ``fn`` has
+    """``linear._Workers``' ``then`` (the linearised run's pass 3) runs on the calling thread, after ``fn`` has
     finished each task, in the order the tasks were submitted, however the workers finish them."""
     import threading
     import time
@@ -325,7 +327,7 @@ def test_workers_follow_each_task_in_submission_order(n):
         with lock:
             events.append(("then", k))
 
-    with freerun._Workers(fn, n, then=then) as pool:
+    with linear._Workers(fn, n, then=then) as pool:
         for k in range(24):
             pool.submit(k)
             time.sleep(0.001)
@@ -343,7 +345,7 @@ def test_workers_stop_following_at_a_failed_task():
             raise FloatingPointError("task 5")
 
     with pytest.raises(FloatingPointError, match="task 5"):
-        with freerun._Workers(fn, 1, then=followed.append) as pool:
+        with linear._Workers(fn, 1, then=followed.append) as pool:
             for k in range(12):
                 pool.submit(k)
     assert followed == list(range(len(followed))) and len(followed) <= 5
@@ -359,7 +361,72 @@ def test_workers_stop_when_the_follow_up_raises():
 
     before = threading.active_count()
     with pytest.raises(ValueError, match="follow-up 3"):
-        with freerun._Workers(lambda k: None, 2, then=then) as pool:
+        with linear._Workers(lambda k: None, 2, then=then) as pool:
             for k in range(10):
                 pool.submit(k)
     assert threading.active_count() == before
+
+
+def test_simulate_is_the_runner_of_its_method_and_backend(sparse_model, sdof_data, monkeypatch):
+    """``GPNARX.simulate`` hands the model's ``Predictor`` and a ``RunSpec`` to ``freerun.run``, which calls the
+    runner of (method, backend) in ``RUNNERS``: the same numbers bit for bit; a new entry is all a new method needs."""
+    from gpnarx.model.freerun import Predictor, RunSpec
+
+    m = sparse_model
+    u = sdof_data["u2"][:200]
+    assert set(freerun.RUNNERS) == {("mc", "numpy"), ("linear", "numpy"), ("mc", "jax"), ("linear", "jax")}
+    assert freerun.METHODS == ("mc", "linear")
+    pred = m.predictor()
+    assert isinstance(pred, Predictor) and (pred.ny, pred.nu) == (m.ny, m.nu) and pred.posterior is m.posterior_
+    for method in freerun.METHODS:
+        spec = RunSpec(method=method, n_paths=96, seed=4, confidence=0.9, y0=sdof_data["y2"][:6],
+                       include_noise=m.include_noise)
+        a, b = m.simulate(u, method=method, n_paths=96, seed=4, confidence=0.9, y0=sdof_data["y2"][:6]), \
+            freerun.run(pred, u, spec)
+        for k in ("mean", "std", "lower", "upper", "latent_lower", "latent_upper"):
+            assert np.array_equal(getattr(a, k), getattr(b, k)), (method, k)
+    # the functional form: the predictor's parts and the spec's fields as keywords, the same run
+    c = freerun.simulate_mc(m.posterior_, m.x_scaler_, m.y_scaler_, m.ny, m.nu, u, n_paths=96, seed=4)
+    d = freerun.run_mc(Predictor.of(m.posterior_, m.x_scaler_, m.y_scaler_, m.ny, m.nu), u,
+                       RunSpec(n_paths=96, seed=4))
+    assert np.array_equal(c.upper, d.upper) and np.array_equal(c.mean, d.mean)
+    with pytest.raises(ValueError, match="method must be 'mc' or 'linear', got 'taylor2'"):
+        freerun.run(pred, u, RunSpec(method="taylor2"))
+    with pytest.raises(ValueError, match="method must be 'mc' or 'linear'"):
+        m.simulate(u, method="taylor2")
+    with pytest.raises(ValueError, match="runs on backend 'numpy' or 'jax', got 'torch'"):
+        freerun.run(pred, u, RunSpec(method="linear", backend="torch"))
+    seen = []
+    monkeypatch.setitem(freerun.RUNNERS, ("linear", "numpy"), lambda p, uu, s: seen.append((p, s.cov_window)) or "ran")
+    assert m.simulate(u, method="linear", cov_window=9) == "ran" and seen[0][1] == 9
+
+
+def test_linear_runs_stepwise_without_mean_terms_and_loads_no_baseline(exact_model, sdof_data):
+    """A posterior the three-pass run cannot take (only ``mean_grad`` and ``noise_var``) runs stepwise
+    (``linear_stepwise``), bit for bit; the product's modules import neither the tests' reference nor JAX."""
+    import subprocess
+    import sys
+
+    from gpnarx.model.freerun import Predictor, RunSpec
+    from gpnarx.model.freerun.linear_stepwise import run_linear_stepwise
+
+    m = exact_model
+
+    class MeanGradOnly:
+        noise_var = m.posterior_.noise_var
+
+        def mean_grad(self, x):
+            return m.posterior_.mean_grad(x)
+
+    u = sdof_data["u2"][:150]
+    a = linear.simulate_linear(MeanGradOnly(), m.x_scaler_, m.y_scaler_, m.ny, m.nu, u, cov_window=8)
+    b = run_linear_stepwise(Predictor.of(MeanGradOnly(), m.x_scaler_, m.y_scaler_, m.ny, m.nu), u,
+                            RunSpec(method="linear", cov_window=8))
+    assert np.array_equal(a.std, b.std) and np.array_equal(a.cov_band, b.cov_band)
+    code = ("import sys, numpy as np; from gpnarx.model.estimator import GPNARX; u = np.sin(np.arange(300) / 7); "
+            "m = GPNARX(ny=2, nu=2, max_train_points=100, n_restarts=0).fit([(u, np.roll(u, 1))]); "
+            "m.simulate(u[:50], method='linear'); m.simulate(u[:50], n_paths=64); "
+            "print(sorted(k for k in sys.modules if k.endswith(('freerun.reference', 'freerun.jax_backend')) "
+            "or k == 'jax'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -1,15 +1,13 @@
 """The free run (section 2.2 step 3) on the JAX backend: one compiled program per block of steps.
 
-``simulate_mc_jax`` and ``simulate_linear_jax`` take the arguments of ``freerun.simulate_mc`` and
-``freerun.simulate_linear`` and return the same ``FreeRun``; ``model.estimator.GPNARX.simulate``
-calls them for ``backend="jax"``. They run wherever JAX computes: a GPU with the CUDA build of
-jaxlib, else the CPU (so CI tests this code path).
+``run_mc_jax`` and ``run_linear_jax`` are the runners of ``RUNNERS[("mc" | "linear", "jax")]`` (``runners``): a
+``Predictor`` and a ``RunSpec`` in, the numpy runners' ``FreeRun`` out. They run wherever JAX computes: a GPU
+with the CUDA build of jaxlib, else the CPU (so CI tests this code path).
 
 Monte Carlo: every step evaluates eq. 8 (mean) and eq. 9 (latent variance) exactly at every path, no
-local model: one kernel block K(x_paths, Z) (P x M), its product with the mean weights and one
-(P x M) x (M x M) product with the posterior's variance factor (apart: one joint (P x M) x (M x (M + 1))
-product with the mean weights as an extra column ran a quarter slower on a GPU, its last column of tiles
-almost empty). All paths share the input lags, so the
+local model: one kernel block K(x_paths, Z) (P x M), its product with the mean weights and, apart, one
+(P x M) x (M x M) product with the posterior's variance factor (a joint product would pad a column of GPU
+tiles for the weights' one column). All paths share the input lags, so the
 input part of the Gram matrix is one (steps x nu) x (nu x M) product per block of steps, and each step
 multiplies only the ny output lags. The steps of a block run in one ``jax.lax.scan``; the block's
 samples stay on the device, where their mean, std and band quantiles are computed; only those
@@ -35,7 +33,8 @@ import numpy as np
 from ..backend import require_jax
 from ..kernels.jax_forms import jax_kernel, kernel_structure, kernel_theta
 from ..normal import band_z
-from .results import LAG_CLIP, VAR_CAP, FreeRun, check_confidence, lagged_inputs, start_index
+from .results import FreeRun
+from .spec import LAG_CLIP, VAR_CAP, Predictor, RunSpec, check_confidence, start_index
 
 BLOCK_ELEMENTS = 1 << 23  # samples (steps x paths) of one block kept on the device: 64 MiB in float64
 MAX_BLOCK_STEPS = 4096
@@ -97,27 +96,26 @@ def _build_mc(jax, jnp, hi, jk, ny, lat, keep, dt, unroll):
     return jax.jit(program)
 
 
-def simulate_mc_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.ndarray, n_paths: int = 1024,
-                    seed: int | None = 0, y0=None, confidence: float = 0.99, include_noise: bool = True,
-                    float32: bool = False, keep_paths: bool = False, progress=None,
-                    diverge_limit: float | None = None, latent: bool = True) -> FreeRun:
-    """Monte Carlo free run on the JAX backend (see module docstring); arguments and result as
-    ``freerun.simulate_mc`` (output units; ``progress(done_steps, total_steps)`` after each block)."""
+def run_mc_jax(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
+    """Monte Carlo free run on the JAX backend (see module docstring); result as ``mc.run_mc`` (output units;
+    ``progress(done_steps, total_steps)`` after each block). ``spec.local`` and ``spec.state`` are not read."""
     t_start = time.perf_counter()
     jax = require_jax()
     jnp = jax.numpy
-    confidence = check_confidence(confidence)
+    posterior, ny, nu = predictor.posterior, predictor.ny, predictor.nu
+    n_paths, latent, keep_paths, progress = spec.n_paths, spec.latent, spec.keep_paths, spec.progress
+    confidence = check_confidence(spec.confidence)
     if int(n_paths) < 1:
         raise ValueError(f"n_paths must be at least 1, got {n_paths}")
     P, n = int(n_paths), u.size
-    i0, y0v = start_index(n, ny, y0)
+    i0, y0v = start_index(n, ny, spec.y0)
     Z, w, F, shift = _posterior_arrays(posterior)
     theta = kernel_theta(posterior.kernel)
-    dt = jnp.float32 if float32 else jnp.float64
-    xm, xs = x_scaler.mean_, x_scaler.scale_
-    ym, ysc = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
-    noise = posterior.noise_var if include_noise else 0.0
+    dt = jnp.float32 if spec.float32 else jnp.float64
+    xm, xs = predictor.x_mean, predictor.x_scale
+    ym, ysc = predictor.y_mean, predictor.y_scale
+    Ulag = predictor.input_lags(u)
+    noise = predictor.noise(spec)
     lat = bool(latent and noise > 0.0)
     q = ((1.0 - confidence) / 2.0, 1.0 - (1.0 - confidence) / 2.0)
     mean, std, lower, upper = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
@@ -138,6 +136,7 @@ def simulate_mc_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.ndarr
                 shift=d(shift), noise=d(noise), ym=d(ym), ysc=d(ysc), qs=d(q))
     ystd = jnp.broadcast_to(d((ylag_raw - ym) / ysc), (P, ny))
     peak = jnp.zeros(P, dtype=jnp.float64)
+    seed = spec.seed
     key = jax.random.PRNGKey(int(np.random.default_rng().integers(2**31)) if seed is None else int(seed))
     Upad = np.zeros((C * -(-steps // C), nu))
     Upad[:steps] = Ulag[i0:]
@@ -160,7 +159,8 @@ def simulate_mc_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.ndarr
     if latent and not lat:
         lat_lo, lat_hi = lower.copy(), upper.copy()
     pk = np.asarray(peak)
-    diverged = 0 if diverge_limit is None else int(np.count_nonzero(~(pk <= diverge_limit)))
+    limit = predictor.diverge_limit
+    diverged = 0 if limit is None else int(np.count_nonzero(~(pk <= limit)))
     return FreeRun(mean, std, lower, upper, confidence, P, "mc", time.perf_counter() - t_start, steps * P, paths,
                    diverged, latent_lower=lat_lo, latent_upper=lat_hi, backend="jax")
 
@@ -210,25 +210,23 @@ def _build_linear(jax, jnp, jk, ny, L):
     return jax.jit(program)
 
 
-def simulate_linear_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.ndarray, y0=None,
-                        confidence: float = 0.99, include_noise: bool = True, progress=None,
-                        cov_window: int = 0) -> FreeRun:
-    """The linearised free run on the JAX backend: ``freerun_reference.simulate_linear_reference``'s
-    recursion (first-order propagation of the lagged outputs' mean and covariance through the GP
-    mean's Jacobian, here by ``jax.grad``) as one compiled scan, float64. Arguments and result as
-    ``freerun.simulate_linear`` (output units)."""
+def run_linear_jax(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
+    """The linearised free run on the JAX backend: ``linear_stepwise``'s recursion (first-order propagation of the
+    lagged outputs' mean and covariance through the GP mean's Jacobian, here by ``jax.grad``) as one compiled
+    scan, float64. Result as ``linear.run_linear`` (output units); ``spec.state`` is not read."""
     t_start = time.perf_counter()
     jax = require_jax()
     jnp = jax.numpy
-    confidence = check_confidence(confidence)
+    posterior, ny = predictor.posterior, predictor.ny
+    confidence = check_confidence(spec.confidence)
     z = band_z(confidence)
     n = u.size
-    i0, y0v = start_index(n, ny, y0)
+    i0, y0v = start_index(n, ny, spec.y0)
     Z, w, F, shift = _posterior_arrays(posterior)
-    xm, xs = x_scaler.mean_, x_scaler.scale_
-    ym, ysc = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (lagged_inputs(u, nu) - xm[ny:]) / xs[ny:]
-    L = max(ny, int(cov_window or 0))
+    xm, xs = predictor.x_mean, predictor.x_scale
+    ym, ysc = predictor.y_mean, predictor.y_scale
+    Ulag = predictor.input_lags(u)
+    L = max(ny, int(spec.cov_window or 0))
     key = ("linear", kernel_structure(posterior.kernel), ny, L)
     prog = _CACHE.get(key)
     if prog is None:
@@ -236,7 +234,7 @@ def simulate_linear_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.n
     m0 = np.zeros(ny)
     if i0:
         m0[:] = y0v[::-1]
-    noise = posterior.noise_var if include_noise else 0.0
+    noise = predictor.noise(spec)
     d = lambda x: jnp.asarray(x, dtype=jnp.float64)  # noqa: E731
     ym_, sd_, lsd_, rows = prog(d(m0), d(np.zeros((L, L))), d(Ulag[i0:]), d(kernel_theta(posterior.kernel)), d(Z),
                                 d(np.einsum("ij,ij->i", Z, Z)), d(w), d(np.ascontiguousarray(F.T)), d(xm), d(xs),
@@ -249,7 +247,7 @@ def simulate_linear_jax(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.n
     if L > ny:
         band = np.zeros((n, L))
         band[i0:] = np.asarray(rows)
-    if progress is not None:
-        progress(n, n)
+    if spec.progress is not None:
+        spec.progress(n, n)
     return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear", time.perf_counter() - t_start,
                    n - i0, cov_band=band, latent_lower=mean - z * lstd, latent_upper=mean + z * lstd, backend="jax")

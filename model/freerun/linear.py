@@ -1,26 +1,27 @@
-"""Free-run (model predicted output, infinite-step-ahead) prediction with uncertainty propagation.
+"""The linearised free run on numpy (section 2.2 step 3): first-order propagation of the mean and covariance of
+the lagged outputs through the GP mean's Jacobian.
 
-Section 2.2 step 3 of the paper: each predicted output is a Gaussian random variable fed back as a
-lagged regressor. Two propagation methods:
+State: mean m and covariance S of [y_{i-1}, ..., y_{i-L}] (output units, L = max(ny, cov_window)). With
+J = d mu / d y_lags at the mean regressor (chain rule through the standardisation): var(y_i) = sigma_f^2 +
+sigma_y^2 + J S J^T, cov(y_i, y_{i-k}) = (S J^T)_k, and the state shifts. The band: mean -/+ z std at the run's
+confidence; the latent band leaves the reporting step's sigma_y^2 out. With cov_window = L > ny,
+``FreeRun.cov_band`` holds cov(y_i, y_{i-k}) for k < L, shape (n, L) (J is zero beyond the ny lags, so mean
+and std are unchanged): what a linear functional of a window of outputs (a cycle's energy, ``model.cycles``)
+needs for its variance.
 
-* ``simulate_mc``: Monte Carlo. n paths advance together; at each step every path gets its mean
-  (eq. 8) and latent variance (eq. 9), samples y ~ N(mu, sigma^2) and feeds it back. Seeded. By
-  default eq. 8-9 come from a second-order local model around the paths' mean regressor, checked
-  each step against eq. 8-9 at the farthest paths (exact fallback); ``freerun_reference.simulate_mc_reference``
-  evaluates them at every path (one kernel block K(x_paths, X) and one BLAS-3 variance product).
-* ``simulate_linear``: first-order (Taylor) propagation of mean and covariance of the lagged
-  outputs through the GP mean's Jacobian: var(y_i) = sigma_f^2(x_i) + sigma_y^2 + J S J^T (mean
-  recursion, then eq. 9 and J batched over the record, then the covariance recursion;
-  ``freerun_reference.simulate_linear_reference`` is the one-call-per-step loop).
+Three passes, the numbers of one ``mean_grad`` call per step (``linear_stepwise``) to round-off:
 
-Both return a ``FreeRun`` with mean, std and the two-sided band at ``confidence`` (99% default:
-the 0.5% and 99.5% quantiles over Monte Carlo paths; mean -/+ 2.576 std for the linearised method).
-That predictive band holds the measured output y (noise sigma_y^2 included). ``latent_lower`` and
-``latent_upper`` hold the latent band of the noise-free output f at the same confidence: the
-reporting step's noise term is left out (Monte Carlo: each path's latent draw mu + sigma_f eps with
-the same eps as its output draw, so the paths fed back are unchanged; linearised: var(y_i) without
-sigma_y^2). Score y against the predictive band and a noise-free output against the latent band.
-All arrays are in the record's output units (e.g. m or m/s).
+1. the mean recursion alone (eq. 8 at the mean regressor), which does not depend on the variances: a few numpy
+   calls on (M,) vectors a step (``_MeanRecursion``);
+2. sigma_f^2 (eq. 9) and J at every mean regressor in row blocks (the posterior's ``mean_var_grad``, BLAS-3
+   without the GIL, ``linalg.lower_times_rows``), each chunk of pass 1's steps as soon as pass 1 has finished
+   it: on ``workers`` threads while pass 1 goes on, then on the calling thread too. Same rows, same blocks: the
+   same numbers, bit for bit, with any number of workers;
+3. the covariance recursion, chunk by chunk in order as pass 2 finishes them, on the calling thread once pass 1
+   has ended, so that it overlaps the workers' pass 2 (``_CovarianceRecursion``).
+
+A posterior other than a ``posterior.Posterior`` whose kernel gives ``MeanTerms`` (e.g. an object with only
+``mean_grad`` and ``noise_var``) runs stepwise (``linear_stepwise``).
 """
 from __future__ import annotations
 
@@ -35,257 +36,23 @@ from ..kernels import LinearisableKernel, require
 from ..linalg import two_cpus
 from ..normal import band_z
 from ..posterior import Posterior
-from .mc_local import LocalModel, has_local_model
-from .reference import simulate_linear_reference
-from .results import (
-    LAG_CLIP,
-    VAR_CAP,
-    FreeRun,
-    FreeRunState,
-    McPaths,
-    check_confidence,
-    check_state,
-    inputs_with_tail,
-    next_u_tail,
-    start_index,
-)
-
-# Tolerances of the local model's check (``simulate_mc``), at the checked paths (the farthest from the
-# mean regressor: the model's error grows as |d|^3, so these bound it for all paths). The 0.5 % and
-# 99.5 % quantiles of P paths carry a Monte Carlo standard error of sqrt(q (1 - q) / P) / phi(z_q),
-# 0.15 predictive std at P = 1024 and 0.075 at 4096: a mean error of 5e-3 std at the band's own
-# paths is 15-30x below it; a latent-variance error of 1 % moves a std by 0.5 %.
-LOCAL_TOL_MEAN = 5e-3  # largest mean error allowed, in predictive std
-LOCAL_TOL_VAR = 1e-2  # largest latent-variance error, relative to the predictive variance
-LOCAL_CHECKS = 12  # paths checked against eq. 8-9 per step: the farthest from the mean regressor, and random ones
-LOCAL_MIN_PATHS = 64  # fewer paths: every step exact
-LOCAL_BACKOFF = 16  # steps that start at the next level after a failed check
-LOCAL_EXACT_SHARE = (0, 16, 4)  # levels: exact at none, at the farthest 1/16, 1/4 of the paths; then all exact
+from .linear_stepwise import run_linear_stepwise
+from .results import FreeRun, FreeRunState, check_state
+from .spec import LAG_CLIP, VAR_CAP, Predictor, RunSpec, check_confidence, next_u_tail, start_index
 
 
-def simulate_mc(
-    posterior,
-    x_scaler,
-    y_scaler,
-    ny: int,
-    nu: int,
-    u: np.ndarray,
-    n_paths: int = 1024,
-    seed: int | None = 0,
-    y0=None,
-    confidence: float = 0.99,
-    include_noise: bool = True,
-    float32: bool = False,
-    keep_paths: bool = False,
-    progress=None,
-    diverge_limit: float | None = None,
-    latent: bool = True,
-    local: bool = True,
-    state: FreeRunState | None = None,
-) -> FreeRun:
-    """Monte Carlo free-run over ``n_paths`` paths advanced together (see module docstring).
+def run_linear(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
+    """The linearised free run of input ``u`` (input units); see the module docstring.
 
-    u: input record (input units, e.g. N or V). y0: optional first ny measured outputs (output
-    units) taken as known; otherwise the system starts from rest. ``progress``: optional callable
-    ``progress(done_steps, total_steps)``. ``diverge_limit``: peak |y| [output units] beyond which a
-    path counts in ``FreeRun.diverged_paths`` (``model.envelope.divergence_limit``); None: not counted.
-
-    Evaluation of eq. 8 (mean) and eq. 9 (latent variance) at the paths' regressors. All paths share
-    the input lags, and their output lags lie close together (their spread is the band, a small
-    fraction of the kernel's lengthscale), so with ``local`` (the default) each step uses a second-order
-    model of the mean and of the variance around the paths' mean regressor in the ny output-lag
-    coordinates (``gp.LocalModel``, ``gp.local_model``'s numbers: analytic gradient and Hessian, O(M^2 ny)
-    per step instead of O(P M^2); every path's mean and variance from one (P x (ny + 1)) product), and
-    checks it against eq. 8-9 evaluated exactly at ``LOCAL_CHECKS`` paths (the farthest from the mean
-    regressor, where the model's error is largest, and random ones). When the
-    check fails (mean error above ``LOCAL_TOL_MEAN`` predictive std or latent-variance error above
-    ``LOCAL_TOL_VAR`` of the predictive variance), the farthest 1/16 of the paths, then the farthest
-    quarter, is evaluated exactly and the model, checked again on the others, serves the rest;
-    failing that, the step is exact at every path (``LOCAL_EXACT_SHARE``). A failed level is skipped
-    for the next ``LOCAL_BACKOFF`` steps. Steps with a
-    clipped lag, runs with fewer than ``LOCAL_MIN_PATHS`` paths and posteriors ``gp.has_local_model`` refuses
-    are exact. ``FreeRun.local_steps`` counts the steps served (wholly or partly) by the local model.
-    The random draws are the same as the exact evaluation's (same seed, same paths up to the model's
-    error). ``local=False``: every step exact (``freerun_reference.simulate_mc_reference``'s arithmetic).
-    ``latent``: also the latent band (``FreeRun.latent_lower``/``latent_upper``; see module docstring).
-    ``state``: a ``FreeRunState`` of an earlier run (its ``FreeRun.state``) to continue from, instead of
-    starting at rest or at ``y0``: the same paths, random generator and local-model schedule, so a
-    record run in chunks gives the numbers of the record run whole. ``FreeRun.state`` is where this
-    run ended.
+    ``spec.workers``: pass 2's worker threads (None: one where this process may use two or more CPUs and the run
+    has more than one chunk; 0: none). ``spec.state``: the ``FreeRun.state`` of an earlier run to continue: its
+    last means, input lags and state covariance, so a record run in chunks gives the numbers of the record run
+    whole (to round-off); a state with a smaller covariance window than ``cov_window`` is padded with zeros, a
+    larger one cut.
     """
-    st = McPaths(posterior, x_scaler, y_scaler, ny, nu, u, n_paths, seed, y0, confidence, include_noise,
-                 keep_paths, latent, state)
-    P, n, i0, y0v = st.P, st.n, st.i0, st.y0v
-    xm, xs, Xs, Ulag, ylag_raw = st.xm, st.xs, st.Xs, st.Ulag, st.ylag_raw  # ylag_raw: as it starts
-    use_local = (bool(local) and P >= LOCAL_MIN_PATHS
-                 and has_local_model(posterior))
-    n_check = min(LOCAL_CHECKS, P)
-    check_rng = np.random.default_rng(None if seed is None else [int(seed), 0x10CA1])
-    floor, retry_at = 0, -1  # after a failed check, start at level ``floor`` until step retry_at
-    if state is not None:
-        check_rng.bit_generator.state = state.check_rng
-        floor, retry_at = int(state.floor), int(state.retry_in)
-    local_steps = 0
-    # a lag value inside (lo, hi) needs no clipping in any column; outside: clip the next ny steps
-    lo = float(np.max(xm[:ny] - LAG_CLIP * xs[:ny]))
-    hi = float(np.min(xm[:ny] + LAG_CLIP * xs[:ny]))
-    clip_until = -1
-    if i0 and not (lo < float(y0v.min()) and float(y0v.max()) < hi):
-        clip_until = i0 + ny
-    if state is not None:  # the steps a carried lag outside (lo, hi) still takes part in (as the whole run)
-        for k in range(ny):  # ylag_raw[:, k] is y_{-1-k}: a lag of the steps up to ny - 1 - k
-            col = ylag_raw[:, k]
-            if not (lo < float(col.min()) and float(col.max()) < hi):
-                clip_until = max(clip_until, ny - 1 - k)
-    mu = np.empty(P)
-    var = np.empty(P)
-    step = _LocalStep(posterior, st, n_check, check_rng) if use_local else None
-    for i in range(i0, n):
-        clipped = i <= clip_until
-        done = False
-        if use_local and not clipped:
-            start = floor if i < retry_at else 0
-            for level in range(start, len(LOCAL_EXACT_SHARE)):
-                share = LOCAL_EXACT_SHARE[level]
-                done = step(i, mu, var, P // share if share else 0)
-                if done:
-                    break
-                floor, retry_at = level + 1, i + LOCAL_BACKOFF
-            local_steps += done
-        if not done:
-            Y = Xs[:, :ny]
-            np.subtract(st.ylag_raw, xm[:ny], out=Y)
-            Y /= xs[:ny]
-            Xs[:, ny:] = Ulag[i]
-            if clipped:
-                np.clip(Y, -LAG_CLIP, LAG_CLIP, out=Y)  # a diverging path cannot overflow
-            mu[:], var[:] = posterior.predict(Xs, float32=float32)
-        ysamp = st.draw(i, mu, var)
-        if not (lo < float(ysamp.min()) and float(ysamp.max()) < hi):  # also for non-finite samples
-            clip_until = i + ny  # some lag of the next ny steps may need clipping
-        if progress is not None and (i % 256 == 0 or i == n - 1):
-            progress(i + 1, n)
-    end = st.end_state(u, state, check_rng, floor, max(retry_at - n, -1))
-    return st.result(diverge_limit, local_steps=local_steps, state=end)
-
-
-class _LocalStep:
-    """One step of every path from ``gp.LocalModel`` around the paths' mean regressor, checked against
-    eq. 8-9 (``simulate_mc``). The regressor deviations d of the paths (P x ny, standardised) come from
-    the raw lags and their means over the paths (``McPaths.lag_means``), in a (P x (ny + 1)) buffer
-    whose last column is 1, so that the mean and the latent variance of every path are one product
-    with the model's augmented matrices and two row sums.
-    """
-
-    def __init__(self, posterior, st, n_check, rng):
-        ny, P = st.ny, st.P
-        self.st, self.ny, self.n_check, self.rng = st, ny, n_check, rng
-        self.model = LocalModel(posterior, ny)
-        self.noise = st.noise
-        self.xm, self.xs = st.xm[:ny], st.xs[:ny]
-        self.inv_xs = (1.0 / self.xs)[:, None]
-        self.d_t = np.empty((ny, P))  # d by rows: the elementwise work on contiguous rows of P
-        self.daug = np.ones((P, ny + 1))  # [d, 1]: the product's operand
-        self.T = np.empty((P, 2 * (ny + 1)))
-        self.r2 = np.empty(P)
-        self.x = np.empty(st.Xs.shape[1])
-
-    def __call__(self, i: int, mu: np.ndarray, var: np.ndarray, n_exact: int = 0) -> bool:
-        """Mean and latent variance of every path into mu and var; False (mu, var undefined) when the
-        check against eq. 8-9 fails. n_exact: the n_exact paths farthest from the mean regressor are
-        evaluated exactly (eq. 8-9) and the model serves the others, checked at the farthest of those
-        and at random ones.
-        """
-        st, ny, n_check = self.st, self.ny, self.n_check
-        P = st.P
-        Wt, ybar, u = st.lags_t, st.lag_means, st.Ulag[i]
-        x = self.x
-        np.subtract(ybar, self.xm, out=x[:ny])
-        x[:ny] /= self.xs
-        x[ny:] = u
-        d_t = np.subtract(Wt, ybar[:, None], out=self.d_t)
-        d_t *= self.inv_xs
-        r2 = np.einsum("ji,ji->i", d_t, d_t, out=self.r2)
-        half = n_check // 2
-        order = np.argpartition(r2, [P - n_exact - half, P - n_exact] if n_exact else P - half)
-        ex = order[P - n_exact:] if n_exact else order[:0]
-        far = order[P - n_exact - half: P - n_exact]
-        rand = order[self.rng.integers(0, P - n_exact, n_check - half)]
-        idx = np.concatenate([ex, far, rand])
-        Xc = np.empty((idx.size, x.size))
-        np.subtract(Wt[:, idx].T, self.xm, out=Xc[:, :ny])
-        Xc[:, :ny] /= self.xs
-        Xc[:, ny:] = u
-        H, m_ex, v_ex = self.model(x, Xc)
-        a = ny + 1
-        # the check first, at the checked paths only
-        dc = np.ones((idx.size - n_exact, a))
-        dc[:, :ny] = d_t[:, idx[n_exact:]].T
-        Tc = dc @ H
-        pv = v_ex[n_exact:] + self.noise  # predictive variance: what the draws use
-        if not (np.all(np.abs(np.einsum("ij,ij->i", Tc[:, :a], dc) - m_ex[n_exact:]) <= LOCAL_TOL_MEAN * np.sqrt(pv))
-                and np.all(np.abs(np.einsum("ij,ij->i", Tc[:, a:], dc) - v_ex[n_exact:]) <= LOCAL_TOL_VAR * pv)):
-            return False
-        daug = self.daug
-        daug[:, :ny] = d_t.T
-        T = np.dot(daug, H, out=self.T)
-        np.einsum("ij,ij->i", T[:, :a], daug, out=mu)
-        np.einsum("ij,ij->i", T[:, a:], daug, out=var)
-        np.maximum(var, 1e-300, out=var)
-        if n_exact:
-            mu[ex] = m_ex[:n_exact]
-            var[ex] = v_ex[:n_exact]
-        return True
-
-
-def simulate_linear(
-    posterior,
-    x_scaler,
-    y_scaler,
-    ny: int,
-    nu: int,
-    u: np.ndarray,
-    y0=None,
-    confidence: float = 0.99,
-    include_noise: bool = True,
-    progress=None,
-    cov_window: int = 0,
-    state: FreeRunState | None = None,
-    workers: int | None = None,
-) -> FreeRun:
-    """First-order (linearised) propagation of mean and covariance through the lagged outputs.
-
-    State: mean m and covariance S (ny x ny) of [y_{i-1}, ..., y_{i-ny}] (output units). With
-    J = d mu / d y_lags at the mean regressor (chain rule through the standardisation):
-    var(y_i) = sigma_f^2 + sigma_y^2 + J S J^T, cov(y_i, y_{i-k}) = (S J^T)_k; the state shifts.
-
-    cov_window: when L = cov_window > ny, the covariance state covers the last L outputs (J is
-    zero beyond the ny lags, so mean and std are unchanged) and ``FreeRun.cov_band`` holds
-    cov(y_i, y_{i-k}) for k < L, shape (n, L): what a linear functional of a window of outputs
-    (e.g. a cycle's energy, ``model.cycles``) needs for its variance.
-
-    Three passes, the same numbers as one ``mean_grad`` call per step (``freerun_reference.simulate_linear_reference``):
-    1. the mean recursion alone (eq. 8 at the mean regressor): it does not depend on the variances,
-       and one step is a few numpy calls on (M,) vectors (``_MeanRecursion``);
-    2. sigma_f^2 (eq. 9) and J at every mean regressor of the record in row blocks (BLAS-3, the
-       posterior's ``mean_var_grad``), each chunk of pass 1's steps as soon as pass 1 has finished it:
-       with ``workers`` threads (default: one where this process may use two or more CPUs, none
-       otherwise; 0: none) while pass 1 goes on, the rest by the calling thread too once pass 1 ends
-       (BLAS without the GIL, ``gp.lower_times_rows``). Same rows, same blocks: the same numbers, bit
-       for bit, with any number of workers;
-    3. the covariance recursion (ny x ny per step), chunk by chunk in order as pass 2 finishes them, on the
-       calling thread once pass 1 has ended (between its own pass-2 chunks), so that it overlaps the
-       worker's pass 2 instead of following it.
-    Anything else than a ``posterior.Posterior`` whose kernel gives ``MeanTerms`` (e.g. an object with
-    only ``mean_grad`` and ``noise_var``) takes the reference loop.
-
-    state: a ``FreeRunState`` of an earlier run (its ``FreeRun.state``) to continue from instead of
-    starting at rest or at ``y0``: its last means, input lags and state covariance, so a record run in
-    chunks gives the numbers of the record run whole (to round-off). A state with a smaller covariance
-    window than ``cov_window`` is padded with zeros (the older covariances start unknown-as-zero); a
-    larger one is cut. ``FreeRun.state`` is where this run ended.
-    """
-    fast = _MeanRecursion.build(posterior, x_scaler, ny, nu)
+    posterior, ny, nu = predictor.posterior, predictor.ny, predictor.nu
+    y0, state, workers, progress = spec.y0, spec.state, spec.workers, spec.progress
+    fast = _MeanRecursion.build(predictor)
     if workers is not None and int(workers) < 0:
         raise ValueError(f"workers must be >= 0 (0: no worker thread), got {workers}")
     if state is not None:
@@ -293,17 +60,16 @@ def simulate_linear(
         if fast is None:
             raise ValueError("state: this posterior's linearised run cannot continue a stream")
     if fast is None:
-        return simulate_linear_reference(posterior, x_scaler, y_scaler, ny, nu, u, y0=y0, confidence=confidence,
-                                          include_noise=include_noise, progress=progress, cov_window=cov_window)
+        return run_linear_stepwise(predictor, u, spec)
     t_start = time.perf_counter()
-    confidence = check_confidence(confidence)
+    confidence = check_confidence(spec.confidence)
     z = band_z(confidence)
     u = np.asarray(u, dtype=float)
     n = u.size
     i0, y0v = start_index(n, ny, y0)
-    xm, xs = x_scaler.mean_, x_scaler.scale_
-    ym, ys = float(y_scaler.mean_[0]), float(y_scaler.scale_[0])
-    Ulag = (inputs_with_tail(u, nu, state) - xm[ny:]) / xs[ny:]
+    xm, xs = predictor.x_mean, predictor.x_scale
+    ym, ys = predictor.y_mean, predictor.y_scale
+    Ulag = predictor.input_lags(u, state)
     # pass 1: hist[t + ny] = mean output at time t (output units); hist[:ny] = 0 (at rest) or the state's means
     hist = np.zeros(n + ny)
     if i0:
@@ -327,10 +93,10 @@ def simulate_linear(
         Xb[:, ny:] = Ulag[i0 + k0: i0 + k1]
         _, var_f[k0:k1], grad[k0:k1] = posterior.mean_var_grad(Xb)
 
-    L = max(ny, int(cov_window or 0))
+    L = max(ny, int(spec.cov_window or 0))
     band = np.zeros((n, L)) if L > ny else None
     S_end = None if state is None else _resize(np.asarray(state.cov, dtype=float), L)
-    noise = posterior.noise_var if include_noise else 0.0
+    noise = predictor.noise(spec)
     q = np.empty(rows)  # sigma_f^2 + sigma_y^2 in output units
     Jall = np.empty((rows, ny))  # d mu_out / d y_lag (output units)
     cov = _CovarianceRecursion(rows, ny, L, ys, band, i0, S_end)
@@ -364,11 +130,17 @@ def simulate_linear(
                    latent_lower=mean - z * lstd, latent_upper=mean + z * lstd, state=end)
 
 
+def simulate_linear(posterior, x_scaler, y_scaler, ny: int, nu: int, u: np.ndarray, **options) -> FreeRun:
+    """``run_linear`` from a posterior, its scalers and lags (``Predictor.of``) with the ``RunSpec`` fields as
+    keywords."""
+    return run_linear(Predictor.of(posterior, x_scaler, y_scaler, ny, nu), u, RunSpec(method="linear", **options))
+
+
 _PASS1_CHUNK = 1024  # steps of pass 1 per chunk: pass 2's unit of work (a multiple of mean_var_grad's block)
 
 
 def _linear_workers(workers: int | None, rows: int, chunk: int) -> int:
-    """Worker threads for pass 2 of ``simulate_linear``: ``workers`` when given, else one where this
+    """Worker threads for pass 2 of ``run_linear``: ``workers`` when given, else one where this
     process may run on two or more CPUs and the run has more than one chunk; none otherwise."""
     if workers is not None:
         return int(workers)
@@ -475,7 +247,7 @@ def _resize(S: np.ndarray, L: int) -> np.ndarray:
 
 
 class _CovarianceRecursion:
-    """Pass 3 of ``simulate_linear``: var(y_i) for every step of the linearised propagation (``out``) and its
+    """Pass 3 of ``run_linear``: var(y_i) for every step of the linearised propagation (``out``) and its
     propagated part J S J^T (``prop``), and cov(y_i, y_{i-k}) into ``band``, ``advance``d chunk by chunk in
     order.
 
@@ -542,7 +314,7 @@ class _CovarianceRecursion:
 
 
 class _MeanRecursion:
-    """Pass 1 of ``simulate_linear``: the free-run mean y_i = mu(x_i) (eq. 8) fed back as a lag.
+    """Pass 1 of ``run_linear``: the free-run mean y_i = mu(x_i) (eq. 8) fed back as a lag.
 
     For a posterior whose kernel gives its share of the mean as ``MeanTerms`` (``LinearisableKernel.
     mean_terms``: Matern32, RBF, CubicPolynomial, White and sums of them), one step is about twenty
@@ -569,18 +341,19 @@ class _MeanRecursion:
         self.n_rows = 3 + len(self.profiles)
 
     @classmethod
-    def build(cls, posterior, x_scaler, ny, nu):
-        """A recursion for ``posterior``, or None when it is not a ``posterior.Posterior`` or its kernel
-        has no ``MeanTerms``."""
-        if not isinstance(posterior, Posterior) or getattr(x_scaler, "mean_", None) is None:
+    def build(cls, predictor: Predictor):
+        """A recursion for the predictor's posterior, or None when it is not a ``posterior.Posterior`` or its
+        kernel has no ``MeanTerms``."""
+        posterior = predictor.posterior
+        if not isinstance(posterior, Posterior):
             return None
         require(posterior.kernel, LinearisableKernel, "the linearised free run (freerun.simulate_linear)")
         w = np.asarray(posterior.mean_weights, dtype=float)
         terms = posterior.kernel.mean_terms(w)
         if terms is None:
             return None
-        return cls(np.ascontiguousarray(posterior.points, dtype=float), terms, w, ny, nu,
-                   np.asarray(x_scaler.mean_, float), np.asarray(x_scaler.scale_, float))
+        return cls(np.ascontiguousarray(posterior.points, dtype=float), terms, w, predictor.ny, predictor.nu,
+                   np.asarray(predictor.x_mean, float), np.asarray(predictor.x_scale, float))
 
     def run(self, hist, Ulag, i0, n, ym, ys, progress=None, chunk=1024, on_chunk=None):
         """Fill hist[ny + i] with the mean output of every step i0 <= i < n (output units), ``chunk``
