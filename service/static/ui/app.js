@@ -160,7 +160,8 @@ async function loadTrend() {
     const versions = [...new Set(pts.map((p) => p.version))].join(", ");
     note.textContent = `${pts.length} verdict${pts.length > 1 ? "s" : ""} from ${pts[0].time} to ${pts[pts.length - 1].time} `
       + `(UTC; version ${versions}): ${count("healthy")} healthy, ${count("novel")} novel, ${count("unjudged")} unjudged`
-      + `; the dashed line is the threshold each was judged against. Read from ${h.target}`
+      + `; the dashed line${pts.length === 1 ? " (a ring for a single verdict)" : ""} is the threshold each was judged `
+      + `against. Read from ${h.target}`
       + (h.older_unread ? "; older verdicts lie beyond what one call reads" : "")
       + (h.skipped_lines ? `; ${h.skipped_lines} damaged line(s) skipped` : "") + ".";
   } catch (err) {

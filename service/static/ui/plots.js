@@ -165,16 +165,21 @@ export function trendPlot(el, points) {
                   value: (u, x) => fmt(x) });
     data.push(points.map((p) => (p.verdict === v ? pos(p.score) : null)));
   }
+  // a single verdict has no threshold line to draw: its threshold is drawn as a marker
   series.push({ label: "threshold", stroke: "#222", width: 1, dash: [6, 4], value: (u, v) => fmt(v),
-                points: { show: false }, spanGaps: true });
+                points: { show: points.length === 1, size: 10, stroke: "#222", fill: "#fff" }, spanGaps: true });
   data.push(points.map((p) => pos(p.threshold)));
-  mount(el, {
+  // the time axis spans the verdicts, widened 3 % (a minute each way around a single one)
+  const [t0, t1] = [Math.min(...t), Math.max(...t)];
+  const span = t1 > t0 ? [t0 - 0.03 * (t1 - t0), t1 + 0.03 * (t1 - t0)] : [t0 - 60, t1 + 60];
+  const chart = mount(el, {
     height: 220,
-    scales: { x: { time: true }, y: { distr: 3 } },
+    scales: { x: { time: true, range: () => span }, y: { distr: 3 } },
     axes: [{}, { label: "novelty score", size: 70, values: ticks }],
     series,
     cursor: { drag: { x: true, y: false } },
   }, data);
+  chart.setScale("x", { min: span[0], max: span[1] });
   el.dataset.points = String(points.length);
   el.dataset.ready = "1";
 }

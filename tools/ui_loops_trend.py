@@ -4,7 +4,7 @@ Against a running service over the default bundles, e.g.::
 
     gpnarx build-defaults --registry /tmp/reg-ui --only bouc-wen,bert-standin,bert-standin-monitor
     GPNARX_AUDIT_LOG=/tmp/reg-ui-audit.jsonl gpnarx serve --registry /tmp/reg-ui --port 8012
-    python docs/tools/ui_loops_trend.py --url http://127.0.0.1:8012
+    python tools/ui_loops_trend.py --url http://127.0.0.1:8012
 
 The script first sends novelty calls on the monitor (``bert-standin-monitor``) with windows of the shipped
 probe examples (the 5 N m probe: healthy; the 9 N m probe: novel; the 18 Hz sine: unjudged), so the trend has
@@ -25,7 +25,7 @@ from urllib.parse import urlparse
 import httpx
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 MODEL = "bert-standin-monitor"
 #: (example file, first sample, samples) of the novelty calls made before the screenshot, oldest first
 CALLS = [("bert-standin-probe-9Hz-5Nm.npz", 0, 4096), ("bert-standin-probe-9Hz-5Nm.npz", 0, 3072),
