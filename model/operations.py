@@ -35,6 +35,7 @@ from .freerun import FreeRunState, check_state
 from .metrics import summary
 from .novelty import UnusableProbeContract, assess_novelty, novelty_start
 from .novelty_window import HTTP_WINDOW_SECONDS, RollingWindow
+from .record import FS_RTOL, fs_matches, resample_advice
 from .restoring import loop_area, loop_units, restoring_force
 from .stream_token import StateMismatch, StateTokenError, decode_state, encode_state, max_state_bytes
 
@@ -163,31 +164,6 @@ class Answer:
 
 def _given(a) -> bool:
     return a is not None and len(a) > 0
-
-
-#: relative tolerance of a record's fs [Hz] against the model's: 10 ppm. Files that store the sample interval to
-#: a few significant digits read a few ppm off (UFF-58's 6 digits: 1/750 s = 1.33333e-03 s reads 750.002 Hz, 2.7
-#: ppm); within it the record is the model's rate (its fs is used), beyond it the record must be resampled
-FS_RTOL = 10e-6
-
-
-def fs_matches(fs: float, model_fs: float) -> bool:
-    """Whether a record sampled at ``fs`` [Hz] is at the model's ``model_fs`` [Hz] within ``FS_RTOL``."""
-    return math.isclose(float(fs), float(model_fs), rel_tol=FS_RTOL, abs_tol=0.0)
-
-
-def resample_advice(fs: float, model_fs: float) -> str:
-    """How to bring a record from ``fs`` to ``model_fs`` [Hz]: scipy's polyphase resampler with the ratio's
-    integers when it is a simple fraction."""
-    from fractions import Fraction
-
-    how = f"scipy.signal.resample(x, round(len(x) * {float(model_fs):g} / {float(fs):.12g}))"
-    r = float(model_fs) / float(fs)
-    if math.isfinite(r) and r > 0:  # a rate next to 0 or the double range leaves no ratio of integers
-        ratio = Fraction(r).limit_denominator(1000)
-        if ratio > 0 and math.isclose(float(ratio), r, rel_tol=FS_RTOL):
-            how = f"scipy.signal.resample_poly(x, up={ratio.numerator}, down={ratio.denominator})"
-    return f"resample u and y to {float(model_fs):g} Hz first, e.g. {how}"
 
 
 def check_fs(fs, bundle) -> float:

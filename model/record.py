@@ -1,10 +1,36 @@
 """In-memory input/output record (no file I/O here: file contents are parsed by ``storage.record_formats``,
-files and folders are read by ``storage.record_files``)."""
+files and folders are read by ``storage.record_files``), and the sampling-rate rule a record meets a model by
+(``FS_RTOL``, ``fs_matches``; the operations' ``check_fs`` applies it to requests)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+#: relative tolerance of a record's fs [Hz] against the model's: 10 ppm. Files that store the sample interval to
+#: a few significant digits read a few ppm off (UFF-58's 6 digits: 1/750 s = 1.33333e-03 s reads 750.002 Hz, 2.7
+#: ppm); within it the record is the model's rate (its fs is used), beyond it the record must be resampled
+FS_RTOL = 10e-6
+
+
+def fs_matches(fs: float, model_fs: float) -> bool:
+    """Whether a record sampled at ``fs`` [Hz] is at the model's ``model_fs`` [Hz] within ``FS_RTOL``."""
+    return math.isclose(float(fs), float(model_fs), rel_tol=FS_RTOL, abs_tol=0.0)
+
+
+def resample_advice(fs: float, model_fs: float) -> str:
+    """How to bring a record from ``fs`` to ``model_fs`` [Hz]: scipy's polyphase resampler with the ratio's
+    integers when it is a simple fraction."""
+    from fractions import Fraction
+
+    how = f"scipy.signal.resample(x, round(len(x) * {float(model_fs):g} / {float(fs):.12g}))"
+    r = float(model_fs) / float(fs)
+    if math.isfinite(r) and r > 0:  # a rate next to 0 or the double range leaves no ratio of integers
+        ratio = Fraction(r).limit_denominator(1000)
+        if ratio > 0 and math.isclose(float(ratio), r, rel_tol=FS_RTOL):
+            how = f"scipy.signal.resample_poly(x, up={ratio.numerator}, down={ratio.denominator})"
+    return f"resample u and y to {float(model_fs):g} Hz first, e.g. {how}"
 
 
 class RecordError(ValueError):

@@ -29,8 +29,8 @@ from gpnarx.model.novelty import (
     novelty_start,
     record_envelope,
 )
-from gpnarx.model.operations import FS_RTOL, fs_matches, resample_advice
 from gpnarx.model.probe import probe_contract
+from gpnarx.model.record import FS_RTOL, fs_matches, resample_advice
 from gpnarx.storage.bundle import Bundle, derive_bundle
 
 __all__ = ["calibrate", "score_healthy"]
