@@ -21,6 +21,7 @@ WORKDIR /src
 COPY pyproject.toml README.md LICENSE ./
 COPY gpnarx ./gpnarx
 COPY model ./model
+COPY operations ./operations
 COPY storage ./storage
 COPY training ./training
 COPY service ./service

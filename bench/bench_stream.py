@@ -2,7 +2,7 @@
 
 On the shipped ``bert-real`` bundle and a real 64 s record (default the 20 Hz sine, held out, from
 rest), sent in 1 s chunks, each call continuing from the previous answer's state token
-(``model.stream_token``: encoded after each chunk and decoded before the next, as the service does),
+(``operations.stream_token``: encoded after each chunk and decoded before the next, as the service does),
 against the same record in one call, linearised and by Monte Carlo over the whole record:
 
 - ``max_mean_diff``: largest |chunked - whole| mean, in the record's standard deviation;
@@ -32,7 +32,7 @@ import numpy as np
 
 import _common as C
 from gpnarx.model.discrepancy import widen_chunk
-from gpnarx.model.stream_token import decode_state, encode_state
+from gpnarx.operations.stream_token import decode_state, encode_state
 
 
 def _chunks(model, u, method, chunk, kw, disc):

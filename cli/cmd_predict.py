@@ -140,13 +140,13 @@ def load(args, operation: str = "predict"):
 
 
 def check_fs(rec, bundle, name: str | None = None):
-    """``rec`` at the model's fs: the rule of every interface (``model.operations.check_fs``: within its
+    """``rec`` at the model's fs: the rule of every interface (``operations.check_fs``: within its
     ``FS_RTOL`` the record is taken at the model's rate), else a CLIError naming both rates and how to resample
     (prefixed by ``name``, the record as the command line gave it, when given)."""
     from dataclasses import replace
 
-    from gpnarx.model.operations import OperationError
-    from gpnarx.model.operations import check_fs as check_rate
+    from gpnarx.operations import OperationError
+    from gpnarx.operations import check_fs as check_rate
 
     try:
         fs = check_rate(rec.fs, bundle)
@@ -156,10 +156,10 @@ def check_fs(rec, bundle, name: str | None = None):
 
 
 def check_mc(mc, bundle=None, operation: str = "predict") -> int:
-    """``--mc``, checked against the one Monte Carlo path bound (``model.operations.mc_paths_max``, the HTTP
-    service's too); when not given, the bundle's default for ``operation`` (``model.operations.default_mc_paths``,
+    """``--mc``, checked against the one Monte Carlo path bound (``operations.mc_paths_max``, the HTTP
+    service's too); when not given, the bundle's default for ``operation`` (``operations.default_mc_paths``,
     the rule of every interface)."""
-    from gpnarx.model.operations import DEFAULT_MC_PATHS, MC_PATHS_MAX_ENV, default_mc_paths, mc_paths_max
+    from gpnarx.operations import DEFAULT_MC_PATHS, MC_PATHS_MAX_ENV, default_mc_paths, mc_paths_max
 
     try:
         limit = mc_paths_max()
@@ -282,9 +282,9 @@ def run_predict(args):
 def operate(operation: str, bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0.99,
             method: str | None = None, start: str | None = None, progress=None, backend: str | None = None,
             record: str | None = None):
-    """``model.operations`` on a record (``model.operations.Answer``), its refusals as CLI errors
+    """``operations`` on a record (``operations.Answer``), its refusals as CLI errors
     (``cli.errors.operation_error``; ``record``: the record's name in their messages)."""
-    from gpnarx.model import operations
+    from gpnarx import operations
     from gpnarx.model.backend import default_backend
 
     req = operations.Request(u=rec.u, fs=rec.fs, y=rec.y, mc_paths=mc, seed=seed, confidence=confidence,
@@ -296,7 +296,7 @@ def operate(operation: str, bundle, rec, *, mc: int, seed: int = 0, confidence: 
         raise operation_error(exc, record) from None
 
 
-#: the members of ``gpnarx predict --json``, in order (``model.operations``' predict answer, ``n`` its n_samples)
+#: the members of ``gpnarx predict --json``, in order (``operations``' predict answer, ``n`` its n_samples)
 PREDICT_FIELDS = ("model", "version", "n", "start", "mc_paths", "method", "backend", "confidence", "seconds",
                   "diverged_paths", "out_of_range", "mean", "lower", "upper", "std")
 #: the members of ``gpnarx novelty --json``, in order (a subset of the HTTP novelty answer)

@@ -4,9 +4,9 @@ Each chunk continues the previous chunk's free run (``FreeRun.state``, the state
 as a token), so the chunks together are the record predicted whole (docs/api.md, Streams). One JSON
 line per chunk on stdout: where it lies in the stream, the band summary, the out-of-range flags, the
 cycles completed so far (for a model with physical constants: each cycle once, with its energy and
-interval, including cycles that straddle chunks; ``model.cycle_stream``, the HTTP loops stream's rule),
+interval, including cycles that straddle chunks; ``operations.cycle_stream``, the HTTP loops stream's rule),
 and, when the chunk has measured outputs and the model a novelty calibration, the chunk's novelty verdict
-and the verdict over a rolling window of the last chunks (``model.novelty_window``, the HTTP novelty
+and the verdict over a rolling window of the last chunks (``operations.novelty_window``, the HTTP novelty
 stream's). What a data-acquisition script pipes into.
 """
 from __future__ import annotations
@@ -79,12 +79,13 @@ def _record_chunks(rec, n: int):
 
 def run_stream(args):
     from gpnarx.cli.cmd_predict import check_fs, check_mc, load_model, read_cli_record
-    from gpnarx.model.cycle_stream import STREAM_COV_WINDOW
-    from gpnarx.model.cycle_stream import advance as stream_cycles
     from gpnarx.model.metrics import summary
     from gpnarx.model.novelty import assess_novelty, novelty_start
-    from gpnarx.model.novelty_window import RollingWindow
-    from gpnarx.model.operations import FS_RTOL, OperationError, fs_matches, physics_of
+    from gpnarx.model.record import FS_RTOL, fs_matches
+    from gpnarx.operations import OperationError, physics_of
+    from gpnarx.operations.cycle_stream import STREAM_COV_WINDOW
+    from gpnarx.operations.cycle_stream import advance as stream_cycles
+    from gpnarx.operations.novelty_window import RollingWindow
     from gpnarx.storage.jsonsafe import dumps_json
 
     if not args.chunk > 0:

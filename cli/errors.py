@@ -24,7 +24,7 @@ class UsageError(CLIError):
     exit_code = EXIT_USAGE
 
 
-#: the command-line option of each request field an operation may refuse (``model.operations``)
+#: the command-line option of each request field an operation may refuse (``operations``)
 OPTION_OF = {"mc_paths": "--mc", "confidence": "--confidence", "method": "--method", "backend": "--backend",
              "seed": "--seed"}
 #: request fields that come from the record file
@@ -32,7 +32,7 @@ RECORD_FIELDS = ("u", "y", "y0", "fs")
 
 
 def operation_error(exc, record: str | None = None) -> CLIError:
-    """The CLI error of a refused operation (``model.operations.OperationError``): a refused option value is a
+    """The CLI error of a refused operation (``operations.OperationError``): a refused option value is a
     usage error naming the option (exit code 2); anything else, such as a record that does not fit the model
     or a model without what the operation needs, a runtime error (exit code 1), prefixed by the record's name
     when the record is to blame."""

@@ -242,7 +242,7 @@ def secant_stiffness(x, r, ts: float, te: float) -> float:
     return float((_interp(r, tmax) - _interp(r, tmin)) / dx) if dx != 0 else float("nan")
 
 
-def _band_cov(cov_band: np.ndarray, j0: int, m: int) -> np.ndarray:
+def band_cov(cov_band: np.ndarray, j0: int, m: int) -> np.ndarray:
     """Covariance of samples j0..j0+m-1 from cov_band[i, k] = cov(y_i, y_{i-k}) (0 beyond the band)."""
     L = cov_band.shape[1]
     C = np.zeros((m, m))
@@ -299,7 +299,7 @@ def cycles(u, fs: float, physics: dict, mean, *, paths=None, cov_band=None, y=No
                 c["stiffness_lower"], c["stiffness_upper"] = (float(v) for v in np.quantile(kp, [q_lo, q_hi]))
         elif cov_band is not None:
             cb = np.asarray(cov_band, float)
-            sd = math.sqrt(max(float(w @ _band_cov(cb, j0, w.size) @ w), 0.0))
+            sd = math.sqrt(max(float(w @ band_cov(cb, j0, w.size) @ w), 0.0))
             c["energy_lower"], c["energy_upper"] = e - z * sd, e + z * sd
         if meas is not None:
             c["measured_energy"] = float(w @ meas[0][sl])

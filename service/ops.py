@@ -1,4 +1,4 @@
-"""The service's side of the three operations (``model.operations`` holds them, shared with the CLI).
+"""The service's side of the three operations (``gpnarx.operations`` holds them, shared with the CLI).
 
 ``plan`` runs on the event loop (cheap checks against the bundle and the settings' bounds), ``compute``
 on a worker thread (cancelled at the free run's next checkpoint once its ``CancelToken`` is set). Both
@@ -6,8 +6,8 @@ raise ``ProblemError``: each ``OperationError`` becomes a problem detail naming 
 """
 from __future__ import annotations
 
-from gpnarx.model import operations
-from gpnarx.model.operations import CONFLICT, INVALID, OPERATIONS, TOO_LARGE, Answer, Limits, OperationError, Plan
+from gpnarx import operations
+from gpnarx.operations import CONFLICT, INVALID, OPERATIONS, TOO_LARGE, Answer, Limits, OperationError, Plan
 
 from .problems import ProblemError
 from .settings import Settings

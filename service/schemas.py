@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, Strict, StrictBool
 
-from gpnarx.model.stream_token import MAX_TOKEN_CHARS
+from gpnarx.operations.stream_token import MAX_TOKEN_CHARS
 
 from .settings import DEFAULT_BOUNDS
 

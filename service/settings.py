@@ -60,7 +60,7 @@ from pydantic.fields import FieldInfo
 from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict, SettingsError
 from pydantic_settings.sources.utils import parse_env_vars
 
-from gpnarx.model.operations import MC_PATHS_MAX
+from gpnarx.operations import MC_PATHS_MAX
 from gpnarx.runtime import DEFAULT_BLAS_THREADS, DEFAULT_MMAP_THRESHOLD, env_int
 
 MiB = 1024 * 1024

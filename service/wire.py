@@ -35,7 +35,7 @@ import zipfile
 
 import numpy as np
 
-from gpnarx.model.archive_bounds import ArchiveError, open_archive
+from gpnarx.storage.archive_bounds import ArchiveError, open_archive
 from gpnarx.storage.record_formats import NPY_READ_ERRORS, npy_header
 
 from .problems import ProblemError

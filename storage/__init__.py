@@ -9,9 +9,9 @@
 - ``record_formats`` (and ``record_formats_lab``, extra ``formats``): record file contents parsed into a
   ``model.record.Record``; ``record_files``: record files and LMS folders read and written.
 - ``jsonsafe``: JSON encoding of numpy values (manifests, CLI output, HTTP bodies).
+- ``archive_bounds``: .npz archives from untrusted bytes, every size decided before anything is inflated
+  (record uploads, NPZ bodies, stream tokens).
 
-Dependency rule (import contracts in pyproject.toml): storage imports the method, never the other way
-round; ``training``, ``service`` and ``cli`` import both. The free run's stream token
-(``model.stream_token``) stays with the method: it is a free-run state in portable form, no file or
-network I/O, and the framework-free operations in ``model`` use it.
+Dependency rule (import contracts in pyproject.toml; docs/architecture.md): storage imports the method, never
+the other way round; ``operations``, ``training``, ``service`` and ``cli`` import both.
 """

@@ -34,9 +34,9 @@ from pathlib import PurePath
 
 import numpy as np
 
-from gpnarx.model.archive_bounds import NPY_READ_ERRORS, ArchiveError, member, npy_header, open_archive
 from gpnarx.model.record import Record, RecordError
 
+from .archive_bounds import NPY_READ_ERRORS, ArchiveError, member, npy_header, open_archive
 from .record_formats_lab import LAB_FORMATS
 
 __all__ = [

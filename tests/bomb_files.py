@@ -17,7 +17,7 @@ import zlib
 
 import numpy as np
 
-from gpnarx.model.stream_token import MAGIC, PUBLIC_KEY
+from gpnarx.operations.stream_token import MAGIC, PUBLIC_KEY
 
 _ZEROS = bytes(8 << 20)
 
@@ -90,7 +90,7 @@ def token_bomb(model: str, version: str, declared: int = 128 << 20, member: str 
 
 
 def token_of(header: dict | str, arrays: dict) -> str:
-    """A token holding ``header`` (a dict, or its JSON text) and ``arrays`` as ``model.stream_token.encode_state``
+    """A token holding ``header`` (a dict, or its JSON text) and ``arrays`` as ``operations.stream_token.encode_state``
     writes them."""
     text = header if isinstance(header, str) else json.dumps(header)
     buf = io.BytesIO()

@@ -196,7 +196,7 @@ def _alive(pid: int) -> bool:
 
 
 def test_a_negative_seed_names_the_option(tmp_path, capsys):
-    """The seed is checked with the other request fields (model.operations.plan), so the CLI names --seed."""
+    """The seed is checked with the other request fields (operations.plan), so the CLI names --seed."""
     from test_service_support import built_registry
 
     rec = tmp_path / "r.npz"

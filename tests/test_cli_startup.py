@@ -29,7 +29,7 @@ def test_the_predict_path_imports_no_heavy_module():
     code = (
         "import sys, json, numpy as np\n"
         "import gpnarx.cli.main, gpnarx.cli.cmd_predict, gpnarx.storage.bundle, gpnarx.storage.registry\n"
-        "import gpnarx.storage.record_files, gpnarx.model.operations\n"
+        "import gpnarx.storage.record_files, gpnarx.operations\n"
         "from gpnarx.model.envelope import band_envelope, frequency_share\n"
         "u = np.sin(np.arange(4096) * 0.3)\n"
         "frequency_share(band_envelope([u]), u)\n"

@@ -82,7 +82,7 @@ def routes() -> set[str]:
 
 def env_names_read_by_the_package() -> set[str]:
     names = set()
-    for folder in ("model", "storage", "training", "service", "cli", "gpnarx"):
+    for folder in ("model", "operations", "storage", "training", "service", "cli", "gpnarx"):
         for f in (ROOT / folder).rglob("*.py"):
             names |= set(re.findall(r"\bGPNARX_[A-Z][A-Z_]*[A-Z]\b", f.read_text()))
     return names

@@ -157,7 +157,7 @@ def test_a_hold_covers_a_decay_the_mean_underestimates_with_a_smaller_scale():
 
 
 def test_a_held_trailing_band_in_chunks_is_the_whole_records_band(sdof_model, sdof_data):
-    from gpnarx.model.stream_token import decode_state, encode_state
+    from gpnarx.operations.stream_token import decode_state, encode_state
 
     model, u = sdof_model, sdof_data["u2"][:1200]
     model.band_discrepancy_ = {"scale": 0.2, "window": 50, "window_kind": "trailing", "hold": 120}

@@ -104,7 +104,7 @@ def test_a_misspelt_option_is_named_not_reported_as_a_missing_one(tmp_path):
 def test_one_monte_carlo_path_limit_for_the_cli_and_the_service(client, monkeypatch):
     from gpnarx.cli.cmd_predict import check_mc
     from gpnarx.cli.errors import UsageError
-    from gpnarx.model.operations import MC_PATHS_MAX
+    from gpnarx.operations import MC_PATHS_MAX
 
     assert Settings().mc_paths_max == MC_PATHS_MAX
     assert check_mc(MC_PATHS_MAX) == MC_PATHS_MAX

@@ -1,4 +1,4 @@
-"""A record's sampling frequency against the model's (``model.operations.check_fs``): a file that stores its
+"""A record's sampling frequency against the model's (``operations.check_fs``): a file that stores its
 sample interval to a few digits (UFF-58 keeps 6: 1/750 s is 1.33333e-03, read as 750.002 Hz) is the model's
 750 Hz within ``FS_RTOL``, through ``gpnarx predict`` and the HTTP routes alike; a rate outside it is refused
 with both rates and how to resample."""
@@ -15,8 +15,8 @@ from test_record_formats_extra import uff58
 from test_service_support import FS, built_registry, short_record
 
 from gpnarx.cli.main import main
-from gpnarx.model import operations
-from gpnarx.model.operations import FS_RTOL, OperationError, check_fs
+from gpnarx.model.record import FS_RTOL, fs_matches
+from gpnarx.operations import OperationError, check_fs
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
 from gpnarx.storage.record_files import read_record
@@ -102,7 +102,7 @@ def test_check_fs_is_the_one_rule():
     with pytest.raises(OperationError) as exc:
         check_fs(750.0 * (1 + 1.1 * FS_RTOL), B)
     assert exc.value.field == "fs" and exc.value.limit == FS_RTOL
-    assert operations.fs_matches(750.0, 750.002) and not operations.fs_matches(750.0, 750.1)
+    assert fs_matches(750.0, 750.002) and not fs_matches(750.0, 750.1)
     for far in (5e-324, 1e-300, 1e308):  # the advice never fails on a rate at the ends of the double range
         with pytest.raises(OperationError, match="resample"):
             check_fs(far, B)

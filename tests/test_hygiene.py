@@ -21,7 +21,7 @@ PATTERNS = {
 }
 
 #: Source folders whose ``*.py`` files are checked (CHANGELOG.md is the one place for history).
-SOURCE_DIRS = ("model", "storage", "training", "service", "cli", "gpnarx", "bench", "studies", "tools")
+SOURCE_DIRS = ("model", "operations", "storage", "training", "service", "cli", "gpnarx", "bench", "studies", "tools")
 
 
 def offences(text: str, where: str) -> list[str]:

@@ -1,5 +1,5 @@
 """One default per setting (issue 32 item 9): Monte Carlo paths come from the bundle's config in the CLI, the HTTP
-service and the /ui page alike (``model.operations.default_mc_paths``), and a record file without a sampling
+service and the /ui page alike (``operations.default_mc_paths``), and a record file without a sampling
 frequency is refused by the CLI unless ``--fs`` is given, as ``POST /v1/records/parse`` refuses it without ``fs``."""
 import json
 import re
@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 from test_service_support import FS, MC_PATHS, copy_registry, short_record
 
 from gpnarx.cli.main import main
-from gpnarx.model.operations import DEFAULT_MC_PATHS, default_mc_paths
+from gpnarx.operations import DEFAULT_MC_PATHS, default_mc_paths
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
 

@@ -163,7 +163,7 @@ def test_confidence_next_to_one_is_answered(client):
 
 
 def test_an_fs_mismatch_prints_both_values_apart(client):
-    from gpnarx.model.operations import FS_RTOL
+    from gpnarx.model.record import FS_RTOL
 
     off = FS * (1 - 1.5 * FS_RTOL)  # just outside the tolerance: both rates printed apart
     p = _problem(client.post("/v1/models/boucwen/predict", json={"u": [0.5] * 32, "fs": off}), 422, "fs")

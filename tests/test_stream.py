@@ -9,7 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 from test_service_support import FS, built_registry, short_record
 
-from gpnarx.model.stream_token import StateMismatch, StateTokenError, decode_state, encode_state
+from gpnarx.operations.stream_token import StateMismatch, StateTokenError, decode_state, encode_state
 from gpnarx.service.app import create_app
 from gpnarx.service.settings import Settings
 
@@ -79,7 +79,7 @@ def test_a_trailing_discrepancy_window_gives_the_whole_records_band_in_chunks(sd
 
 
 def test_stream_cycles_in_chunks_are_the_whole_records():
-    from gpnarx.model.cycle_stream import MAX_CYCLE_SAMPLES, advance
+    from gpnarx.operations.cycle_stream import MAX_CYCLE_SAMPLES, advance
 
     fs, n = 750.0, 3000
     t = np.arange(n) / fs
@@ -202,7 +202,7 @@ def test_gpnarx_stream_reads_stdin_csv_and_prints_a_line_per_chunk():
     import subprocess
     import sys
 
-    from gpnarx.model.novelty_window import HTTP_WINDOW_SECONDS
+    from gpnarx.operations.novelty_window import HTTP_WINDOW_SECONDS
 
     registry = built_registry().root
     u, y = short_record(700, 4)
@@ -266,7 +266,7 @@ def _forge(header, arrays) -> str:
     import json
     import zlib
 
-    from gpnarx.model.stream_token import MAGIC, PUBLIC_KEY
+    from gpnarx.operations.stream_token import MAGIC, PUBLIC_KEY
 
     buf = io.BytesIO()
     np.savez(buf, header=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)

@@ -54,7 +54,7 @@ class FreeRunState:
     discrepancy window needs on its left (``model.discrepancy``); ``amp_hold``: its held amplitude at the
     last sample (one value; None without a hold). ``carry``: what an operation carries
     across a stream's chunks beside the free run, by operation name (``"loops"``: the unfinished cycle,
-    ``model.cycle_stream``; ``"novelty"``: the rolling window, ``model.novelty_window``), each a dict of
+    ``operations.cycle_stream``; ``"novelty"``: the rolling window, ``operations.novelty_window``), each a dict of
     numpy arrays and JSON values.
     """
 

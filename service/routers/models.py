@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request
 
-from gpnarx.model.operations import default_mc_paths
+from gpnarx.operations import default_mc_paths
 
 from ..answers import answer, checked
 from ..deps import RECORD_PROBLEMS, V1, NameP, StateDep, VersionP

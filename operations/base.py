@@ -26,17 +26,18 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .backend import jax_available
+from gpnarx.model.backend import jax_available
+from gpnarx.model.cycles import cov_window_for, cycles
+from gpnarx.model.envelope import assess, out_of_range
+from gpnarx.model.freerun import FreeRunState, check_state
+from gpnarx.model.metrics import summary
+from gpnarx.model.novelty import UnusableProbeContract, assess_novelty, novelty_start
+from gpnarx.model.record import FS_RTOL, fs_matches, resample_advice
+from gpnarx.model.restoring import loop_area, loop_units, restoring_force
+
 from .cycle_stream import STREAM_COV_WINDOW
 from .cycle_stream import advance as stream_cycles
-from .cycles import cov_window_for, cycles
-from .envelope import assess, out_of_range
-from .freerun import FreeRunState, check_state
-from .metrics import summary
-from .novelty import UnusableProbeContract, assess_novelty, novelty_start
 from .novelty_window import HTTP_WINDOW_SECONDS, RollingWindow
-from .record import FS_RTOL, fs_matches, resample_advice
-from .restoring import loop_area, loop_units, restoring_force
 from .stream_token import StateMismatch, StateTokenError, decode_state, encode_state, max_state_bytes
 
 OPERATIONS = ("predict", "loops", "novelty")
@@ -484,7 +485,7 @@ def _loops(plan: Plan, req, u, y, run, common, checkpoint) -> tuple[dict, dict |
     if checkpoint is not None:
         checkpoint()
     carry = None
-    if _is_stream(plan, req):  # the cycles completed so far, cut causally (model.cycle_stream)
+    if _is_stream(plan, req):  # the cycles completed so far, cut causally (operations.cycle_stream)
         before = _carried(plan, "loops") or {"position": int(run.state.position) - int(u.size)}
         try:
             done, carry = stream_cycles(before, u, run.mean, fs=b.fs, physics=phys, y=y, paths=run.paths,
@@ -517,7 +518,7 @@ def _novelty(plan: Plan, req, u, run, common, flags) -> tuple[dict, dict | None]
     out = {**_head(b), **a, **common, "out_of_range": flagged, **probe}
     if not _is_stream(plan, req):
         return out, None
-    try:  # the stream's rolling window (model.novelty_window), carried in the token
+    try:  # the stream's rolling window (operations.novelty_window), carried in the token
         window = RollingWindow.from_carry(_carried(plan, "novelty"), int(round(HTTP_WINDOW_SECONDS * b.fs)))
         window.add(u, req.y, run.mean, run.std, flags)
         out["novelty_window"] = window.assess(nov, b.fs)

@@ -31,16 +31,16 @@ import math
 
 import numpy as np
 
-from .cycles import (
+from gpnarx.model.cycles import (
     COV_WINDOW_MAX,
     HYSTERESIS,
     MIN_CYCLE_SAMPLES,
     STENCIL_HALF,
-    _band_cov,
+    band_cov,
     energy_weights,
     secant_stiffness,
 )
-from .normal import band_z
+from gpnarx.model.normal import band_z
 
 MARGIN = STENCIL_HALF + 2  # samples a cycle's energy reads before its start and after its end
 MAX_CYCLE_SAMPLES = COV_WINDOW_MAX  # the longest cycle a stream reports (the linearised band's lags)
@@ -128,7 +128,7 @@ def advance(carry: dict | None, u, mean, *, fs: float, physics: dict, y=None, pa
             ep = w @ seg["extra"][sl][ws]
             cyc["energy_lower"], cyc["energy_upper"] = (float(v) for v in np.quantile(ep, q))
         elif cov_band is not None:
-            sd = math.sqrt(max(float(w @ _band_cov(seg["extra"][sl], j0, w.size) @ w), 0.0))
+            sd = math.sqrt(max(float(w @ band_cov(seg["extra"][sl], j0, w.size) @ w), 0.0))
             cyc["energy_lower"], cyc["energy_upper"] = e - z * sd, e + z * sd
         if np.all(np.isfinite(ys)):
             cyc["measured_energy"] = float(w @ ys[ws])

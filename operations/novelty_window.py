@@ -19,7 +19,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .novelty import assess_novelty
+from gpnarx.model.novelty import assess_novelty
 
 #: the HTTP stream's window [s]: the CLI's default of 8 chunks of 1 s
 HTTP_WINDOW_SECONDS = 8.0
@@ -75,7 +75,7 @@ class RollingWindow:
                 **{k: a[k] for k in ("score", "threshold", "verdict")}}
 
     def as_carry(self) -> dict:
-        """The window as a state token's carry (``model.stream_token``): arrays and JSON values."""
+        """The window as a state token's carry (``operations.stream_token``): arrays and JSON values."""
         return {"max_samples": self.max_samples, "chunks": self.chunks,
                 **{k: getattr(self, k) for k in _ARRAYS}}
 

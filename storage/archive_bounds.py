@@ -7,7 +7,7 @@ member's size from the zip directory (its declared uncompressed size) and its .n
 (:func:`member`): the two must agree, so a caller that bounds the declared sizes bounds what is inflated
 (``zipfile`` never inflates a member past its declared size) and what is allocated (:func:`read`).
 
-Used by the stream token (``model.stream_token``) and, through ``storage.record_formats``, the record
+Used by the stream token (``operations.stream_token``) and, through ``storage.record_formats``, the record
 uploads and the NPZ request bodies of the service (``service.wire``).
 """
 from __future__ import annotations

@@ -15,11 +15,11 @@ damaged tokens only.
 Sizes. A linearised state holds ny means, nu - 1 inputs and an L x L covariance (L = ny, or a loops call's
 cycle window): a few kB to a few hundred kB. A Monte Carlo state holds every path's ny lags: about
 8 P ny bytes before compression (200 kB at P = 1024, ny = 24). An operation's ``carry`` adds its arrays
-(loops: the unfinished cycle, ``model.cycle_stream``; novelty: the rolling window,
-``model.novelty_window``) and JSON values (in the header). ``max_state_bytes`` adds these up for a call (its
+(loops: the unfinished cycle, ``operations.cycle_stream``; novelty: the rolling window,
+``operations.novelty_window``) and JSON values (in the header). ``max_state_bytes`` adds these up for a call (its
 model's lags and fs, its Monte Carlo paths): the most a legitimate state of that call holds, ``max_bytes`` of
 ``decode_state``. A token is hostile input (without a secret key anyone can sign one), so ``decode_state``
-decides every size before it inflates or allocates anything (``model.archive_bounds``): the token's length
+decides every size before it inflates or allocates anything (``storage.archive_bounds``): the token's length
 (``max_token_chars``), its zlib body inflated at most to that bound, the archive's member count
 (``MAX_MEMBERS``), each member's declared shape and dtype (float64 arrays of at most 2 dimensions and a uint8
 JSON header, together at most ``max_bytes``) and the header's nesting (``MAX_HEADER_DEPTH``). Each refusal is
@@ -39,9 +39,10 @@ import zlib
 
 import numpy as np
 
-from .archive_bounds import NPY_READ_ERRORS, ArchiveError, member, member_name, open_archive, read
+from gpnarx.model.freerun import FreeRunState
+from gpnarx.storage.archive_bounds import NPY_READ_ERRORS, ArchiveError, member, member_name, open_archive, read
+
 from .cycle_stream import MARGIN, MAX_CYCLE_SAMPLES, STREAM_COV_WINDOW
-from .freerun import FreeRunState
 from .novelty_window import HTTP_WINDOW_SECONDS
 
 MAGIC = b"GS1"
