@@ -72,11 +72,21 @@ def test_every_kernel_has_the_same_formula_in_jax(kernel):
 
 
 def test_a_kernel_without_a_jax_form_says_so():
-    class Odd(RBF):
-        pass
+    from gpnarx.model.kernels import Kernel
+
+    class Odd(Kernel):  # the core contract alone: no family base, no Kernel.jax_part
+        param_names = ("variance",)
+
+        def from_gram(self, G, sq1, sq2):
+            return np.exp(self.theta[0]) * G
 
     with pytest.raises(NotImplementedError, match="Odd has no JAX form"):
-        jax_kernel(Odd())
+        jax_kernel(Odd() + RBF())
+
+    class Even(RBF):  # a family's subclass has its formula, so its JAX form
+        pass
+
+    assert jax_kernel(Even()).n_params == 2
 
 
 @pytest.mark.parametrize("which", ["sparse", "exact"])

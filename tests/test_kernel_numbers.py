@@ -1,7 +1,8 @@
 """The kernels' numbers are the product's: every contract method of every shipped kernel, ML-II's NLML and
 gradient, the sparse bound and the free runs of a small GPNARX per kernel spec equal the reference numbers
-of tests/data/kernel_numbers.json (written by tests/data/kernel_numbers.py) to 1e-12 relative (normwise per
-array), and ML-II refits the recorded hyperparameters."""
+of tests/data/kernel_numbers.json (written by tests/data/kernel_numbers.py on the code before the kernels'
+refactor) to 1e-12 relative (normwise per array; the sparse bound to its own round-off floor where that is
+larger), and ML-II refits the recorded hyperparameters."""
 from __future__ import annotations
 
 import json
@@ -47,10 +48,11 @@ def _walk(new, old, where, out):
         out.append((where, 0.0 if diff == 0.0 else diff / max(scale, 1e-300)))
 
 
-def _check(new, old, where):
+def _check(new, old, where, floor=None):
+    """Every array of ``new`` equal to ``old``'s to RTOL, or to its round-off floor by name where larger."""
     found = []
     _walk(json.loads(json.dumps(new)), old, where, found)
-    bad = [(w, r) for w, r in found if not r <= RTOL]
+    bad = [(w, r) for w, r in found if not r <= max(RTOL, (floor or {}).get(w.split(".", 1)[-1], 0.0))]
     assert not bad, f"{len(bad)} of {len(found)} differ beyond {RTOL}: {bad[:8]}"
     return found
 
@@ -64,7 +66,9 @@ def test_every_contract_method_keeps_its_numbers(name):
 
 @pytest.mark.parametrize("spec", ref.SPECS)
 def test_nlml_gradient_and_sparse_bound_keep_their_numbers(spec):
-    _check(ref.ml2_numbers(spec), REF["ml2"][spec], spec)
+    """To 1e-12, or for an ill-conditioned quantity (the sparse bound with RBF or cubic kernels) to what a
+    one-ulp change of theta changes in it (``kernel_numbers.ml2_floors``, recorded with the numbers)."""
+    _check(ref.ml2_numbers(spec), REF["ml2"][spec], spec, REF["ml2_floor"][spec])
 
 
 @pytest.mark.parametrize("spec", ref.SPECS)

@@ -162,7 +162,7 @@ def test_kernel_round_trip_and_whitelist():
     with pytest.raises(ValueError, match="unknown kernel type"):
         kernel_from_dict({"type": "os.system", "theta": []})
     with pytest.raises(ValueError, match="unknown part"):
-        make_kernel("matern52")
+        make_kernel("matern72")
     assert isinstance(make_kernel("matern32+cubic"), Sum)
 
 

@@ -118,7 +118,7 @@ class LocalModel:
         self.C[M:] = self.Zy
         self.Wt = np.empty((2 * M, 2))
         self.U = np.empty((2 * M, 2, ny))
-        self.fused = self.kernel.local_profile(np.ones((1, 1)), np.ones((1, 1)), np.ones(1)) is not None
+        self.fused = bool(getattr(self.kernel, "has_local_profile", False))  # declared by the kernel (LocalKernel)
 
     def __call__(self, x: np.ndarray, Xc: np.ndarray):
         ny, H = self.ny, self.H

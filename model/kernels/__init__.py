@@ -6,13 +6,17 @@ parameters); what ML-II, its workspace, the sparse bound, the linearised free ru
 local model need beyond it are the small contracts ``GradientKernel``, ``WorkspaceKernel``,
 ``SparseBoundKernel``, ``LinearisableKernel`` and ``LocalKernel`` (``kernels.base``).
 
-Inputs are standardised NARX regressors (dimensionless). Kernels of the paper:
+A kernel declares its formula on a family base, which derives every contract from it:
+``stationary.StationaryProfile`` (var f(r^2), f a polynomial times an exponential in the scaled distance)
+and ``dotproduct.DotProductProfile`` (var (s x.x' + b)^p). Inputs are standardised NARX regressors
+(dimensionless). Kernels of the paper:
 
 * ``Matern32``: eq. (10), k1 = sigma_m^2 (1 + sqrt(3) r / l) exp(-sqrt(3) r / l)
 * ``CubicPolynomial``: eq. (11), k2 = sigma_p^2 (s x.x' + b)^3
 * ``Sum``: eq. (12), k = k1 + k2 (also built by ``k1 + k2``)
 
-plus ``RBF`` and ``White``.
+plus ``Matern52``, ``RBF`` and ``White``. ``class K(Base, spec="name")`` registers a kernel for
+``make_kernel`` and ``kernel_from_dict`` (and as ``kernels.K``).
 """
 from __future__ import annotations
 
@@ -21,6 +25,8 @@ import numpy as np
 from .base import (
     CONTRACTS,
     DEFAULT_LOG_BOUNDS,
+    KERNEL_SPECS,
+    KERNEL_TYPES,
     SQRT3,
     GradientKernel,
     Kernel,
@@ -34,15 +40,20 @@ from .base import (
     require,
     squared_distances,
 )
-from .cubic import DEFAULT_CONSTANT_CAP, CubicPolynomial, check_constant_cap
-from .stationary import RBF, Matern32
+from .dotproduct import DEFAULT_CONSTANT_CAP, CubicPolynomial, DotProductProfile, check_constant_cap
+from .stationary import RBF, Matern32, StationaryProfile
 from .white import White
 
-KERNEL_TYPES = {c.__name__: c for c in (Matern32, RBF, CubicPolynomial, White)}
+
+def __getattr__(name: str):
+    """A registered kernel by class name (``kernels.Matern52``)."""
+    if name in KERNEL_TYPES:
+        return KERNEL_TYPES[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def kernel_from_dict(d: dict) -> Kernel:
-    """Rebuild a kernel from ``to_dict`` output (bundle manifests). Only known types are accepted."""
+    """Rebuild a kernel from ``to_dict`` output (bundle manifests). Only registered types are accepted."""
     if not isinstance(d, dict) or "type" not in d:
         raise ValueError("kernel description must be a dict with a 'type'")
     if d["type"] == "Sum":
@@ -55,23 +66,23 @@ def kernel_from_dict(d: dict) -> Kernel:
     if theta.shape != (len(cls.param_names),) or not np.all(np.isfinite(theta)):
         raise ValueError(f"kernel {d['type']} needs {len(cls.param_names)} finite log-parameters")
     k.theta = theta
-    if cls is CubicPolynomial:
-        k.constant_cap = check_constant_cap(d.get("constant_cap"), "kernel CubicPolynomial constant_cap")
+    k.read_extra(d)
     return k
 
 
 def make_kernel(spec: str = "matern32+cubic") -> Kernel:
-    """Kernel from a short name: 'matern32+cubic' (the paper's eq. 12), 'rbf', 'matern32', 'rbf+cubic', ..."""
-    names = {"matern32": Matern32, "rbf": RBF, "cubic": CubicPolynomial, "white": White}
+    """Kernel from a short name: 'matern32+cubic' (the paper's eq. 12), 'rbf', 'matern52', 'rbf+cubic', ..."""
     parts = []
     for tok in spec.lower().replace(" ", "").split("+"):
-        if tok not in names:
-            raise ValueError(f"kernel: unknown part {tok!r} in {spec!r}; use parts of {sorted(names)} joined by '+'")
-        parts.append(names[tok]())
+        if tok not in KERNEL_SPECS:
+            raise ValueError(f"kernel: unknown part {tok!r} in {spec!r}; use parts of {sorted(KERNEL_SPECS)} "
+                             "joined by '+'")
+        parts.append(KERNEL_SPECS[tok]())
     return parts[0] if len(parts) == 1 else Sum(*parts)
 
 
-__all__ = ["CONTRACTS", "DEFAULT_CONSTANT_CAP", "DEFAULT_LOG_BOUNDS", "KERNEL_TYPES", "RBF", "SQRT3",
-           "CubicPolynomial", "GradientKernel", "Kernel", "LinearisableKernel", "LocalKernel", "LocalProfile",
-           "Matern32", "MeanTerms", "SparseBoundKernel", "Sum", "White", "WorkspaceKernel", "check_constant_cap",
-           "kernel_from_dict", "make_kernel", "require", "squared_distances"]
+__all__ = ["CONTRACTS", "DEFAULT_CONSTANT_CAP", "DEFAULT_LOG_BOUNDS", "KERNEL_SPECS", "KERNEL_TYPES", "RBF", "SQRT3",
+           "CubicPolynomial", "DotProductProfile", "GradientKernel", "Kernel", "LinearisableKernel", "LocalKernel",
+           "LocalProfile", "Matern32", "MeanTerms", "SparseBoundKernel", "StationaryProfile", "Sum", "White",
+           "WorkspaceKernel", "check_constant_cap", "kernel_from_dict", "make_kernel", "require",
+           "squared_distances"]

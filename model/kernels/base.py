@@ -13,8 +13,11 @@ small contract of their own, which a kernel class joins by inheriting it:
 * ``LocalKernel``: the Monte Carlo free run's local model: second-order terms in the output lags.
 
 ``Kernel.supports(contract)`` says whether a kernel meets one (a ``Sum`` when every part does) and
-``require`` refuses one that does not, naming the consumer and what is missing. Inputs are
-standardised NARX regressors (dimensionless).
+``require`` refuses one that does not, naming the consumer and what is missing. A shipped kernel meets
+them all by deriving from a family base that owns the derivations (``stationary.StationaryProfile``,
+``dotproduct.DotProductProfile``) and declaring its formula there; ``class K(Base, spec="name")``
+registers it for ``make_kernel`` and ``kernel_from_dict``. Inputs are standardised NARX regressors
+(dimensionless).
 """
 from __future__ import annotations
 
@@ -26,6 +29,8 @@ import numpy as np
 
 SQRT3 = np.sqrt(3.0)
 DEFAULT_LOG_BOUNDS = (-12.0, 12.0)  # every log-parameter unless a kernel's ``log_param_bounds`` says otherwise
+KERNEL_TYPES: dict[str, type] = {}  # registered kernels by class name (``to_dict``'s "type")
+KERNEL_SPECS: dict[str, type] = {}  # registered kernels by spec name (``make_kernel``'s parts)
 
 
 def squared_distances(X: np.ndarray, X2: np.ndarray | None = None) -> np.ndarray:
@@ -77,6 +82,16 @@ class Kernel:
     ``require`` refuses a kernel that does not, naming what is missing."""
 
     param_names: tuple[str, ...] = ()
+
+    def __init_subclass__(cls, spec: str | None = None, **kw) -> None:
+        """``class K(Kernel, spec="name")`` registers K for ``make_kernel`` (by spec) and ``kernel_from_dict``
+        (by class name); a subclass without a spec of its own is not registered."""
+        super().__init_subclass__(**kw)
+        if spec is not None:
+            if KERNEL_SPECS.get(spec, cls).__qualname__ != cls.__qualname__:
+                raise ValueError(f"kernel spec {spec!r} is taken by {KERNEL_SPECS[spec].__name__}")
+            cls.spec = spec
+            KERNEL_SPECS[spec] = KERNEL_TYPES[cls.__name__] = cls
 
     def __init__(self) -> None:
         self.theta = np.zeros(len(self.param_names))
@@ -130,6 +145,15 @@ class Kernel:
 
     def to_dict(self) -> dict:
         return {"type": type(self).__name__, "theta": [float(t) for t in self.theta]}
+
+    def read_extra(self, d: dict) -> None:
+        """Set what ``to_dict`` writes beside the theta (``kernel_from_dict``); nothing by default."""
+
+    def jax_part(self):
+        """(cross, diag, white) for ``jax_forms.jax_kernel``: cross(jnp, theta, G, sq1, sq2) or None (zero
+        between points), diag(jnp, theta, sq), white True for a part that adds its variance on a training
+        diagonal; None: no JAX form."""
+        return None
 
     def clone(self) -> "Kernel":
         return copy.deepcopy(self)
@@ -234,7 +258,7 @@ class SparseBoundKernel:
 @dataclass(frozen=True)
 class MeanTerms:
     """A kernel's share of the posterior mean sum_m w_m k(x, z_m) (eq. 8), written in what the linearised
-    free run's mean recursion (``freerun._MeanRecursion``) computes once per step for all M points:
+    free run's mean recursion (``freerun.linear``) computes once per step for all M points:
     g_m = z_m . x and r_m^2 = |x - z_m|^2 (standardised units).
 
     The share is ``const`` + sum_p moments[p-1] sum_m w_m g_m^p (p = 1..3; None: no such term) +
@@ -270,14 +294,17 @@ class LinearisableKernel:
 
     def mean_terms(self, w: np.ndarray) -> MeanTerms | None:
         """This kernel's ``MeanTerms`` for mean weights w (M,); None: no such form (the linearised run
-        then takes the reference loop, ``freerun_reference.simulate_linear_reference``)."""
+        then takes its step-by-step loop)."""
         return None
 
 
 class LocalKernel:
-    """What the Monte Carlo free run's local model (``gp.local_model``) needs: second-order terms of
-    k(x, X) and of k(x, x) in the output-lag coordinates."""
+    """What the Monte Carlo free run's local model (``freerun.mc_local``) needs: second-order terms of
+    k(x, X) and of k(x, x) in the output-lag coordinates. A kernel declares ``has_local_profile`` when
+    ``local_profile`` gives them as coefficients (the local model's fused step); ``local_terms`` and
+    ``diag_local`` then follow from it."""
 
+    has_local_profile: bool = False
 
     def local_terms(self, x: np.ndarray, X: np.ndarray, ny: int):
         """Second-order terms of k(x, X_n) in the first ``ny`` coordinates of one point x (D,).
@@ -285,18 +312,46 @@ class LocalKernel:
         Returns (k, J, hess): k = K(x, X) (N,), J = d k / d x[:ny] (N, ny), and hess(beta), the
         (ny, ny) matrix sum_n beta_n d^2 k(x, X_n) / d x[:ny]^2.
         """
-        raise NotImplementedError
+        if not self.has_local_profile:
+            raise NotImplementedError(f"{type(self).__name__} has no local_profile; it must define local_terms")
+        d = x[None, :] - X
+        prof = self.local_profile(np.einsum("ij,ij->i", d, d)[None, :], (X @ x)[None, :],
+                                  np.array([float(x @ x)]))
+        Dy, Zy = d[:, :ny], X[:, :ny]
+        J = np.zeros((X.shape[0], ny))
+        if prof.a is not None:
+            J += prof.a[:, None] * Dy
+        if prof.b is not None:
+            J += prof.b[:, None] * Zy
+
+        def hess(beta):
+            H = np.zeros((ny, ny))
+            if prof.p is not None:
+                H += Dy.T @ ((beta * prof.p)[:, None] * Dy)
+            if prof.t is not None:
+                H += Zy.T @ ((beta * prof.t)[:, None] * Zy)
+            if prof.q is not None:
+                H[np.diag_indices(ny)] += beta @ prof.q
+            return H
+
+        return prof.k[0], J, hess
 
     def diag_local(self, x: np.ndarray, ny: int):
         """k(x, x), its gradient and Hessian in x[:ny] (float, (ny,), (ny, ny))."""
-        raise NotImplementedError
+        if not self.has_local_profile:
+            raise NotImplementedError(f"{type(self).__name__} has no local_profile; it must define diag_local")
+        sq = float(x @ x)
+        prof = self.local_profile(np.zeros((1, 1)), np.array([[sq]]), np.array([sq]))
+        xy = x[:ny]
+        H = prof.dH * np.outer(xy, xy)
+        H[np.diag_indices(ny)] += prof.dI
+        return float(prof.kd[0]), prof.dg * xy, H
 
     def local_profile(self, r2: np.ndarray, g: np.ndarray, sq: np.ndarray) -> LocalProfile | None:
-        """``local_terms`` and ``diag_local`` as coefficients (``LocalProfile``), for ``gp.LocalModel``'s
+        """``local_terms`` and ``diag_local`` as coefficients (``LocalProfile``), for ``LocalModel``'s
         fused step: r2 = |x_j - X_n|^2 and g = x_j . X_n (rows, N), sq = |x_j|^2 (rows,) for points x_j,
         the first of them the point x of the expansion; k(x_j, X_n) and k(x_j, x_j) at every row (as
-        ``from_gram`` and ``diag`` give them), the derivatives at x. None: not available
-        (``gp.LocalModel`` then calls ``local_terms``)."""
+        ``from_gram`` and ``diag`` give them), the derivatives at x. Only for ``has_local_profile``."""
         return None
 
 
@@ -353,6 +408,10 @@ class Sum(Kernel, GradientKernel, SparseBoundKernel, LinearisableKernel, LocalKe
 
     def supports(self, contract: type) -> bool:
         return all(p.supports(contract) for p in self._parts)
+
+    @property
+    def has_local_profile(self) -> bool:  # type: ignore[override]
+        return all(getattr(p, "has_local_profile", False) for p in self._parts)
 
     @property
     def param_names(self):  # type: ignore[override]

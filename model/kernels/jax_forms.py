@@ -1,12 +1,13 @@
 """The kernels' formulas as JAX functions of their log-parameters, for the accelerator backend.
 
-The numpy classes of this package own the formulas the product answers with; these are the same
-formulas written for ``jax.numpy`` (traceable, differentiable in theta and in the test point, no
-in-place arithmetic), used by ``model.freerun_jax`` and ``model.ml2_jax``. tests/test_backend_jax.py
-checks every kernel type here against its class, so the two cannot drift apart.
+The numpy classes of this package own the formulas the product answers with; their JAX forms evaluate
+the same formulas with ``jax.numpy`` (traceable, differentiable in theta and in the test point), used by
+``model.freerun.jax_backend`` and ``model.ml2_jax``. tests/test_backend_jax.py checks every kernel type
+against its class.
 
-``jax_kernel(kernel)`` returns a ``JaxKernel`` with three pure functions of a log-parameter vector
-``theta`` (the kernel's own ``get_theta()``, parts concatenated as ``Sum`` does):
+Each kernel gives its JAX form through ``Kernel.jax_part`` (the family bases evaluate the declared
+formula with jax.numpy). ``jax_kernel(kernel)`` returns a ``JaxKernel`` with three pure functions of a
+log-parameter vector ``theta`` (the kernel's own ``get_theta()``, parts concatenated as ``Sum`` does):
 
 * ``cross(theta, G, sq1, sq2)``: K(X1, X2) from the Gram matrix G = X1 X2^T and the squared norms
   (``Kernel.from_gram``); a white part adds nothing between points.
@@ -25,53 +26,7 @@ from typing import Callable
 import numpy as np
 
 from ..backend import require_jax
-from .base import SQRT3, Kernel
-from .cubic import CubicPolynomial
-from .stationary import RBF, Matern32
-from .white import White
-
-
-def _r2(jnp, G, sq1, sq2):
-    return jnp.maximum(sq1[..., :, None] + sq2[..., None, :] - 2.0 * G, 0.0)
-
-
-def _safe_sqrt(jnp, r2):
-    """sqrt with a finite gradient at 0 (a training covariance's diagonal)."""
-    pos = r2 > 0.0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0)
-
-
-def _matern32(jnp, th, G, sq1, sq2):
-    var, ls = jnp.exp(th[0]), jnp.exp(th[1])
-    a = _safe_sqrt(jnp, _r2(jnp, G, sq1, sq2)) * (SQRT3 / ls)
-    return var * (1.0 + a) * jnp.exp(-a)
-
-
-def _rbf(jnp, th, G, sq1, sq2):
-    var, ls = jnp.exp(th[0]), jnp.exp(th[1])
-    return var * jnp.exp(-0.5 * _r2(jnp, G, sq1, sq2) / (ls * ls))
-
-
-def _cubic(cap):
-    def cross(jnp, th, G, sq1, sq2):
-        var, s, b = jnp.exp(th[0]), jnp.exp(th[1]), jnp.exp(th[2])
-        t = s * G
-        if cap is None:
-            h = t + b
-            return var * h * h * h
-        # the expanded form with the constant term capped (CubicPolynomial._capped)
-        return var * t * (t * t + 3.0 * b * t + 3.0 * b * b) + jnp.minimum(var * b**3, cap)
-    return cross
-
-
-def _stationary_diag(jnp, th, sq):
-    return jnp.exp(th[0]) * jnp.ones_like(sq)
-
-
-def _cubic_diag(cap):
-    def diag(jnp, th, sq):
-        return _cubic(cap)(jnp, th, sq, sq, sq)  # x.x = sq: the cross formula at G = sq
-    return diag
+from .base import Kernel
 
 
 @dataclass(frozen=True)
@@ -93,26 +48,20 @@ class JaxKernel:
 
 
 def jax_kernel(kernel: Kernel) -> JaxKernel:
-    """The JAX twin of ``kernel`` (a ``Sum`` or one of Matern32, RBF, CubicPolynomial, White).
+    """The JAX twin of ``kernel`` (a ``Sum`` or one kernel), from each part's ``Kernel.jax_part``.
 
-    Raises NotImplementedError naming the kernel type when it has no JAX form."""
+    Raises NotImplementedError naming the kernel type when a part has no JAX form."""
     jnp = require_jax().numpy  # 64-bit arrays on
 
-    pieces = []  # (offset, n, cross or None, diag)
+    pieces = []  # (offset, n, cross or None, diag, white)
     off = 0
     for p in kernel.parts:
         n = len(p.param_names)
-        if type(p) is Matern32:
-            pieces.append((off, n, _matern32, _stationary_diag, False))
-        elif type(p) is RBF:
-            pieces.append((off, n, _rbf, _stationary_diag, False))
-        elif type(p) is CubicPolynomial:
-            pieces.append((off, n, _cubic(p.constant_cap), _cubic_diag(p.constant_cap), False))
-        elif type(p) is White:
-            pieces.append((off, n, None, _stationary_diag, True))
-        else:
-            raise NotImplementedError(f"kernel {type(p).__name__} has no JAX form (model/kernels/jax_forms.py); "
+        part = p.jax_part()
+        if part is None:
+            raise NotImplementedError(f"kernel {type(p).__name__} has no JAX form (Kernel.jax_part); "
                                       "use backend 'numpy'")
+        pieces.append((off, n, *part))
         off += n
 
     def cross(theta, G, sq1, sq2):

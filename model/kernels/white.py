@@ -6,10 +6,11 @@ import numpy as np
 from .base import CONTRACTS, Kernel, LocalProfile, MeanTerms
 
 
-class White(Kernel, *CONTRACTS):  # meets every contract of kernels.base
+class White(Kernel, *CONTRACTS, spec="white"):  # meets every contract of kernels.base
     """White-noise kernel: sigma^2 on the diagonal of K(X, X), zero between distinct sets."""
 
     param_names = ("variance",)
+    has_local_profile = True
 
     def __init__(self, variance: float = 1e-2) -> None:
         self.theta = np.log([variance]).astype(float)
@@ -35,17 +36,11 @@ class White(Kernel, *CONTRACTS):  # meets every contract of kernels.base
     def grad_dot(self, Xs, X, w, G=None, sq1=None, sq2=None):
         return np.zeros((Xs.shape[0], X.shape[1]))
 
-    def local_terms(self, x, X, ny):
-        return np.zeros(X.shape[0]), np.zeros((X.shape[0], ny)), lambda beta: np.zeros((ny, ny))
-
     def mean_terms(self, w):
         return MeanTerms()  # zero between distinct sets: no share of the mean
 
     def local_profile(self, r2, g, sq):
         return LocalProfile(np.zeros_like(r2), np.full(sq.shape[0], np.exp(self.theta[0])))
-
-    def diag_local(self, x, ny):
-        return float(np.exp(self.theta[0])), np.zeros(ny), np.zeros((ny, ny))
 
     def initial_theta(self, var_y, median_distance, n_dims):
         return np.log([1e-3 * var_y])
@@ -65,3 +60,9 @@ class White(Kernel, *CONTRACTS):  # meets every contract of kernels.base
 
     def grads_from_sums(self, sums, tr_w):
         return [0.5 * np.exp(self.theta[0]) * tr_w]  # dK/dlog var = var I
+
+    def jax_part(self):
+        def diag(jnp, th, sq):
+            return jnp.exp(th[0]) * jnp.ones_like(sq)
+
+        return None, diag, True

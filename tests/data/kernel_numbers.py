@@ -97,8 +97,9 @@ def kernel_methods(k, X, X2, w, beta) -> dict:
     return out
 
 
-def ml2_numbers(spec: str) -> dict:
-    """NLML and gradient (workspace, materialised) and the sparse bound with its gradient at fixed theta."""
+def ml2_numbers(spec: str, ulp_seed: int | None = None) -> dict:
+    """NLML and gradient (workspace, materialised) and the sparse bound with its gradient at fixed theta
+    (perturbed by one unit in the last place per entry, of random sign, with ``ulp_seed``)."""
     from gpnarx.model.kernels import make_kernel
     from gpnarx.model.ml2 import NLMLWorkspace, _nlml_and_grad_generic, initial_theta, nlml_and_grad
     from gpnarx.model.vfe import vfe_nlml_and_grad
@@ -108,11 +109,27 @@ def ml2_numbers(spec: str) -> dict:
     y = np.tanh(X[:, 0]) + 0.3 * X[:, 1] * X[:, 2] + 0.05 * rng.normal(size=90)
     k = make_kernel(spec)
     th = initial_theta(k, X, y) + rng.normal(0, 0.3, k.n_params + 1)
+    if ulp_seed is not None:
+        th = th + np.random.default_rng(ulp_seed).choice([-1.0, 1.0], th.size) * np.spacing(th)
     f, g = nlml_and_grad(th, k, X, y, NLMLWorkspace(k, X, chunk=64))
     f0, g0 = _nlml_and_grad_generic(th, k, X, y, float(np.exp(th[-1])))
     fv, gv = vfe_nlml_and_grad(th, k, X, y, X[::4].copy())
     return {"theta": _a(th), "nlml": float(f), "grad": _a(g), "nlml_generic": float(f0), "grad_generic": _a(g0),
             "vfe": float(fv), "vfe_grad": _a(gv)}
+
+
+def ml2_floors(spec: str, n: int = 8) -> dict:
+    """Per quantity of ``ml2_numbers``, the largest relative change (normwise) that one-ulp perturbations of
+    theta make: the quantity's own round-off floor (large for the sparse bound of an ill-conditioned K_mm)."""
+    base = ml2_numbers(spec)
+    floors = dict.fromkeys(base, 0.0)
+    for seed in range(n):
+        new = ml2_numbers(spec, ulp_seed=seed)
+        for key, b in base.items():
+            a, b = np.asarray(new[key]), np.asarray(b)
+            floors[key] = max(floors[key], float(np.max(np.abs(a - b)) / np.max(np.abs(b))))
+    floors.pop("theta")
+    return floors
 
 
 def fit_numbers(spec: str, theta=None) -> dict:
@@ -144,6 +161,7 @@ def main() -> None:
     data = {"kernels": {name: kernel_methods(k, ins["X"], ins["X2"], ins["w"], ins["beta"])
                         for name, k in kernels().items()},
             "ml2": {spec: ml2_numbers(spec) for spec in SPECS},
+            "ml2_floor": {spec: ml2_floors(spec) for spec in SPECS},
             "fits": {spec: fit_numbers(spec) for spec in SPECS}}
     OUT.write_text(json.dumps(data, indent=0, sort_keys=True) + "\n")
     print(f"wrote {OUT} ({OUT.stat().st_size} bytes)")
