@@ -27,7 +27,6 @@ from .base import (
     DEFAULT_LOG_BOUNDS,
     KERNEL_SPECS,
     KERNEL_TYPES,
-    SQRT3,
     GradientKernel,
     Kernel,
     LinearisableKernel,
@@ -81,7 +80,7 @@ def make_kernel(spec: str = "matern32+cubic") -> Kernel:
     return parts[0] if len(parts) == 1 else Sum(*parts)
 
 
-__all__ = ["CONTRACTS", "DEFAULT_CONSTANT_CAP", "DEFAULT_LOG_BOUNDS", "KERNEL_SPECS", "KERNEL_TYPES", "RBF", "SQRT3",
+__all__ = ["CONTRACTS", "DEFAULT_CONSTANT_CAP", "DEFAULT_LOG_BOUNDS", "KERNEL_SPECS", "KERNEL_TYPES", "RBF",
            "CubicPolynomial", "DotProductProfile", "GradientKernel", "Kernel", "LinearisableKernel", "LocalKernel",
            "LocalProfile", "Matern32", "MeanTerms", "SparseBoundKernel", "StationaryProfile", "Sum", "White",
            "WorkspaceKernel", "check_constant_cap", "kernel_from_dict", "make_kernel", "require",

@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SQRT3 = np.sqrt(3.0)
 DEFAULT_LOG_BOUNDS = (-12.0, 12.0)  # every log-parameter unless a kernel's ``log_param_bounds`` says otherwise
 KERNEL_TYPES: dict[str, type] = {}  # registered kernels by class name (``to_dict``'s "type")
 KERNEL_SPECS: dict[str, type] = {}  # registered kernels by spec name (``make_kernel``'s parts)
