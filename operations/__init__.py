@@ -3,11 +3,14 @@
 Between the method (``gpnarx.model``) and storage (``gpnarx.storage``) below, and the front ends above
 (import contracts in pyproject.toml; docs/architecture.md):
 
-- ``base``: a request (``Request``), the bounds it is checked against (``Limits``), its refusals
-  (``OperationError``), the sampling-rate and Monte Carlo path rules, ``plan`` and ``compute``.
+- ``base``: ``Operation`` (plan and compute, the same for every operation), a request (``Request``), the
+  bounds it is checked against (``Limits``), its refusals (``OperationError``), the sampling-rate and Monte
+  Carlo path rules.
+- ``predict``, ``loops``, ``novelty``: one ``Operation`` each (its own checks, free-run options and answer);
+  ``run``: the table of them by name (``OPERATIONS``), ``plan`` and ``compute``.
 - ``stream_token``: a free run's state as a signed token a client carries between the calls of a stream.
-- ``cycle_stream``: the cycles a loops stream has completed so far (the loops operation's carry).
-- ``novelty_window``: a novelty stream's rolling window (the novelty operation's carry).
+- ``cycle_stream``: the cycles a loops stream has completed so far (what the loops operation carries).
+- ``novelty_window``: a novelty stream's rolling window (what the novelty operation carries).
 """
 from .base import (
     CONFLICT,
@@ -15,23 +18,20 @@ from .base import (
     INVALID,
     MC_PATHS_MAX,
     MC_PATHS_MAX_ENV,
-    OPERATIONS,
     TOO_LARGE,
     Answer,
     Limits,
+    Operation,
     OperationError,
     Plan,
     Request,
     check_fs,
-    compute,
-    default_mc_paths,
     mc_paths_max,
-    novelty_of,
-    physics_of,
-    plan,
-    start_of,
 )
+from .loops import physics_of
+from .novelty import novelty_of
+from .run import OPERATIONS, compute, default_mc_paths, operation, plan
 
 __all__ = ["CONFLICT", "DEFAULT_MC_PATHS", "INVALID", "MC_PATHS_MAX", "MC_PATHS_MAX_ENV", "OPERATIONS", "TOO_LARGE",
-           "Answer", "Limits", "OperationError", "Plan", "Request", "check_fs", "compute", "default_mc_paths",
-           "mc_paths_max", "novelty_of", "physics_of", "plan", "start_of"]
+           "Answer", "Limits", "Operation", "OperationError", "Plan", "Request", "check_fs", "compute",
+           "default_mc_paths", "mc_paths_max", "novelty_of", "operation", "physics_of", "plan"]

@@ -1,12 +1,14 @@
-"""The three operations on a loaded bundle: predict, loops and novelty, written once.
+"""What the three operations share: the request, its bounds and refusals, the plan and the free run.
 
-The HTTP service (``service.ops``, the routes and the batch) and the CLI (``gpnarx predict|loops|novelty``)
-both run them through this module, framework-free:
+``Operation`` is one operation (``predict``, ``loops``, ``novelty``: one subclass each, in a module of its own,
+and the table ``run.OPERATIONS`` by name):
 
-- ``plan(operation, req, bundle, limits)``: cheap checks of a request against the bundle and the bounds
-  (fs, lengths, y0, start, Monte Carlo paths and work, backend, stream state), before any work is queued.
-- ``compute(plan, req)``: the free run and what is derived from it; returns an ``Answer`` whose ``body``
-  is the operation's answer (a dict of numpy arrays, floats, strings and lists, the HTTP JSON answer).
+- ``Operation.plan(req, bundle, limits)``: cheap checks of a request against the bundle and the bounds
+  (fs, lengths, y0, start, Monte Carlo paths and work, backend, stream state; an operation adds its own in
+  ``validate``), before any work is queued.
+- ``Operation.compute(plan, req)``: the free run (with the operation's ``run_options``) and the operation's
+  ``answer`` derived from it; returns an ``Answer`` whose ``body`` is the operation's answer (a dict of numpy
+  arrays, floats, strings and lists, the HTTP JSON answer).
 
 ``req`` is anything with the record fields of the HTTP body (``Request`` here, or the service's pydantic
 ``RecordRequest``): ``u`` [input units], ``fs`` [Hz], ``y`` [output units] or None, ``y0`` or None,
@@ -22,25 +24,17 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
 from gpnarx.model.backend import jax_available
-from gpnarx.model.cycles import cov_window_for, cycles
 from gpnarx.model.envelope import assess, out_of_range
 from gpnarx.model.freerun import FreeRunState, check_state
-from gpnarx.model.metrics import summary
-from gpnarx.model.novelty import UnusableProbeContract, assess_novelty, novelty_start
+from gpnarx.model.novelty import novelty_start
 from gpnarx.model.record import FS_RTOL, fs_matches, resample_advice
-from gpnarx.model.restoring import loop_area, loop_units, restoring_force
 
-from .cycle_stream import STREAM_COV_WINDOW
-from .cycle_stream import advance as stream_cycles
-from .novelty_window import HTTP_WINDOW_SECONDS, RollingWindow
 from .stream_token import StateMismatch, StateTokenError, decode_state, encode_state, max_state_bytes
-
-OPERATIONS = ("predict", "loops", "novelty")
 
 INVALID, TOO_LARGE, CONFLICT = "invalid", "too_large", "conflict"
 
@@ -94,30 +88,6 @@ def mc_paths_max(environ=None) -> int:
     from gpnarx.runtime import env_int
 
     return env_int(MC_PATHS_MAX_ENV, MC_PATHS_MAX, environ, minimum=1)
-
-
-def default_mc_paths(bundle, operation: str = "predict") -> int:
-    """Monte Carlo paths of an answer whose request names none: the one rule of the CLI, the HTTP service
-    (predict, loops, novelty, batch), the /ui page (it sends none) and GET /v1/models/NAME.
-
-    ``bundle``: a loaded bundle (anything with ``manifest``) or a manifest dict. Novelty: the paths its
-    threshold was calibrated with (manifest ``novelty.mc_paths``, when > 0), so a score is compared with
-    scores of its own kind; otherwise, and for predict and loops, the trained config's ``[predict] mc_paths``
-    (manifest ``predict.mc_paths``); ``DEFAULT_MC_PATHS`` for a bundle that states neither.
-    """
-    manifest = bundle if isinstance(bundle, dict) else (getattr(bundle, "manifest", None) or {})
-    keys = (("novelty", "predict") if operation == "novelty" else ("predict",))
-    for key in keys:
-        section = manifest.get(key)
-        if not isinstance(section, dict):
-            continue
-        try:
-            paths = int(section.get("mc_paths") or 0)
-        except (TypeError, ValueError):
-            continue
-        if paths > 0:
-            return paths
-    return DEFAULT_MC_PATHS
 
 
 @dataclass(frozen=True)
@@ -180,51 +150,187 @@ def check_fs(fs, bundle) -> float:
                          f"{resample_advice(fs, bundle.fs)}", "fs", limit=FS_RTOL, model_fs=bundle.fs)
 
 
-def plan(operation: str, req, bundle, limits: Limits, budget: int | None = None) -> Plan:
-    """Check ``req`` against ``bundle`` (a loaded Bundle: name, version, fs [Hz], model, manifest) and
-    ``limits``; ``budget``: Monte Carlo path-steps left to this request (a batch's shared budget)."""
-    if operation not in OPERATIONS:
-        raise OperationError(f"operation must be one of {OPERATIONS}", "operation")
-    seed = getattr(req, "seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
-        raise OperationError(f"seed must be an integer in [0, 2^63), got {str(seed)[:40]}", "seed")
-    n = len(req.u)
-    if limits.max_samples is not None and n > limits.max_samples:
-        raise OperationError(f"u has {n} samples; the limit is {limits.max_samples} samples per record", "u",
-                             kind=TOO_LARGE, limit=limits.max_samples)
-    check_fs(req.fs, bundle)  # within FS_RTOL: the free run and what is derived from it use the model's fs
-    if req.y is not None and len(req.y) != n:
-        raise OperationError(f"y has {len(req.y)} samples but u has {n}; they must have the same length", "y")
-    if operation == "novelty" and req.y is None:
-        raise OperationError("y is required for novelty: the measured output record to score", "y")
-    ny = bundle.model.ny
-    if _given(req.y0):
-        if len(req.y0) < ny:
-            raise OperationError(f"y0 must hold at least ny={ny} initial outputs for this model, got "
-                                 f"{len(req.y0)}", "y0")
-        if n <= ny:
-            raise OperationError(f"u must be longer than ny={ny} samples when y0 is given, got {n}", "u")
-    if getattr(req, "start", None) == "rest" and _given(req.y0):
-        raise OperationError("start 'rest' and y0 contradict each other: y0 starts the free run from measured outputs; "
-                             "leave y0 out to start at rest, or send start 'measured'", "start")
-    if start_of(operation, req) == "measured" and req.y is None and not _given(req.y0):
-        raise OperationError(f"start 'measured' needs the record's measured output: send y (its first ny={ny} "
-                             f"samples start the free run) or y0", "start")
-    if operation == "loops":
-        physics_of(bundle)
-    if operation == "novelty":
-        novelty_of(bundle)
-    method = req.method or bundle.default_method(operation)
-    if method == "mc":
-        paths, work = _mc_work(req, n, limits, budget, default_mc_paths(bundle, operation))
-    else:
-        paths, work = 0, n
-    backend = req.backend or limits.backend
-    if backend == "jax" and not jax_available():
-        raise OperationError("backend 'jax' is not installed here (pip install 'gpnarx[jax]'); use backend "
-                             "'numpy'", "backend")
-    state = _stream_state(req, bundle, limits, method, paths, backend)
-    return Plan(operation, bundle, method, paths, work, backend, state, limits.stream_key)
+
+
+class Operation:
+    """One operation on a loaded bundle. A subclass names itself (``name``) and gives what is its own: the
+    checks of a request beyond the record's (``validate``), the options of its free run (``run_options``) and
+    its answer (``answer``); ``plan`` and ``compute`` are the same for every operation.
+
+    ``start``: the start rule of a request that names none and sends no y0 ('rest', or 'measured': from the
+    record's first ny outputs); ``mc_paths_from``: the manifest sections whose ``mc_paths`` give the default
+    Monte Carlo paths, first found wins (``default_mc_paths``).
+    """
+
+    name: ClassVar[str]
+    start: ClassVar[str] = "rest"
+    mc_paths_from: ClassVar[tuple[str, ...]] = ("predict",)
+
+    # ---------------------------------------------------------------- what an operation gives
+    def validate(self, req, bundle) -> None:
+        """The operation's own checks of ``req`` against ``bundle`` (an ``OperationError`` to refuse it)."""
+
+    def check_bundle(self, bundle) -> None:
+        """Whether ``bundle`` can do this operation at all (an ``OperationError``, kind ``conflict``, if not)."""
+
+    def run_options(self, plan: Plan, req, u: np.ndarray) -> dict:
+        """Extra keyword arguments of the free run (``GPNARX.simulate``)."""
+        return {}
+
+    def answer(self, plan: Plan, req, u: np.ndarray, y: np.ndarray | None, run, common: dict, flags: dict,
+               checkpoint: Callable[[], None] | None) -> tuple[dict, dict | None, dict | None]:
+        """(answer body, ``metrics.summary`` of y against the band or None, what a stream carries to its next
+        chunk or None) of the free run ``run``; ``common``: the members every answer holds."""
+        raise NotImplementedError
+
+    # ---------------------------------------------------------------- the same for every operation
+    def default_mc_paths(self, bundle) -> int:
+        """Monte Carlo paths of an answer whose request names none: the one rule of the CLI, the HTTP service
+        (predict, loops, novelty, batch), the /ui page (it sends none) and GET /v1/models/NAME.
+
+        ``bundle``: a loaded bundle (anything with ``manifest``) or a manifest dict. The first of the manifest's
+        ``mc_paths_from`` sections with ``mc_paths`` > 0 (novelty: the paths its threshold was calibrated with,
+        ``novelty.mc_paths``, so a score is compared with scores of its own kind; then the trained config's
+        ``[predict] mc_paths``, ``predict.mc_paths``); ``DEFAULT_MC_PATHS`` for a bundle that states none.
+        """
+        manifest = bundle if isinstance(bundle, dict) else (getattr(bundle, "manifest", None) or {})
+        for key in self.mc_paths_from:
+            section = manifest.get(key)
+            if not isinstance(section, dict):
+                continue
+            try:
+                paths = int(section.get("mc_paths") or 0)
+            except (TypeError, ValueError):
+                continue
+            if paths > 0:
+                return paths
+        return DEFAULT_MC_PATHS
+
+    def start_of(self, req) -> str:
+        """The request's start rule: 'state' when it continues a stream, its ``start`` field, else 'measured'
+        when it sends y0, and the operation's ``start`` otherwise."""
+        if getattr(req, "state", None) is not None:
+            return "state"
+        start = getattr(req, "start", None)
+        if start is not None:
+            return start
+        return "measured" if self.start == "measured" or _given(getattr(req, "y0", None)) else "rest"
+
+    def plan(self, req, bundle, limits: Limits, budget: int | None = None) -> Plan:
+        """Check ``req`` against ``bundle`` (a loaded Bundle: name, version, fs [Hz], model, manifest) and
+        ``limits``; ``budget``: Monte Carlo path-steps left to this request (a batch's shared budget)."""
+        seed = getattr(req, "seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
+            raise OperationError(f"seed must be an integer in [0, 2^63), got {str(seed)[:40]}", "seed")
+        n = len(req.u)
+        if limits.max_samples is not None and n > limits.max_samples:
+            raise OperationError(f"u has {n} samples; the limit is {limits.max_samples} samples per record", "u",
+                                 kind=TOO_LARGE, limit=limits.max_samples)
+        check_fs(req.fs, bundle)  # within FS_RTOL: the free run and what is derived from it use the model's fs
+        if req.y is not None and len(req.y) != n:
+            raise OperationError(f"y has {len(req.y)} samples but u has {n}; they must have the same length", "y")
+        self.validate(req, bundle)
+        ny = bundle.model.ny
+        if _given(req.y0):
+            if len(req.y0) < ny:
+                raise OperationError(f"y0 must hold at least ny={ny} initial outputs for this model, got "
+                                     f"{len(req.y0)}", "y0")
+            if n <= ny:
+                raise OperationError(f"u must be longer than ny={ny} samples when y0 is given, got {n}", "u")
+        if getattr(req, "start", None) == "rest" and _given(req.y0):
+            raise OperationError("start 'rest' and y0 contradict each other: y0 starts the free run from measured "
+                                 "outputs; leave y0 out to start at rest, or send start 'measured'", "start")
+        if self.start_of(req) == "measured" and req.y is None and not _given(req.y0):
+            raise OperationError(f"start 'measured' needs the record's measured output: send y (its first ny={ny} "
+                                 f"samples start the free run) or y0", "start")
+        self.check_bundle(bundle)
+        method = req.method or bundle.default_method(self.name)
+        if method == "mc":
+            paths, work = _mc_work(req, n, limits, budget, self.default_mc_paths(bundle))
+        else:
+            paths, work = 0, n
+        backend = req.backend or limits.backend
+        if backend == "jax" and not jax_available():
+            raise OperationError("backend 'jax' is not installed here (pip install 'gpnarx[jax]'); use backend "
+                                 "'numpy'", "backend")
+        state = _stream_state(req, bundle, limits, method, paths, backend)
+        return Plan(self.name, bundle, method, paths, work, backend, state, limits.stream_key)
+
+    def compute(self, plan: Plan, req, *, progress: Callable | None = None,
+                checkpoint: Callable[[], None] | None = None) -> Answer:
+        """Run the planned operation on ``req``.
+
+        progress: ``progress(done, total)`` from the free run (samples); checkpoint: called between the stages
+        (a cancellation point: whatever it raises ends the operation).
+        """
+        if checkpoint is not None:
+            checkpoint()
+        b = plan.bundle
+        u = np.asarray(req.u, dtype=float)
+        run = self._simulate(plan, req, u, progress)
+        flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
+        common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
+                  "backend": run.backend, "seed": int(req.seed), "start": self.started(plan, req), **flags}
+        steps = int(run.path_steps) if run.method == "mc" else 0
+        y = None if req.y is None else np.asarray(req.y, float)
+        body, metrics, carry = self.answer(plan, req, u, y, run, common, flags, checkpoint)
+        body.update(_stream_fields(plan, req, run, carry))
+        return Answer(body, steps, run, metrics)
+
+    def started(self, plan: Plan, req) -> str:
+        """How the free run actually started, as an answer's ``start`` says it: 'state' (a stream's later chunk),
+        'measured' (from y0 or y's first ny samples) or 'rest' (also a 'measured' request whose y is not longer
+        than ny samples: nothing is left to start from)."""
+        if plan.state is not None:
+            return "state"
+        return "measured" if self.initial_outputs(plan, req) is not None else "rest"
+
+    def initial_outputs(self, plan: Plan, req):
+        """y0 of the free run: the record's measured start, a request's y0, or None (rest, or a stream's state)."""
+        if self.start_of(req) == "measured":
+            return novelty_start(req.y if req.y is not None else [], plan.bundle.model.ny, req.y0)
+        if plan.state is not None:
+            return None
+        return req.y0 if _given(req.y0) else None
+
+    def culprit(self, plan: Plan, req, u: np.ndarray, head: str) -> tuple[str, str]:
+        """(message, field) of an answer that came out non-finite: the measured start (``y0``, or ``y``'s first
+        ny samples) when it lies beyond the trained output range and u does not lie beyond the input range,
+        else u."""
+        env = getattr(plan.bundle.model, "envelope_", None)
+        y_start = self.initial_outputs(plan, req)
+        flags = out_of_range(env, u, y_start) if y_start is not None else []
+        if "y" in flags and "u" not in flags:
+            field = "y0" if _given(req.y0) else "y"
+            where = "y0" if field == "y0" else f"the first ny={plan.bundle.model.ny} samples of y (the measured start)"
+            return (head + f"{where} lie far outside the output range the model was trained on (peak "
+                           f"{env['y_peak']:.4g}); check their unit and scale", field)
+        return (head + "u is probably far outside the amplitude or frequency range the model was trained on", "u")
+
+    def _simulate(self, plan: Plan, req, u: np.ndarray, progress: Callable | None):
+        model = plan.bundle.model
+        try:
+            with np.errstate(all="ignore"):
+                stream = {"state": plan.state, "open_end": bool(getattr(req, "return_state", False))}
+                run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed),
+                                     y0=self.initial_outputs(plan, req), confidence=float(req.confidence),
+                                     method=plan.method, backend=plan.backend, progress=progress,
+                                     **self.run_options(plan, req, u), **stream)
+        except np.linalg.LinAlgError:  # a factorisation of non-finite numbers (a ValueError too): the run diverged
+            raise OperationError(*self._diverged(plan, req, u)) from None
+        except ValueError as exc:
+            msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
+            raise OperationError(msg, _field_from_message(msg)) from None
+        if not (np.all(np.isfinite(run.mean)) and np.all(np.isfinite(run.lower)) and np.all(np.isfinite(run.upper))
+                and np.all(np.isfinite(run.std))):
+            raise OperationError(*self._diverged(plan, req, u))
+        return run
+
+    def _diverged(self, plan: Plan, req, u: np.ndarray) -> tuple[str, str]:
+        """(message, field) of a free run that gave non-finite outputs (``culprit``)."""
+        head = (f"the free-run prediction of {plan.bundle.name}:{plan.bundle.version} diverged for this input "
+                "(non-finite outputs): ")
+        return self.culprit(plan, req, u, head)
 
 
 def _mc_work(req, n: int, limits: Limits, budget: int | None, model_default: int) -> tuple[int, int]:
@@ -278,60 +384,6 @@ def _stream_state(req, bundle, limits: Limits, method: str, paths: int, backend:
     return state
 
 
-def start_of(operation: str, req) -> str:
-    """The request's start rule: 'state' when it continues a stream, its ``start`` field, else 'measured' for
-    novelty or when it sends y0, and 'rest' otherwise."""
-    if getattr(req, "state", None) is not None:
-        return "state"
-    start = getattr(req, "start", None)
-    if start is not None:
-        return start
-    return "measured" if operation == "novelty" or _given(getattr(req, "y0", None)) else "rest"
-
-
-def started(plan: Plan, req) -> str:
-    """How the free run actually started, as an answer's ``start`` says it: 'state' (a stream's later chunk),
-    'measured' (from y0 or y's first ny samples) or 'rest' (also a 'measured' request whose y is not longer
-    than ny samples: nothing is left to start from)."""
-    if plan.state is not None:
-        return "state"
-    return "measured" if _initial_outputs(plan, req) is not None else "rest"
-
-
-def physics_of(bundle) -> dict:
-    """The bundle's physical constants for the restoring force: ``mass`` [kg, > 0], ``input_gain`` (force per
-    input unit, default 1) and ``output`` ('displacement' or 'velocity'), with its other scalar entries."""
-    phys = bundle.manifest.get("physics") or {}
-    try:
-        mass = float(phys["mass"])
-    except (KeyError, TypeError, ValueError):
-        raise OperationError(f"model {bundle.name}:{bundle.version} has no physical constants (mass) for the "
-                             f"restoring force; loops are not available for it", kind=CONFLICT) from None
-    gain = phys.get("input_gain", 1.0)
-    output = phys.get("output", "displacement")
-    if not (mass > 0 and math.isfinite(mass)) or output not in ("displacement", "velocity"):
-        raise OperationError(f"model {bundle.name}:{bundle.version} has unusable physical constants "
-                             f"(mass={mass!r}, output={output!r})", kind=CONFLICT)
-    try:
-        gain = float(gain)
-    except (TypeError, ValueError):
-        raise OperationError(f"model {bundle.name}:{bundle.version} has an unusable input_gain",
-                             kind=CONFLICT) from None
-    return {**{k: v for k, v in phys.items() if isinstance(v, (int, float, str, bool))},
-            "mass": mass, "input_gain": gain, "output": output}
-
-
-def novelty_of(bundle) -> dict:
-    """The bundle's novelty calibration (a dict with a numeric ``threshold``)."""
-    nov = bundle.manifest.get("novelty")
-    if not isinstance(nov, dict) or not isinstance(nov.get("threshold"), (int, float)):
-        raise OperationError(f"model {bundle.name}:{bundle.version} has no novelty calibration: give it a threshold "
-                             f"with 'gpnarx calibrate' on healthy records (or train it with 'healthy' records), or "
-                             f"use a monitor bundle (the default registry's bert-real-monitor and "
-                             f"bert-standin-monitor have one)", "name", kind=CONFLICT)
-    return nov
-
-
 _FIELD_RE = re.compile(r"^(u|y0|y|fs|confidence|n_paths|mc_paths|method|seed)\b")
 
 
@@ -342,66 +394,12 @@ def _field_from_message(msg: str) -> str | None:
     return {"n_paths": "mc_paths"}.get(m.group(1), m.group(1))
 
 
-def _initial_outputs(plan: Plan, req):
-    """y0 of the free run: the record's measured start, a request's y0, or None (rest, or a stream's state)."""
-    if start_of(plan.operation, req) == "measured":
-        return novelty_start(req.y if req.y is not None else [], plan.bundle.model.ny, req.y0)
-    if plan.state is not None:
-        return None
-    return req.y0 if _given(req.y0) else None
-
-
-def _simulate(plan: Plan, req, u: np.ndarray, progress: Callable | None):
-    model = plan.bundle.model
-    try:
-        with np.errstate(all="ignore"):
-            stream = {"state": plan.state, "open_end": bool(getattr(req, "return_state", False))}
-            extra = {}
-            if plan.operation == "loops":  # per-cycle energy intervals need every path / the covariance band
-                window = (STREAM_COV_WINDOW if _is_stream(plan, req)  # a stream's chunks keep one window
-                          else cov_window_for(u, plan.bundle.fs, model.ny))
-                extra = {"keep_paths": True} if plan.method == "mc" else {"cov_window": max(window, model.ny)}
-            run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed), y0=_initial_outputs(plan, req),
-                                 confidence=float(req.confidence), method=plan.method, backend=plan.backend,
-                                 progress=progress, **extra, **stream)
-    except np.linalg.LinAlgError:  # a factorisation of non-finite numbers (a ValueError too): the run diverged
-        raise OperationError(*_diverged(plan, req, u)) from None
-    except ValueError as exc:
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
-        raise OperationError(msg, _field_from_message(msg)) from None
-    if not (np.all(np.isfinite(run.mean)) and np.all(np.isfinite(run.lower)) and np.all(np.isfinite(run.upper))
-            and np.all(np.isfinite(run.std))):
-        raise OperationError(*_diverged(plan, req, u))
-    return run
-
-
-def _diverged(plan: Plan, req, u: np.ndarray) -> tuple[str, str]:
-    """(message, field) of a free run that gave non-finite outputs (``_culprit``)."""
-    head = (f"the free-run prediction of {plan.bundle.name}:{plan.bundle.version} diverged for this input "
-            "(non-finite outputs): ")
-    return _culprit(plan, req, u, head)
-
-
-def _culprit(plan: Plan, req, u: np.ndarray, head: str) -> tuple[str, str]:
-    """(message, field) of an answer that came out non-finite: the measured start (``y0``, or ``y``'s first ny
-    samples) when it lies beyond the trained output range and u does not lie beyond the input range, else u."""
-    env = getattr(plan.bundle.model, "envelope_", None)
-    y_start = _initial_outputs(plan, req)
-    flags = out_of_range(env, u, y_start) if y_start is not None else []
-    if "y" in flags and "u" not in flags:
-        field = "y0" if _given(req.y0) else "y"
-        where = "y0" if field == "y0" else f"the first ny={plan.bundle.model.ny} samples of y (the measured start)"
-        return (head + f"{where} lie far outside the output range the model was trained on (peak "
-                       f"{env['y_peak']:.4g}); check their unit and scale", field)
-    return (head + "u is probably far outside the amplitude or frequency range the model was trained on", "u")
-
-
-def _is_stream(plan: Plan, req) -> bool:
+def is_stream(plan: Plan, req) -> bool:
     """A call of a stream: it continues a state, or asks for one."""
     return plan.state is not None or bool(getattr(req, "return_state", False))
 
 
-def _carried(plan: Plan, key: str) -> dict | None:
+def carried(plan: Plan, key: str) -> dict | None:
     """What the request's state carries for operation ``key`` (None: nothing, or no state)."""
     return ((plan.state.carry or {}).get(key)) if plan.state is not None else None
 
@@ -409,7 +407,7 @@ def _carried(plan: Plan, key: str) -> dict | None:
 def _stream_fields(plan: Plan, req, run, carry: dict | None = None) -> dict:
     """The answer's stream members: the end state's token (with what the operation carries to the next chunk,
     ``carry``) when asked for, and the stream position."""
-    if not _is_stream(plan, req):
+    if not is_stream(plan, req):
         return {}
     out = {"stream_position": int(run.state.position)}  # plan: streams run on numpy, which returns a state
     if getattr(req, "return_state", False):
@@ -418,117 +416,12 @@ def _stream_fields(plan: Plan, req, run, carry: dict | None = None) -> dict:
     return out
 
 
-def _num(v) -> float | None:
+def finite_or_none(v) -> float | None:
+    """``v`` as a float, None when it is not finite (JSON has no NaN)."""
     v = float(v)
     return v if math.isfinite(v) else None
 
 
-def compute(plan: Plan, req, *, progress: Callable | None = None,
-            checkpoint: Callable[[], None] | None = None) -> Answer:
-    """Run the planned operation on ``req``.
-
-    progress: ``progress(done, total)`` from the free run (samples); checkpoint: called between the stages
-    (a cancellation point: whatever it raises ends the operation).
-    """
-    if checkpoint is not None:
-        checkpoint()
-    b = plan.bundle
-    u = np.asarray(req.u, dtype=float)
-    run = _simulate(plan, req, u, progress)
-    flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
-    common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
-              "backend": run.backend, "seed": int(req.seed), "start": started(plan, req), **flags}
-    steps = int(run.path_steps) if run.method == "mc" else 0
-    y = None if req.y is None else np.asarray(req.y, float)
-    carry = None  # what the operation carries to a stream's next chunk (FreeRunState.carry)
-    if plan.operation == "predict":
-        body, metrics = _predict(plan, u, y, run, common)
-    elif plan.operation == "loops":
-        (body, carry), metrics = _loops(plan, req, u, y, run, common, checkpoint), None
-    else:
-        (body, carry), metrics = _novelty(plan, req, u, run, common, flags), None
-    body.update(_stream_fields(plan, req, run, carry))
-    return Answer(body, steps, run, metrics)
-
-
-def _head(b) -> dict:
+def head(b) -> dict:
+    """The members that name the model of every answer."""
     return {"model": b.name, "version": b.version}
-
-
-def _predict(plan: Plan, u, y, run, common) -> tuple[dict, dict | None]:
-    b = plan.bundle
-    out = {**_head(b), "mean": run.mean, "lower": run.lower, "upper": run.upper, "std": run.std, **common,
-           "n_samples": int(u.size), "units": dict(b.manifest.get("units") or {})}
-    if y is None:
-        return out, None
-    s = summary(y, run.mean, run.lower, run.upper)
-    out.update(fit=_num(s["fit"]), rmse=_num(s["rmse"]), coverage=_num(s["coverage"]))
-    return out, s
-
-
-def _loops(plan: Plan, req, u, y, run, common, checkpoint) -> tuple[dict, dict | None]:
-    b = plan.bundle
-    phys = physics_of(b)
-    kw = dict(fs=b.fs, mass=phys["mass"], input_gain=phys["input_gain"], output=phys["output"])
-
-    def loop(yy):
-        x, r = restoring_force(u, yy, **kw)
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
-            raise OperationError(*_culprit(plan, req, u, "the restoring force is not finite for this record: "))
-        return {"x": x, "force": r, "area": loop_area(x, r)}
-
-    out = {**_head(b), **common, "n_samples": int(u.size), "physics": phys,
-           "units": loop_units(b.manifest.get("units"), phys),
-           "predicted": loop(run.mean), "lower": loop(run.lower), "upper": loop(run.upper)}
-    if y is not None:
-        out["measured"] = loop(y)
-    if checkpoint is not None:
-        checkpoint()
-    carry = None
-    if _is_stream(plan, req):  # the cycles completed so far, cut causally (operations.cycle_stream)
-        before = _carried(plan, "loops") or {"position": int(run.state.position) - int(u.size)}
-        try:
-            done, carry = stream_cycles(before, u, run.mean, fs=b.fs, physics=phys, y=y, paths=run.paths,
-                                        cov_band=run.cov_band, confidence=float(run.confidence))
-        except ValueError as exc:
-            raise OperationError(str(exc), "state") from None
-        cyc = {"cycles": done, "basis": "stream", "frequency": None, "n_cycles": len(done), "steady_from": 0}
-    else:
-        cyc = cycles(u, b.fs, phys, run.mean, paths=run.paths, cov_band=run.cov_band, y=y,
-                     confidence=float(run.confidence))
-    out["cycles"] = [{k: (_num(v) if isinstance(v, float) else v) for k, v in c.items()} for c in cyc["cycles"]]
-    out["cycle_basis"] = {k: cyc[k] for k in ("basis", "frequency", "n_cycles", "steady_from")}
-    return out, carry
-
-
-def _novelty(plan: Plan, req, u, run, common, flags) -> tuple[dict, dict | None]:
-    b = plan.bundle
-    nov = novelty_of(b)
-    try:
-        # a stream's later chunk continues a run begun by the probe's rule: no new start-up to judge
-        rule = "measured" if plan.state is not None else started(plan, req)
-        a = assess_novelty(nov, u, req.y, b.fs, run, start=rule, flags=flags)
-    except UnusableProbeContract as exc:  # a malformed contract in the manifest: say so rather than guess
-        raise OperationError(f"model {b.name}:{b.version} has an unusable probe contract: {exc}",
-                             kind=CONFLICT) from None
-    except ValueError as exc:
-        raise OperationError(f"cannot score this record: {exc}", "y") from None
-    probe = {k: a.pop(k) for k in ("probe_match", "probe_reasons", "drive")}
-    flagged = a.pop("out_of_range")
-    out = {**_head(b), **a, **common, "out_of_range": flagged, **probe}
-    if not _is_stream(plan, req):
-        return out, None
-    try:  # the stream's rolling window (operations.novelty_window), carried in the token
-        window = RollingWindow.from_carry(_carried(plan, "novelty"), int(round(HTTP_WINDOW_SECONDS * b.fs)))
-        window.add(u, req.y, run.mean, run.std, flags)
-        out["novelty_window"] = window.assess(nov, b.fs)
-    except UnusableProbeContract as exc:
-        raise OperationError(f"model {b.name}:{b.version} has an unusable probe contract: {exc}",
-                             kind=CONFLICT) from None
-    except ValueError as exc:
-        raise OperationError(f"cannot score the stream's rolling window: {exc}", "state") from None
-    return out, window.as_carry()
-
-
-__all__ = ["CONFLICT", "DEFAULT_MC_PATHS", "INVALID", "OPERATIONS", "TOO_LARGE", "Answer", "Limits", "OperationError",
-           "Plan", "Request", "compute", "default_mc_paths", "novelty_of", "physics_of", "plan", "start_of"]

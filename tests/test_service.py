@@ -718,7 +718,7 @@ def test_backend_in_the_body_picks_the_free_runs_array_backend(client, monkeypat
     numbers to rounding); a backend that is not one of numpy/jax, or jax on a server without it, is a 422
     naming the field."""
     pytest.importorskip("jax")
-    from gpnarx.model import operations
+    from gpnarx.operations import base as operations_base
 
     body, _ = rec()
     body["method"] = "linear"
@@ -728,6 +728,6 @@ def test_backend_in_the_body_picks_the_free_runs_array_backend(client, monkeypat
     assert np.allclose(b["mean"], a["mean"], rtol=1e-7, atol=1e-12) and np.allclose(b["upper"], a["upper"], rtol=1e-6)
     r = client.post("/v1/models/boucwen/predict", json={**body, "backend": "cuda"})
     assert r.status_code == 422 and "backend" in r.text
-    monkeypatch.setattr(operations, "jax_available", lambda: False)
+    monkeypatch.setattr(operations_base, "jax_available", lambda: False)
     r = client.post("/v1/models/boucwen/predict", json={**body, "backend": "jax"})
     assert r.status_code == 422 and r.json()["field"] == "backend" and "not installed" in r.json()["detail"]
