@@ -33,6 +33,7 @@ COMMAND_MODULES = [
     "gpnarx.cli.cmd_train",
     "gpnarx.cli.cmd_predict",
     "gpnarx.cli.cmd_predict_many",
+    "gpnarx.cli.cmd_validate",
     "gpnarx.cli.cmd_stream",
     "gpnarx.cli.cmd_calibrate",
     "gpnarx.cli.cmd_serve",
