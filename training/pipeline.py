@@ -330,7 +330,9 @@ def write_report(report_dir: Path, cfg: DatasetConfig, model: GPNARX, plan: _Pla
     # the report module imports matplotlib and selects its Agg backend: imported only when a
     # report is written, so importing the pipeline leaves a caller's plotting set-up alone
     from gpnarx.training.report import write_report as write_html_report
+    from gpnarx.training.report_residuals import attach_residual_tests
 
+    attach_residual_tests(model, evals)  # the verify/validate records' one-step residual tests
     full = write_html_report(report_dir, f"GP-NARX {cfg.name}", {
         "config": str(cfg.path), "ny": model.ny, "nu": model.nu, "mode": model.mode,
         "kernel": repr(model.kernel_), "noise_var": model.noise_var_,

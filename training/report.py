@@ -45,9 +45,9 @@ from gpnarx.training.report_metrics import (
 )
 
 try:
-    from gpnarx.training.report_figures import FIGURE_LOCK, lag_surface_figure, record_figure
+    from gpnarx.training.report_figures import FIGURE_LOCK, lag_surface_figure, record_figure, residual_figure
 except ImportError:  # the core install: reports without figures
-    FIGURE_LOCK, lag_surface_figure, record_figure = threading.Lock(), None, None
+    FIGURE_LOCK, lag_surface_figure, record_figure, residual_figure = threading.Lock(), None, None, None
 
 GP_NAME = "GP-NARX"
 #: why a report has no figures, and how to get them (report.json ``figures_missing``, the page's note)
@@ -292,6 +292,8 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
         parts.append("<p class='note'>Highest fit per record in bold. Fit is eq. (14): "
                      "100 (1 - ||y - &mu;|| / ||y||).</p>")
 
+    parts += _residual_section(rec_entries, embedded)
+
     # figures
     parts.append("<h2>Figures</h2>")
     if missing:
@@ -308,6 +310,58 @@ def _html(title, summary, rec_entries, lag, baselines_tab, paper, fig_names, lag
                          f"(d) hysteresis loop.</figcaption></figure>")
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def _residual_section(rec_entries, embedded: dict) -> list[str]:
+    """The page's residual tests (records with ``residual_tests``, ``training.report_residuals``): a table of
+    the one-step fit, the share of lags outside the limits and the tests' p-values, and each record's figure."""
+    esc = html.escape
+    tested = [e for e in rec_entries if e.get("residual_tests")]
+    if not tested:
+        return []
+    parts = ["<h2>Residual tests</h2>"]
+    rows, lags, conf = [], None, None
+    for e in tested:
+        c = e["residual_tests"]
+        head = [esc(e["name"]), esc(str(e.get("role", "")))]
+        if c.get("error"):
+            rows.append(head + [f"not tested: {esc(c['error'])}"] + ["&ndash;"] * 7)
+            continue
+        t = c["residual_tests"]
+        lags, conf = t["lags"], t["confidence"]
+        auto, cross = t["autocorrelation"], t.get("cross_correlation") or {}
+
+        def verdict(v):
+            return "&ndash;" if v is None else ("yes" if v else ("no", "best"))
+
+        rows.append(head + [_fmt(t["n"]), _fmt(c.get("fit")),
+                            f"{auto['n_outside']} / {len(auto['lag'])}", _fmt(auto["ljung_box"]["p_value"]),
+                            verdict(auto["white"]),
+                            f"{cross['n_outside']} / {len(cross['lag'])}" if cross else "&ndash;",
+                            _fmt((cross.get("portmanteau") or {}).get("p_value")), verdict(cross.get("independent"))])
+    parts.append(_table(["record", "role", "n", "one-step fit [%]", "autocorr. lags outside", "Ljung-Box p",
+                         "white", "cross-corr. lags outside", "portmanteau p", "independent of u"], rows,
+                        left_cols=2))
+    level = f"{100 * conf:g} %" if conf is not None else "99 %"
+    parts.append(
+        "<p class='note'>One-step-ahead residuals e = y &minus; &mu; (eqs. 8-9 from the measured lags) of the "
+        "verify and validate records: their autocorrelation at lags 1.." + _fmt(lags) + " and their "
+        "cross-correlation with the input u at lags &minus;" + _fmt(lags) + ".." + _fmt(lags) + " (u leads e for "
+        "positive lags), both normalised, means removed, with the " + level + " limits &plusmn;z/&radic;N, which "
+        "hold for a white residual independent of the input (about 1 % of lags outside then). White: Ljung-Box "
+        "p &ge; 0.01; independent of u: the portmanteau N &Sigma; r<sub>ue</sub><sup>2</sup> (2L+1 degrees of "
+        "freedom) p &ge; 0.01 (no: in bold). Residuals that still correlate with the input mean dynamics the "
+        "model has not learnt, however good its fit; coloured residuals that do not are model error or "
+        "coloured measurement noise. On long records the limits are narrow: judge the size of the "
+        "correlations in the figures too.</p>")
+    for e in tested:
+        fn = e.get("residual_figure")
+        if fn:
+            parts.append(f"<figure>{_img(fn, 'residual tests of ' + e['name'], embedded)}<figcaption>"
+                         f"<b>{esc(e['name'])}</b> ({esc(str(e.get('role', '')))}): one-step residuals' (a) "
+                         f"autocorrelation and (b) cross-correlation with the input, {level} limits dashed, lags "
+                         f"outside them in red.</figcaption></figure>")
+    return parts
 
 
 def figures_missing(summary: dict | None = None) -> str | None:
@@ -354,7 +408,12 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
     ``runner`` (a ``training.distributed.TaskRunner`` on a Dask cluster): each record's metrics and
     figure are computed as a task (:func:`render_record`); the files are written here all the same.
 
-    Returns {"json": Path, "html": Path, "lag_surface": Path | None, "records": {name: Path}}.
+    A record may carry ``residual_tests`` (``training.report_residuals.attach_residual_tests``: the training
+    pipeline's verify and validate records): written to its report.json entry, a table on the page and, with
+    matplotlib, a figure ``residuals_<record>.png`` (``residual_figure``).
+
+    Returns {"json": Path, "html": Path, "lag_surface": Path | None, "records": {name: Path}} and, where residual
+    figures were drawn, "residuals": {name: Path}.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -388,6 +447,14 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
         rec_entries.append({"name": name, "role": rec.get("role"), "fs": finite_or_none(rec.get("fs")),
                             "units": dict(rec.get("units") or {}), "figure": fig_names.get(name), "metrics": merged,
                             "extra_metrics": extra, "band_label": rec.get("band_label", "99% band")})
+        if rec.get("residual_tests") is not None:  # verify/validate records (training.report_residuals)
+            rec_entries[-1]["residual_tests"] = to_report_json(rec["residual_tests"])
+            if missing is None and not rec["residual_tests"].get("error"):
+                rfn = "residuals_" + fn[len("record_"):]
+                with FIGURE_LOCK:
+                    residual_figure(rec["residual_tests"], name, out_dir / rfn)
+                paths.setdefault("residuals", {})[name] = out_dir / rfn
+                rec_entries[-1]["residual_figure"] = rfn
 
     lag = _norm_lag_surface(lag_surface, paper)
     lag_png = None
@@ -434,7 +501,9 @@ def write_report(out_dir: Path, title: str, summary: dict, records: list[dict], 
     paths["json"] = jpath
 
     # figures embedded as data URIs: the page is self-contained (the PNG files stay for other uses)
-    embedded = {fn: _png_data_uri(out_dir / fn) for fn in [*fig_names.values(), *([lag_png] if lag_png else [])]}
+    residual_pngs = [e["residual_figure"] for e in rec_entries if e.get("residual_figure")]
+    embedded = {fn: _png_data_uri(out_dir / fn)
+                for fn in [*fig_names.values(), *residual_pngs, *([lag_png] if lag_png else [])]}
     hpath = out_dir / "report.html"
     hpath.write_text(_html(title, report["summary"], rec_entries, lag, baselines_tab, paper, fig_names, lag_png,
                            embedded, missing), encoding="utf-8")

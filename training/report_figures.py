@@ -290,3 +290,46 @@ def receptance_figure(runs: list[dict], path: Path, f_range=(5.0, 40.0)) -> Path
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def residual_figure(check: dict, name: str, path: Path) -> Path:
+    """The residual tests of one record (``model.residual_tests.one_step_check``'s dict): (a) the one-step
+    residuals' autocorrelation at lags 1..L and (b) their cross-correlation with the input at -L..L, as stems,
+    with the confidence limits +-z / sqrt(N) dashed and the lags outside them in red."""
+    tests = check["residual_tests"]
+    limit = float(tests["limit"])
+    conf = 100.0 * float(tests["confidence"])
+    panels = [("autocorrelation", "(a) autocorrelation of e", "lag k [samples]", "r_e(k)", "ljung_box",
+               "Ljung-Box")]
+    if tests.get("cross_correlation"):
+        panels.append(("cross_correlation", "(b) cross-correlation of u and e", "lag k [samples] (u leads e for k > 0)",
+                       "r_ue(k)", "portmanteau", "portmanteau"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.4), squeeze=False)
+    for ax, (key, title, xlabel, ylabel, test, test_name) in zip(axes[0], panels):
+        part = tests[key]
+        lag = np.asarray(part["lag"], float)
+        r = np.array([np.nan if v is None else v for v in part["r"]], float)
+        out = np.abs(r) > limit
+        ax.vlines(lag[~out], 0.0, r[~out], color=_C_BAND, lw=1.2)
+        ax.vlines(lag[out], 0.0, r[out], color=_C_MEAN, lw=1.6)
+        ax.plot(lag, r, ls="none", marker="o", ms=2.5, color="k")
+        ax.axhline(0.0, color="0.3", lw=0.6)
+        for s in (-1.0, 1.0):
+            ax.axhline(s * limit, color="0.2", ls="--", lw=0.9)
+        share = finite_or_none(part["outside_share"])
+        p = finite_or_none(part[test]["p_value"])
+        ax.set_title(f"{title}\n{part['n_outside']} of {lag.size} lags outside"
+                     + (f" ({100 * share:.0f} %)" if share is not None else "")
+                     + ("" if p is None else f", {test_name} p = {p:.2g}" if p > 0 else f", {test_name} p < 1e-300"),
+                     fontsize=8.5)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(True, lw=0.3)
+    fig.suptitle(f"{name}: one-step residuals (N = {tests['n']}, one-step fit {check['fit']:.1f} %), "
+                 f"{conf:g} % limits +-{limit:.3g}", fontsize=9.5)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
