@@ -41,7 +41,7 @@ def add_parser(sub):
 
 
 def run(args):
-    from gpnarx.cli.cmd_predict import check_fs, check_mc, open_model, parse_window, read_cli_record, resolve_registry
+    from gpnarx.cli.cmd_predict import check_fs, mc_paths, open_model, parse_window, read_cli_record, resolve_registry
     from gpnarx.runtime import tune_for_free_run
     from gpnarx.storage.bundle import BundleError
     from gpnarx.storage.registry import parse_model_ref
@@ -50,7 +50,7 @@ def run(args):
     if not 0.0 < args.false_alarm_rate < 0.5:
         raise UsageError(f"--false-alarm-rate must be in (0, 0.5), got {args.false_alarm_rate}")
     if args.mc is not None:
-        check_mc(args.mc)
+        mc_paths(args.mc)
     if len(args.records) < 2:
         raise UsageError(f"at least 2 healthy records are needed, got {len(args.records)}")
     tune_for_free_run(None)
@@ -60,7 +60,7 @@ def run(args):
         raise CLIError(str(exc)) from None
     root = resolve_registry(args.registry)  # a folder or an fsspec URL: the new version is written there
     bundle = open_model(root, name, version)
-    n_paths = check_mc(args.mc, bundle, "novelty")
+    n_paths = mc_paths(args.mc, bundle, "novelty")
     window = parse_window(args.window) if args.window else None
     recs = []
     for r in args.records:

@@ -109,6 +109,12 @@ def add_fs_argument(parser) -> None:
                              "an NPY); checked against a file's own fs otherwise")
 
 
+def check_fs_option(fs) -> None:
+    """``--fs``: None or a finite positive sampling frequency [Hz] (a usage error otherwise)."""
+    if fs is not None and not (np.isfinite(fs) and fs > 0):
+        raise UsageError(f"--fs must be a finite positive sampling frequency in Hz, got {fs:g}")
+
+
 def read_cli_record(path, fs=None):
     """The record file ``path``; ``fs`` [Hz]: ``--fs``, needed when the file holds no sampling frequency
     (a CSV without a time column, an NPY; a usage error naming --fs otherwise, as POST /v1/records/parse
@@ -116,8 +122,7 @@ def read_cli_record(path, fs=None):
     from gpnarx.storage.record_files import read_record
     from gpnarx.storage.record_formats import NoSamplingFrequency
 
-    if fs is not None and not (np.isfinite(fs) and fs > 0):
-        raise UsageError(f"--fs must be a finite positive sampling frequency in Hz, got {fs:g}")
+    check_fs_option(fs)
     try:
         return read_record(path, fs=fs)
     except NoSamplingFrequency:
@@ -126,7 +131,7 @@ def read_cli_record(path, fs=None):
 
 
 def load(args, operation: str = "predict"):
-    check_mc(args.mc, None)
+    mc_paths(args.mc)
     if args.window:
         parse_window(args.window)
     # the record first: a bad one (or one without fs and no --fs) fails before a default registry is built
@@ -136,41 +141,39 @@ def load(args, operation: str = "predict"):
         t0, t1 = parse_window(args.window)
         rec = rec.window(t0, t1)  # a RecordError (ValueError) names the record's span
     rec = check_fs(rec, bundle, args.record)
-    return bundle, rec, check_mc(args.mc, bundle, operation)
+    return bundle, rec, mc_paths(args.mc, bundle, operation)
 
 
 def check_fs(rec, bundle, name: str | None = None):
-    """``rec`` at the model's fs: the rule of every interface (``operations.check_fs``: within its
-    ``FS_RTOL`` the record is taken at the model's rate), else a CLIError naming both rates and how to resample
-    (prefixed by ``name``, the record as the command line gave it, when given)."""
+    """``rec`` at the model's fs by the operations' one rule (``operations.check_fs``: within ``FS_RTOL`` the
+    record is taken at the model's rate), its refusal a CLIError prefixed by ``name`` (the record as the command
+    line gave it, when given)."""
     from dataclasses import replace
 
-    from gpnarx.operations import OperationError
-    from gpnarx.operations import check_fs as check_rate
+    from gpnarx import operations
 
     try:
-        fs = check_rate(rec.fs, bundle)
-    except OperationError as exc:
+        fs = operations.check_fs(rec.fs, bundle)
+    except operations.OperationError as exc:
         raise operation_error(exc, name or rec.name) from None
     return rec if fs == rec.fs else replace(rec, fs=fs)
 
 
-def check_mc(mc, bundle=None, operation: str = "predict") -> int:
-    """``--mc``, checked against the one Monte Carlo path bound (``operations.mc_paths_max``, the HTTP
-    service's too); when not given, the bundle's default for ``operation`` (``operations.default_mc_paths``,
-    the rule of every interface)."""
-    from gpnarx.operations import DEFAULT_MC_PATHS, MC_PATHS_MAX_ENV, default_mc_paths, mc_paths_max
+def mc_paths(mc, bundle=None, operation: str = "predict") -> int:
+    """``--mc`` by the operations' one rule (``operations.mc_paths_of`` under the bound ``GPNARX_MC_PATHS_MAX``, the
+    HTTP service's too), a refusal a usage error naming --mc; without it the bundle's default for ``operation``
+    (``operations.default_mc_paths``; before a bundle is loaded, ``--mc`` alone is checked)."""
+    from gpnarx import operations
 
     try:
-        limit = mc_paths_max()
-    except ValueError as exc:
+        limits = operations.Limits(mc_paths_max=operations.mc_paths_max())
+    except ValueError as exc:  # GPNARX_MC_PATHS_MAX unusable
         raise UsageError(str(exc)) from None
-    if mc is None:
-        mc = default_mc_paths(bundle, operation) if bundle is not None else DEFAULT_MC_PATHS
-    if not 1 <= mc <= limit:
-        raise UsageError(f"--mc must be between 1 and {limit} (Monte Carlo paths per record, {MC_PATHS_MAX_ENV}: "
-                         f"the HTTP service's bound too), got {mc}")
-    return mc
+    default = operations.DEFAULT_MC_PATHS if bundle is None else operations.default_mc_paths(bundle, operation)
+    try:
+        return operations.mc_paths_of(mc, limits, default)
+    except operations.OperationError as exc:
+        raise operation_error(exc) from None
 
 
 def load_model(args):
@@ -267,30 +270,30 @@ def run_predict(args):
     args.method = args.method or bundle.default_method("predict")
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
     try:
-        out = predict_answer(bundle, rec, mc=mc, seed=args.seed, confidence=args.confidence, method=args.method,
-                             start=args.start, progress=cb, backend=args.backend, record=args.record)
+        a = operate("predict", bundle, rec, mc=mc, seed=args.seed, confidence=args.confidence, method=args.method,
+                    start=args.start, progress=cb, backend=args.backend, record=args.record)
     finally:
         if bar is not None:
             bar.close()
+    out = predict_fields(a)
     if args.out:
-        _write_prediction(args.out, rec, out.pop("_run"))
+        _write_prediction(args.out, rec, a.run)
         out["out"] = args.out
-    out.pop("_run", None)
     return out
 
 
 def operate(operation: str, bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0.99,
             method: str | None = None, start: str | None = None, progress=None, backend: str | None = None,
             record: str | None = None):
-    """``operations`` on a record (``operations.Answer``), its refusals as CLI errors
+    """Operation ``operation`` on a record (an ``operations.Answer``: the answer's body, the free run, the metrics)
+    under the process's bounds (``operations.Limits.from_env``), its refusals as CLI errors
     (``cli.errors.operation_error``; ``record``: the record's name in their messages)."""
     from gpnarx import operations
-    from gpnarx.model.backend import default_backend
 
     req = operations.Request(u=rec.u, fs=rec.fs, y=rec.y, mc_paths=mc, seed=seed, confidence=confidence,
                              method=method, backend=backend, start=start)
     try:
-        plan = operations.plan(operation, req, bundle, operations.Limits(backend=default_backend()))
+        plan = operations.plan(operation, req, bundle, operations.Limits.from_env())
         return operations.compute(plan, req, progress=progress)
     except operations.OperationError as exc:
         raise operation_error(exc, record) from None
@@ -307,27 +310,25 @@ LOOPS_FIELDS = ("model", "version", "n", "start", "mc_paths", "method", "confide
                 "out_of_range", "physics", "units")
 
 
+def predict_fields(a) -> dict:
+    """``gpnarx predict --json`` of the predict operation's answer ``a`` (an ``operations.Answer``): the HTTP
+    answer's members in ``PREDICT_FIELDS``, and with a measured y its fit, RMSE, coverage and band width."""
+    body = {**a.body, "n": a.body["n_samples"], "seconds": a.run.seconds}
+    out = {k: body[k] for k in PREDICT_FIELDS}
+    if a.metrics is not None:
+        out.update({k: body[k] for k in ("fit", "rmse", "coverage")}, band_width=a.metrics["band_width"])
+    return out
+
+
 def predict_answer(bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0.99, method: str = "mc",
                    start: str = "rest", progress=None, backend: str | None = None, record: str | None = None) -> dict:
-    """The answer of ``gpnarx predict --json`` for one record (``_run``: the free run itself, for --out).
+    """The answer of ``gpnarx predict --json`` for one record (``predict_fields``).
 
     ``bundle``: anything with ``name``, ``version``, ``fs``, ``model`` and ``manifest`` (a loaded Bundle, or
     the light copy ``gpnarx predict-many`` sends to Dask workers).
     """
-    a = operate("predict", bundle, rec, mc=mc, seed=seed, confidence=confidence, method=method, start=start,
-                progress=progress, backend=backend, record=record)
-    run = a.run
-    body = {**a.body, "n": a.body["n_samples"], "seconds": run.seconds}
-    out = {k: body[k] for k in PREDICT_FIELDS}
-    if a.metrics is not None:
-        out.update({k: body[k] for k in ("fit", "rmse", "coverage")}, band_width=a.metrics["band_width"])
-        if start == "measured":
-            from gpnarx.model.novelty import method_of, novelty_score
-
-            out["novelty_score"] = novelty_score(rec.y, run.mean, run.std,
-                                                 method_of(bundle.manifest.get("novelty")))["score"]
-    out["_run"] = run
-    return out
+    return predict_fields(operate("predict", bundle, rec, mc=mc, seed=seed, confidence=confidence, method=method,
+                                  start=start, progress=progress, backend=backend, record=record))
 
 
 def _write_prediction(path, rec, run):

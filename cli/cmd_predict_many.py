@@ -85,11 +85,8 @@ def predict_record(bundle: ModelCopy, rec, options: dict) -> dict:
     opts = {k: v for k, v in options.items() if k != "blas_threads"}
     if blas:
         with threadpool_limits(limits=int(blas), user_api="blas"):
-            out = predict_answer(bundle, rec, **opts)
-    else:
-        out = predict_answer(bundle, rec, **opts)
-    out.pop("_run", None)
-    return out
+            return predict_answer(bundle, rec, **opts)
+    return predict_answer(bundle, rec, **opts)
 
 
 def _file_names(paths: list[str]) -> list[str]:
@@ -148,7 +145,7 @@ def _first_line(exc: BaseException) -> str:
 
 
 def run(args):
-    from gpnarx.cli.cmd_predict import check_mc
+    from gpnarx.cli.cmd_predict import check_fs_option, mc_paths
     from gpnarx.training.distributed import TaskRunner
 
     if args.scheduler is not None and not args.scheduler.strip():
@@ -159,16 +156,15 @@ def run(args):
         raise UsageError(f"--jobs must be a positive number of jobs or -1 (all cores), got {args.jobs}")
     if not 0 < args.confidence < 1:
         raise UsageError(f"--confidence must be between 0 and 1 (exclusive), got {args.confidence}")
-    check_mc(args.mc)  # checked now; None: the model's default, once it is loaded
-    if args.fs is not None and not (args.fs > 0 and args.fs != float("inf")):
-        raise UsageError(f"--fs must be a finite positive sampling frequency in Hz, got {args.fs:g}")
+    mc_paths(args.mc)  # checked now; None: the model's default, once it is loaded
+    check_fs_option(args.fs)
     # the cluster first: an unreachable scheduler fails before any folder is made or model loaded
     with TaskRunner(args.scheduler, jobs=1 if args.scheduler else args.jobs) as runner:
         return _run(args, runner)
 
 
 def _run(args, runner) -> dict:
-    from gpnarx.cli.cmd_predict import check_fs, check_mc, load_model, read_cli_record
+    from gpnarx.cli.cmd_predict import check_fs, load_model, mc_paths, read_cli_record
     from gpnarx.runtime import blas_threads_from_env
     from gpnarx.storage.jsonsafe import to_json_safe
     from gpnarx.training.distributed import Failed
@@ -176,7 +172,7 @@ def _run(args, runner) -> dict:
     out = _Results(args.out)
     bundle = load_model(args)
     args.method = args.method or bundle.default_method("predict")
-    mc = check_mc(args.mc, bundle)
+    mc = mc_paths(args.mc, bundle)
     # load_model has checked GPNARX_BLAS_THREADS; the same limit applies to every free run, on a worker too
     blas = args.blas_threads if args.blas_threads is not None else blas_threads_from_env()
     options = {"mc": mc, "seed": args.seed, "confidence": args.confidence, "method": args.method,

@@ -78,11 +78,12 @@ def _record_chunks(rec, n: int):
 
 
 def run_stream(args):
-    from gpnarx.cli.cmd_predict import check_fs, check_mc, load_model, read_cli_record
+    from gpnarx.cli.cmd_predict import check_fs, load_model, mc_paths, read_cli_record
+    from gpnarx.cli.errors import operation_error
     from gpnarx.model.metrics import summary
     from gpnarx.model.novelty import assess_novelty, novelty_start
-    from gpnarx.model.record import FS_RTOL, fs_matches
     from gpnarx.operations import OperationError, physics_of
+    from gpnarx.operations import check_fs as check_rate
     from gpnarx.operations.cycle_stream import STREAM_COV_WINDOW
     from gpnarx.operations.cycle_stream import advance as stream_cycles
     from gpnarx.operations.novelty_window import RollingWindow
@@ -92,18 +93,20 @@ def run_stream(args):
         raise UsageError(f"--chunk must be a positive number of seconds, got {args.chunk}")
     if args.window < 1:
         raise UsageError(f"--window must be at least 1 chunk, got {args.window}")
-    check_mc(args.mc, None)
+    mc_paths(args.mc)
     # a record file first: one without fs and no --fs fails before a default registry is built
     rec = None if args.record == "-" else read_cli_record(args.record, args.fs)
     bundle = load_model(args)
     model, fs = bundle.model, bundle.fs
     method = args.method or bundle.default_method("predict")
-    mc = check_mc(args.mc, bundle)
+    mc = mc_paths(args.mc, bundle)
     n = max(int(round(args.chunk * fs)), model.ny + 1)
     if args.record == "-":
-        if args.fs is not None and not fs_matches(args.fs, fs):
-            raise CLIError(f"--fs {args.fs:g} Hz does not match model {bundle.name}:{bundle.version} fs {fs:g} Hz "
-                           f"(tolerance {FS_RTOL * 1e6:g} ppm); stdin lines must be at the model's fs")
+        try:  # stdin lines are taken at the model's fs: a --fs given must be it (the operations' rule)
+            if args.fs is not None:
+                check_rate(args.fs, bundle)
+        except OperationError as exc:
+            raise operation_error(exc, "--fs") from None
         chunks = _stdin_chunks(n)
     else:
         rec = check_fs(rec, bundle, args.record)

@@ -42,9 +42,9 @@ def add_parser(sub):
 def _load(args):
     """The record (with its measured y: refused otherwise, before a default registry is built), the
     bundle and the Monte Carlo paths, as ``cmd_predict.load`` has them."""
-    from gpnarx.cli.cmd_predict import check_fs, check_mc, load_model, parse_window, read_cli_record
+    from gpnarx.cli.cmd_predict import check_fs, load_model, mc_paths, parse_window, read_cli_record
 
-    check_mc(args.mc, None)
+    mc_paths(args.mc)
     window = parse_window(args.window) if args.window else None
     rec = read_cli_record(args.record, args.fs)
     if rec.y is None:
@@ -53,7 +53,7 @@ def _load(args):
     if window:
         rec = rec.window(*window)
     rec = check_fs(rec, bundle, args.record)
-    return bundle, rec, check_mc(args.mc, bundle, "predict")
+    return bundle, rec, mc_paths(args.mc, bundle, "predict")
 
 
 def run_validate(args):

@@ -27,6 +27,7 @@ from .base import (
     Request,
     check_fs,
     mc_paths_max,
+    mc_paths_of,
 )
 from .loops import physics_of
 from .novelty import novelty_of
@@ -34,4 +35,4 @@ from .run import OPERATIONS, compute, default_mc_paths, operation, plan
 
 __all__ = ["CONFLICT", "DEFAULT_MC_PATHS", "INVALID", "MC_PATHS_MAX", "MC_PATHS_MAX_ENV", "OPERATIONS", "TOO_LARGE",
            "Answer", "Limits", "Operation", "OperationError", "Plan", "Request", "check_fs", "compute",
-           "default_mc_paths", "mc_paths_max", "novelty_of", "operation", "physics_of", "plan"]
+           "default_mc_paths", "mc_paths_max", "mc_paths_of", "novelty_of", "operation", "physics_of", "plan"]

@@ -28,7 +28,7 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
-from gpnarx.model.backend import jax_available
+from gpnarx.model.backend import default_backend, jax_available
 from gpnarx.model.envelope import assess, out_of_range
 from gpnarx.model.freerun import FreeRunState, check_state
 from gpnarx.model.novelty import novelty_start
@@ -72,6 +72,13 @@ class Limits:
     max_mc_work: int | None = None
     backend: str = "numpy"
     stream_key: str | None = None
+
+    @classmethod
+    def from_env(cls) -> Limits:
+        """The bounds of a process without service settings (the CLI): the Monte Carlo path bound
+        (``mc_paths_max``: ``GPNARX_MC_PATHS_MAX``, the service's too) and the default backend
+        (``GPNARX_BACKEND``); sizes and work unbounded. A ValueError names an unusable variable."""
+        return cls(mc_paths_max=mc_paths_max(), backend=default_backend())
 
 
 #: Monte Carlo paths of a bundle whose manifest states none (training.config_schema's ``[predict] mc_paths``)
@@ -333,17 +340,26 @@ class Operation:
         return self.culprit(plan, req, u, head)
 
 
-def _mc_work(req, n: int, limits: Limits, budget: int | None, model_default: int) -> tuple[int, int]:
-    """(Monte Carlo paths, path-steps) of a request, checked against the bounds; ``model_default``: the
-    bundle's ``default_mc_paths``, used when neither the request nor ``limits`` names the paths."""
-    if req.mc_paths is not None:
-        paths = int(req.mc_paths)
-    else:
-        paths = limits.mc_paths_default if limits.mc_paths_default is not None else model_default
+def mc_paths_of(requested, limits: Limits, model_default: int) -> int:
+    """The Monte Carlo paths of a request, the one rule of every front end: ``requested`` (the request's
+    ``mc_paths``, the CLI's ``--mc``), else ``limits.mc_paths_default``, else ``model_default`` (the bundle's
+    ``default_mc_paths``); an ``OperationError`` on ``mc_paths`` unless it is at least 1 and at most
+    ``limits.mc_paths_max``."""
+    paths = requested if requested is not None else (
+        limits.mc_paths_default if limits.mc_paths_default is not None else model_default)
+    paths = int(paths)
+    if paths < 1:
+        raise OperationError(f"mc_paths must be at least 1, got {paths}", "mc_paths")
     if limits.mc_paths_max is not None and paths > limits.mc_paths_max:
-        what = "" if req.mc_paths is not None else " (the model's default; send fewer)"
+        what = "" if requested is not None else " (the model's default; send fewer)"
         raise OperationError(f"mc_paths {paths}{what} exceeds the limit of {limits.mc_paths_max} Monte Carlo paths",
                              "mc_paths", limit=limits.mc_paths_max)
+    return paths
+
+
+def _mc_work(req, n: int, limits: Limits, budget: int | None, model_default: int) -> tuple[int, int]:
+    """(Monte Carlo paths, path-steps) of a request (``mc_paths_of``), checked against the work bounds."""
+    paths = mc_paths_of(req.mc_paths, limits, model_default)
     work = paths * n
     limit = limits.max_mc_work if budget is None else budget
     if limit is not None and work > limit:

@@ -102,16 +102,18 @@ def test_a_misspelt_option_is_named_not_reported_as_a_missing_one(tmp_path):
 
 # ------------------------------------------------------------------------ one Monte Carlo path limit
 def test_one_monte_carlo_path_limit_for_the_cli_and_the_service(client, monkeypatch):
-    from gpnarx.cli.cmd_predict import check_mc
+    from gpnarx.cli.cmd_predict import mc_paths
     from gpnarx.cli.errors import UsageError
     from gpnarx.operations import MC_PATHS_MAX
 
     assert Settings().mc_paths_max == MC_PATHS_MAX
-    assert check_mc(MC_PATHS_MAX) == MC_PATHS_MAX
-    with pytest.raises(UsageError, match=f"--mc must be between 1 and {MC_PATHS_MAX}.*GPNARX_MC_PATHS_MAX"):
-        check_mc(MC_PATHS_MAX + 1)
+    assert mc_paths(MC_PATHS_MAX) == MC_PATHS_MAX
+    with pytest.raises(UsageError, match=f"--mc: mc_paths {MC_PATHS_MAX + 1} exceeds the limit of {MC_PATHS_MAX} "):
+        mc_paths(MC_PATHS_MAX + 1)
+    with pytest.raises(UsageError, match="--mc: mc_paths must be at least 1, got 0"):
+        mc_paths(0)
     u, _ = short_record(32)
     r = client.post("/v1/models/boucwen/predict", json={"u": u.tolist(), "fs": FS, "mc_paths": MC_PATHS_MAX + 1})
     assert r.status_code == 422 and r.json()["limit"] == MC_PATHS_MAX
     monkeypatch.setenv("GPNARX_MC_PATHS_MAX", str(2 * MC_PATHS_MAX))  # an operator's raised bound holds for both
-    assert Settings.from_env().mc_paths_max == check_mc(2 * MC_PATHS_MAX) == 2 * MC_PATHS_MAX
+    assert Settings.from_env().mc_paths_max == mc_paths(2 * MC_PATHS_MAX) == 2 * MC_PATHS_MAX
