@@ -1,11 +1,11 @@
 """Answers checked against their routes' response models, then rendered by ``render_json``.
 
-A route names its answer's model once, as ``response_model=`` in its decorator (the OpenAPI document shows
-it). FastAPI would validate a returned dict against it and then serialise it itself, copying every numpy
-array into Python floats and reordering the members; so the routes return ``answer(request, body)``: the body
-is validated by the route's model (``validate``) and rendered as it is (``responses.render_json``: arrays
-natively, members in the order built). An answer that does not match its model is the server's bug: it is
-logged and answered 500, never sent.
+A route names its answer's model once, as ``response_model=`` of its decorator or of ``add_api_route`` (the OpenAPI
+document shows it). FastAPI would validate a returned dict against it and then serialise it itself, copying every
+numpy array into Python floats and reordering the members; so the routes return ``answer(request, body)``: the body
+is validated by the route's model (``validate``) and rendered as it is (``responses.render_json``: arrays natively,
+members in the order built). An answer that does not match its model is the server's bug: it is logged and answered
+500, never sent.
 
 Validation sees a 1-D numeric numpy array as a list of its dtype: every element has that dtype, so one
 element stands for all of them (a 64 s answer's four 65,536-sample arrays cost microseconds, not the

@@ -152,43 +152,33 @@ async def single(state: ServiceState, request: Request, operation: str, body: Re
     return JSONBytesResponse(out, headers=headers)
 
 
-@router.post("/models/{name}/predict", response_model=PredictResponse, operation_id="predict",
-             summary="Free-run prediction with a Monte Carlo band (latest version)",
-             responses=op_problems, openapi_extra=NPZ_OPENAPI)
-async def predict(request: Request, state: StateDep, name: NameP, body: RecordRequest):
-    return await single(state, request, "predict", body, name, None)
+def record_routes(operation: str, response_model, body_model, *, summary: str, version_summary: str,
+                  responses: dict) -> None:
+    """Operation ``operation``'s two routes on ``router``: ``/models/{name}/OPERATION`` (the latest version,
+    operation id ``OPERATION``) and ``/models/{name}/versions/{version}/OPERATION`` (operation id
+    ``OPERATION_version``), each answering a ``body_model`` body with ``response_model`` through ``single``."""
+
+    async def latest(request: Request, state: StateDep, name: NameP, body):
+        return await single(state, request, operation, body, name, None)
+
+    async def version(request: Request, state: StateDep, name: NameP, version: VersionP, body):
+        return await single(state, request, operation, body, name, version)
+
+    for handler, path, op_id, text in ((latest, f"/models/{{name}}/{operation}", operation, summary),
+                                       (version, f"/models/{{name}}/versions/{{version}}/{operation}",
+                                        f"{operation}_version", version_summary)):
+        handler.__annotations__["body"] = body_model  # the body FastAPI validates (the annotation it reads)
+        handler.__name__ = handler.__qualname__ = op_id
+        router.add_api_route(path, handler, methods=["POST"], response_model=response_model, operation_id=op_id,
+                             summary=text, responses=responses, openapi_extra=NPZ_OPENAPI)
 
 
-@router.post("/models/{name}/versions/{version}/predict", response_model=PredictResponse,
-             operation_id="predict_version", summary="Free-run prediction with one version",
-             responses=op_problems, openapi_extra=NPZ_OPENAPI)
-async def predict_version(request: Request, state: StateDep, name: NameP, version: VersionP, body: RecordRequest):
-    return await single(state, request, "predict", body, name, version)
-
-
-@router.post("/models/{name}/loops", response_model=LoopsResponse, operation_id="loops",
-             summary="Restoring-force loops of the predicted response and its band (latest version)",
-             responses=loops_problems, openapi_extra=NPZ_OPENAPI)
-async def loops(request: Request, state: StateDep, name: NameP, body: RecordRequest):
-    return await single(state, request, "loops", body, name, None)
-
-
-@router.post("/models/{name}/versions/{version}/loops", response_model=LoopsResponse, operation_id="loops_version",
-             summary="Restoring-force loops with one version",
-             responses=loops_problems, openapi_extra=NPZ_OPENAPI)
-async def loops_version(request: Request, state: StateDep, name: NameP, version: VersionP, body: RecordRequest):
-    return await single(state, request, "loops", body, name, version)
-
-
-@router.post("/models/{name}/novelty", response_model=NoveltyResponse, operation_id="novelty",
-             summary="Novelty score, threshold and verdict of a measured record (latest version)",
-             responses=novelty_problems, openapi_extra=NPZ_OPENAPI)
-async def novelty(request: Request, state: StateDep, name: NameP, body: NoveltyRequest):
-    return await single(state, request, "novelty", body, name, None)
-
-
-@router.post("/models/{name}/versions/{version}/novelty", response_model=NoveltyResponse,
-             operation_id="novelty_version", summary="Novelty score with one version",
-             responses=novelty_problems, openapi_extra=NPZ_OPENAPI)
-async def novelty_version(request: Request, state: StateDep, name: NameP, version: VersionP, body: NoveltyRequest):
-    return await single(state, request, "novelty", body, name, version)
+record_routes("predict", PredictResponse, RecordRequest, responses=op_problems,
+              summary="Free-run prediction with a Monte Carlo band (latest version)",
+              version_summary="Free-run prediction with one version")
+record_routes("loops", LoopsResponse, RecordRequest, responses=loops_problems,
+              summary="Restoring-force loops of the predicted response and its band (latest version)",
+              version_summary="Restoring-force loops with one version")
+record_routes("novelty", NoveltyResponse, NoveltyRequest, responses=novelty_problems,
+              summary="Novelty score, threshold and verdict of a measured record (latest version)",
+              version_summary="Novelty score with one version")
