@@ -117,7 +117,7 @@ def test_every_record_command_declares_the_same_fs_option(monkeypatch):
     for mod in ("cmd_predict", "cmd_calibrate", "cmd_predict_many", "cmd_stream"):
         monkeypatch.setattr(f"gpnarx.cli.{mod}.add_fs_argument", lambda p, real=real: (calls.append(p.prog), real(p)))
     parser = build_parser()
-    commands = {"predict", "loops", "novelty", "calibrate", "predict-many", "stream"}
+    commands = {"predict", "loops", "novelty", "calibrate", "predict-many", "stream", "validate"}
     assert {c.split()[-1] for c in calls} == commands, calls
     subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
     helps = {next(a.help for a in subs[c]._actions if "--fs" in a.option_strings) for c in commands}
