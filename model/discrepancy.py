@@ -55,6 +55,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from gpnarx.checks import is_int
+
 from .normal import band_z
 
 #: default averaging window of the local amplitude [s]: several cycles of the rig's resonance
@@ -142,13 +144,13 @@ def check_discrepancy(d: dict | None) -> dict | None:
     scale, window = d.get("scale"), d.get("window")
     if not isinstance(scale, (int, float)) or not np.isfinite(scale) or not 0.0 <= scale <= 10.0:
         raise ValueError(f"band_discrepancy.scale must be a number in [0, 10], got {scale!r}")
-    if isinstance(window, bool) or not isinstance(window, int) or window < 1:
+    if not is_int(window, 1):
         raise ValueError(f"band_discrepancy.window must be a positive integer (samples), got {window!r}")
     kind = d.get("window_kind", LEGACY_WINDOW_KIND)
     if kind not in WINDOW_KINDS:
         raise ValueError(f"band_discrepancy.window_kind must be one of {WINDOW_KINDS}, got {kind!r}")
     hold = d.get("hold", 0)
-    if isinstance(hold, bool) or not isinstance(hold, int) or hold < 0:
+    if not is_int(hold, 0):
         raise ValueError(f"band_discrepancy.hold must be an integer >= 0 (samples), got {hold!r}")
     gp = d.get("gp_scale", 1.0)
     if isinstance(gp, bool) or not isinstance(gp, (int, float)) or not np.isfinite(gp) or not 0.0 < gp <= 10.0:

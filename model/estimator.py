@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from gpnarx.checks import is_int
 from gpnarx.runtime import free_run_blas
 
 from . import freerun
@@ -454,7 +455,7 @@ class GPNARX(ParamsMixin):
         freerun.check_method(spec.method)
         if spec.method == "mc":
             n_paths = spec.n_paths
-            if isinstance(n_paths, bool) or not isinstance(n_paths, (int, np.integer)) or not 1 <= n_paths <= MAX_PATHS:
+            if not is_int(n_paths, 1, MAX_PATHS):
                 raise ValueError(f"n_paths must be an integer between 1 and {MAX_PATHS}, got {n_paths!r}")
             spec = replace(spec, n_paths=int(n_paths))
         return freerun.run(predictor, u, spec)

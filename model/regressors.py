@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from gpnarx.checks import is_int
+
 MAX_LAGS = 200  # upper limit on ny and nu (each)
 
 
 def check_lags(ny, nu) -> tuple[int, int]:
     """Validate lag orders: ny in [1, MAX_LAGS], nu in [1, MAX_LAGS]."""
     for name, val in (("ny", ny), ("nu", nu)):
-        if isinstance(val, bool) or not isinstance(val, (int, np.integer)):
+        if not is_int(val):
             raise ValueError(f"{name} must be an integer between 1 and {MAX_LAGS}, got {val!r}")
         if not 1 <= int(val) <= MAX_LAGS:
             raise ValueError(f"{name} must be between 1 and {MAX_LAGS}, got {val}")

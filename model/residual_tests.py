@@ -37,6 +37,7 @@ import math
 
 import numpy as np
 
+from gpnarx.checks import is_int
 from gpnarx.model.metrics import fit_percent, rms, rmse
 from gpnarx.model.normal import band_z
 from gpnarx.model.regressors import first_index
@@ -62,7 +63,7 @@ def _series(name: str, v) -> np.ndarray:
 
 
 def _check_lags(lags, n: int) -> int:
-    if isinstance(lags, bool) or not isinstance(lags, (int, np.integer)) or lags < 1:
+    if not is_int(lags, 1):
         raise ValueError(f"lags must be a positive integer, got {lags!r}")
     if n <= 2 * int(lags):
         raise ValueError(f"the residual tests at {lags} lags need more than {2 * int(lags)} residuals, got {n}")

@@ -28,6 +28,7 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
+from gpnarx.checks import is_int
 from gpnarx.model.backend import default_backend, jax_available
 from gpnarx.model.envelope import assess, out_of_range
 from gpnarx.model.freerun import FreeRunState, check_state
@@ -227,7 +228,7 @@ class Operation:
         """Check ``req`` against ``bundle`` (a loaded Bundle: name, version, fs [Hz], model, manifest) and
         ``limits``; ``budget``: Monte Carlo path-steps left to this request (a batch's shared budget)."""
         seed = getattr(req, "seed", 0)
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
+        if not is_int(seed, 0, 2**63 - 1):
             raise OperationError(f"seed must be an integer in [0, 2^63), got {str(seed)[:40]}", "seed")
         n = len(req.u)
         if limits.max_samples is not None and n > limits.max_samples:

@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from gpnarx.checks import is_int
 from gpnarx.model.cycles import (
     COV_WINDOW_MAX,
     HYSTERESIS,
@@ -156,7 +157,7 @@ def _checked(c: dict) -> dict:
         return ValueError(f"state: the loops carry is malformed ({what})")
 
     def integer(v, what):
-        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 1 << 53:
+        if not is_int(v, 0, 1 << 53):
             raise bad(f"{what} must be a non-negative integer")
         return v
 

@@ -19,6 +19,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from gpnarx.checks import is_int
 from gpnarx.model.novelty import assess_novelty
 
 #: the HTTP stream's window [s]: the CLI's default of 8 chunks of 1 s
@@ -39,7 +40,7 @@ class RollingWindow:
     chunks: list = field(default_factory=list)
 
     def __post_init__(self):
-        if isinstance(self.max_samples, bool) or int(self.max_samples) < 1:
+        if not is_int(self.max_samples, 1):
             raise ValueError(f"novelty window max_samples must be a positive integer, got {self.max_samples!r}")
         self.max_samples = int(self.max_samples)
 
@@ -82,7 +83,7 @@ class RollingWindow:
     @classmethod
     def from_carry(cls, d: dict | None, max_samples: int) -> "RollingWindow":
         """The window a token carried (a new one when ``d`` is None or its size differs from ``max_samples``)."""
-        if not d or d.get("max_samples") != int(max_samples) or isinstance(d.get("max_samples"), bool):
+        if not d or not is_int(d.get("max_samples")) or d.get("max_samples") != int(max_samples):
             return cls(max_samples)
         malformed = ValueError("state: its novelty window is malformed")
         try:  # a client may rebuild a token signed with the public key: every value is checked before use
@@ -95,8 +96,7 @@ class RollingWindow:
         chunks = d.get("chunks") or []
         if not 0 <= size <= max_samples or not finite or not isinstance(chunks, list) or len(chunks) > size + 1:
             raise malformed
-        if not all(isinstance(c, list) and len(c) == 3 and all(isinstance(v, int) and not isinstance(v, bool)
-                                                               and v >= 0 for v in c[:2])
+        if not all(isinstance(c, list) and len(c) == 3 and all(is_int(v, 0) for v in c[:2])
                    and isinstance(c[2], list) and all(isinstance(f, str) for f in c[2]) for c in chunks):
             raise malformed
         return cls(int(max_samples), chunks=[[c[0], c[1], list(c[2])] for c in chunks], **arrays)

@@ -39,6 +39,7 @@ import zlib
 
 import numpy as np
 
+from gpnarx.checks import is_int
 from gpnarx.model.freerun import FreeRunState
 from gpnarx.storage.archive_bounds import NPY_READ_ERRORS, ArchiveError, member, member_name, open_archive, read
 
@@ -273,7 +274,7 @@ MAX_POSITION = 1 << 53
 def _integer(header: dict, key: str, lo: int, hi: int, default=None) -> int:
     """header[key] (or ``default`` when absent) as an integer in [lo, hi]; ValueError otherwise."""
     v = header.get(key, default)
-    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+    if not is_int(v, lo, hi):
         raise ValueError(f"{key} must be an integer in [{lo}, {hi}], got {str(v)[:40]}")
     return v
 

@@ -20,6 +20,8 @@ import os
 from dataclasses import dataclass, field
 from datetime import datetime
 
+from gpnarx.checks import is_int
+
 from .audit import OFF, STDOUT, shown_target
 
 #: the most of the file's end read for one history (older lines beyond it are not read)
@@ -115,9 +117,9 @@ def point_of(line: dict, model: str) -> dict | None:
     sha = line.get("record_sha256")
     return {"time": when, "version": str(line.get("version") or ""), "verdict": verdict,
             "score": _number(line.get("score")), "threshold": _number(line.get("threshold")),
-            "n_samples": n if isinstance(n, int) and not isinstance(n, bool) else None,
+            "n_samples": n if is_int(n) else None,
             "out_of_range": [str(x) for x in oor] if isinstance(oor, list) else [],
-            "slot": slot if isinstance(slot, int) and not isinstance(slot, bool) else None,
+            "slot": slot if is_int(slot) else None,
             "request_id": rid if isinstance(rid, str) else None,
             "record_sha256": sha if isinstance(sha, str) else None}
 

@@ -54,6 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gpnarx.checks import is_int
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.kernels import DEFAULT_CONSTANT_CAP
 
@@ -470,7 +471,7 @@ MIGRATIONS = {1: _migrate_1_to_2}
 def migrate_manifest(manifest: dict) -> dict:
     """Bring a manifest of any supported schema version up to ``SCHEMA_VERSION`` (in place)."""
     v = manifest.get("schema_version")
-    if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= SCHEMA_VERSION:
+    if not is_int(v, 1, SCHEMA_VERSION):
         raise BundleError(f"schema_version {v!r} is not supported (this package reads 1 to {SCHEMA_VERSION})")
     manifest["schema_version_written"] = v
     while manifest["schema_version"] < SCHEMA_VERSION:

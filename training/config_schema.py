@@ -56,6 +56,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from gpnarx.checks import is_int
 from gpnarx.model.discrepancy import WINDOW_KINDS as BAND_WINDOW_KINDS
 from gpnarx.model.novelty import METHODS as NOVELTY_METHODS
 from gpnarx.model.record import RecordError
@@ -92,7 +93,7 @@ def parse_range(spec) -> list[int]:
     elif isinstance(spec, (list, tuple)):
         vals = []
         for v in spec:
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            if not is_int(v):
                 raise ConfigError(f"range list must hold integers, got {v!r}")
             vals.append(int(v))
         if not vals:
