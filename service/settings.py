@@ -1,52 +1,10 @@
-"""Service settings and request bounds.
+"""Service settings and request bounds: ``Settings``, one field per environment variable ``GPNARX_<FIELD>``.
 
-``Settings`` is a pydantic-settings model: each field is read from the environment variable
-``GPNARX_<FIELD>`` by pydantic-settings' environment source (arguments win; ``Settings.from_env(environ)``
-reads a given mapping instead, ``{}`` for the defaults alone), and its
-metadata (description, what exceeding it answers) is the one list of the service's bounds: the
-OpenAPI description (``DEFAULT_BOUNDS``) and the table in docs/api.md are generated from it. The
-defaults are what the committed OpenAPI document describes.
-
-The table of settings, variables, defaults and what exceeding a bound answers is generated from
-the fields below (``settings_table()``; docs/api.md holds it, checked by tests/test_settings.py).
-
-``registry`` is a folder or an fsspec URL (``s3://bucket/prefix``, ``gs://...``, ``file://...``;
-``storage.remote`` says where credentials, endpoint and ``GPNARX_STORAGE_OPTIONS`` come from).
-Every ``registry_poll`` seconds the server rescans its registry by itself (like ``POST
-/v1/admin/reload``; unchanged versions are not verified again), so each of several replicas on one
-registry serves a new version within that interval. A version is verified when it is first seen
-and its model built on first use; at most ``max_loaded`` built models are kept (least recently
-used dropped first, built again from the verified local files when asked for).
-
-``max_mc_work`` bounds Monte Carlo path-steps (mc_paths x samples) per HTTP request; a batch
-shares one budget across its records. ``queue_size`` is the number of jobs allowed to wait for a
-worker on top of the ``workers`` running ones; when both are taken a request is shed with 503.
-
-``request_timeout`` (seconds, may be fractional; 0 turns it off) bounds the time from
-submission to answer of a prediction, loops, novelty or batch request. A job still waiting for a
-worker at the deadline is dropped and answered 503 + Retry-After (the service was too busy); a job
-already computing is answered 504 (the problem's ``limit`` is the limit in s) and cancelled at
-its next checkpoint (every 256 samples of the free run, and between the records of a batch), which
-frees its worker. A client that disconnects while its job waits or runs cancels it the same way,
-so an abandoned request never holds a worker slot to the end. Choose it together with
-``max_mc_work``: ``bench/bench_service.py`` measures the path-steps per second one worker serves
-(docs/benchmarks.md); on a small machine a request at the default work bound (2**24 path-steps)
-can need several minutes and is cut at 120 s, so raise the limit or lower the bound.
-
-``blas_threads``: the service runs requests in parallel on its worker threads, and the per-step
-matrix products of a free run are small (paths x training points), so multi-threaded BLAS inside
-each request only oversubscribes the cores (measured on a loaded 2-core machine: a 256-sample,
-128-path prediction took 3.8 s with OpenBLAS threads vs 0.33 s with one). The app therefore
-limits BLAS to ``blas_threads`` threads per process (threadpoolctl) unless it is 0.
-
-``otel``: OpenTelemetry spans of the requests (``service.tracing``; extra ``otel``, off by default).
-
-``mmap_threshold``: a free-run step allocates temporaries of paths x training points doubles
-(256 x 600 x 8 B = 1.2 MB). glibc serves blocks above its mmap threshold (128 KiB until the
-process has freed a large block) with a fresh mmap, so every step paid page faults: a fresh
-server process predicted about 30 % slower than a process that had trained a model first
-(measured 2.3 s vs 1.7 s for 512 samples x 128 paths). The app sets glibc's M_MMAP_THRESHOLD to
-``mmap_threshold`` bytes (and M_TRIM_THRESHOLD to 4x that) with mallopt on Linux unless it is 0.
+pydantic-settings reads each field from its variable (arguments win; ``Settings.from_env(environ)`` reads a given
+mapping, ``{}`` for the defaults alone). The fields' metadata (label, what exceeding the bound answers) is the one
+list of the service's bounds: the OpenAPI description (``DEFAULT_BOUNDS``, the committed document's defaults) and
+the table in docs/api.md (``settings_table()``, checked by tests/test_settings.py) are generated from it; docs/api.md
+says what each setting does and how to choose them together.
 """
 from __future__ import annotations
 
