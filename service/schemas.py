@@ -303,7 +303,7 @@ class Probe(BaseModel):
 
 
 class NoveltyWindow(BaseModel):
-    """The rolling window of a novelty stream (``model.novelty_window``)."""
+    """The rolling window of a novelty stream: its last samples scored together, carried in the state token."""
 
     chunks: int = Field(..., description="Chunks with samples in the window.")
     samples: int = Field(..., description="Samples in the window (at most 8 s of the stream).")
