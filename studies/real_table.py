@@ -161,6 +161,50 @@ def add_mc_rows(model, table: dict, data_dir, names, mc_paths: int, seed: int = 
     return table
 
 
+def add_residual_rows(model, table: dict, data_dir, lags: int = 25, log=None) -> dict:
+    """Add each record's one-step residual tests (``model.residual_tests.one_step_check``: the one-step fit, the
+    residuals' autocorrelation and their cross-correlation with u at lags 1..``lags`` / -lags..lags with 99 %
+    limits, Ljung-Box and its cross-correlation counterpart) to ``table`` as ``row["one_step"]`` (the
+    correlations themselves left out: their shares, largest values and p-values kept)."""
+    from gpnarx.model.residual_tests import one_step_check
+
+    folders = {p.name: p for p in find_records(data_dir)}
+    for name, row in table["records"].items():
+        rec = read_record(folders[name])
+        if table.get("max_seconds"):
+            rec = rec.window(0.0, min(table["max_seconds"], rec.n / rec.fs))
+        chk = one_step_check(model, rec.u, rec.y, lags=lags)
+        t = chk["residual_tests"]
+        ac, xc = t["autocorrelation"], t["cross_correlation"]
+        ix = int(np.argmax(np.abs(xc["r"])))
+        row["one_step"] = {"fit": chk["fit"], "rmse": chk["rmse"], "lags": t["lags"], "limit": t["limit"],
+                           "auto_outside": ac["n_outside"], "auto_max": float(np.max(np.abs(ac["r"]))),
+                           "ljung_box_p": ac["ljung_box"]["p_value"], "white": ac["white"],
+                           "cross_outside": xc["n_outside"], "cross_n": len(xc["r"]),
+                           "cross_max": float(abs(xc["r"][ix])), "cross_max_lag": int(xc["lag"][ix]),
+                           "cross_p": xc["portmanteau"]["p_value"], "independent": xc["independent"]}
+        if log:
+            log(f"  {name}: one-step fit {chk['fit']:.1f} %, autocorrelation {ac['n_outside']}/{t['lags']} lags "
+                f"outside, cross-correlation {xc['n_outside']}/{len(xc['r'])}")
+    table["residual_lags"] = int(lags)
+    return table
+
+
+def residual_markdown(table: dict) -> str:
+    """The residual tests of ``add_residual_rows`` as Markdown, by class."""
+    order = {c: i for i, c in enumerate(CLASSES)}
+    lines = ["| record | class | role | one-step fit % | autocorr. lags outside | largest abs r | Ljung-Box p | "
+             "cross-corr. lags outside | largest abs r_ue (lag) | cross-corr. p |", "|" + "---|" * 10]
+    for name, r in sorted(table["records"].items(), key=lambda kv: (order.get(kv[1]["class"], 9), kv[0])):
+        o = r.get("one_step")
+        if not o:
+            continue
+        lines.append(f"| {name} | {r['class']} | {r['role']} | {o['fit']:.1f} | {o['auto_outside']}/{o['lags']} | "
+                     f"{o['auto_max']:.2f} | {o['ljung_box_p']:.2g} | {o['cross_outside']}/{o['cross_n']} | "
+                     f"{o['cross_max']:.2f} ({o['cross_max_lag']:+d}) | {o['cross_p']:.2g} |")
+    return "\n".join(lines) + "\n"
+
+
 def _class_arx(recs: dict, classes: dict) -> dict:
     """{record name: (ARX fitted on the other records of its class, their names)} (None: no other record)."""
     out = {}

@@ -244,6 +244,17 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
         "fitted on the same training records. ARX class: a linear ARX fitted on the other records of the same "
         "class in the data folder (never on the record it scores). Targets on held-out records, per class: fit "
         "at least the better ARX's and coverage at least 90 %.\n\n" + markdown(table, table["checks"]))
+    if any("one_step" in r for r in table["records"].values()):
+        page += ("\n## Residual tests\n\nWhat the model has not learnt, by the standard checks of system "
+                 "identification (as MATLAB `resid`): on each whole record, the one-step-ahead residuals "
+                 "e = y - mean (eq. 8 at measured lags), their autocorrelation at lags "
+                 f"1..{table.get('residual_lags', 25)} and their cross-correlation with the input u at lags -L..L, "
+                 "each against the 99 % limits +-2.576 / sqrt(N) of a white residual independent of u; "
+                 "Ljung-Box (autocorrelation) and N sum r^2 (cross-correlation) p-values "
+                 "(`model/residual_tests.py`, `gpnarx validate`). A residual still correlated with u at a lag "
+                 "means input-driven dynamics the model has not captured there; a coloured but u-independent "
+                 "residual is also what sensor noise in the fed-back output lags gives.\n\n"
+                 + load_study("real_table").residual_markdown(table))
     if table.get("noise_lolo"):
         page += ("\n## Leave one noise level out\n\nA plant sends noise levels the model never saw. For each noise run "
                  "of the data folder, the config is refitted (its lags, its `[model]`, ML-II, the noise and band "
@@ -300,6 +311,7 @@ def every_record_table(model, cfg, *, quick: bool, mc_paths: int, jobs: int = -1
                           lag_grid=QUICK["grid"] if quick else GRIDS["bert-real"],
                           lag_criterion=LAG_CRITERION["bert-real"])
     table["checks"] = rt.table_checks(table)
+    rt.add_residual_rows(model, table, bert_data_dir(), log=log)
     table["noise_lolo"] = noise_lolo_table(model, cfg, quick=quick, mc_paths=mc_paths if lolo_mc is None else lolo_mc,
                                            log=log)
     return table
