@@ -29,13 +29,3 @@ def emit(result: dict, out=None, shown: dict | None = None) -> int:
         Path(out).write_text(text + "\n")
     print(text if shown is None else json.dumps(shown, indent=1))
     return 0
-
-
-def page_main(render, prog: str, argv=None) -> int:
-    """``python -m PROG RUN_DIR OUT.md``: a results page rendered from a stored run folder."""
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 2:
-        print(f"usage: python -m {prog} RUN_DIR OUT.md", file=sys.stderr)
-        return 2
-    Path(argv[1]).write_text(render(argv[0]))
-    return 0

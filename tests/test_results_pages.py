@@ -28,7 +28,7 @@ def test_docs_results_page_is_the_render_of_its_stored_run(system):
 
 
 def test_docs_accelerator_page_is_the_render_of_its_stored_gpu_run():
-    """docs/results-accelerator.md is what training.accelerator_page renders from docs/runs/accelerator/ (the
+    """docs/results-accelerator.md is what studies.accelerator_page renders from docs/runs/accelerator/ (the
     GPU run of bench/bench_gpu.py and studies/rows_study.py): every figure on it comes from that run."""
     from studies.accelerator_page import render
 
@@ -73,24 +73,17 @@ def test_bouc_wen_page_says_which_model_its_figures_come_from():
         assert f"ny={model['ny']}, nu={model['nu']}: the model `gpnarx train bouc-wen`" in page
 
 
-def _bench_page():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("bench_results_page", DOCS.parent / "bench" / "results_page.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_docs_benchmarks_page_is_the_render_of_its_stored_result_lines():
-    """docs/benchmarks.md is bench/results_page.py's render of the RESULT lines stored under docs/runs/: each
-    stored line's ratio is on the page, and the page holds no figure of its own (history: CHANGELOG.md)."""
-    bench = _bench_page()
+    """docs/benchmarks.md is gpnarx.training.pages.benchmarks's render of the RESULT lines stored under docs/runs/:
+    each stored line's ratio is on the page, and the page holds no figure of its own (history: CHANGELOG.md)."""
+    from gpnarx.training.pages import benchmarks as bench
+    from gpnarx.training.pages.markdown import stored_run
+
     page = (DOCS / "benchmarks.md").read_text()
-    assert page == bench.render(), "docs/benchmarks.md differs from the render of docs/runs/bench/"
+    assert page == bench.render(DOCS / "runs"), "docs/benchmarks.md differs from the render of docs/runs/bench/"
     stored = 0
     for rel, _, _ in bench.SOURCES:
-        _, rows = bench.parse((DOCS / "runs" / rel).read_text())
+        _, rows = stored_run((DOCS / "runs" / rel).read_text())
         for _, kv in rows:
             assert f"| {kv['ratio']} |" in page, kv
             stored += 1
@@ -120,3 +113,16 @@ def test_docs_standin_page_is_the_render_of_its_stored_calibration():
     assert page == render(cal), "docs/standin.md differs from its stored calibration's render"
     for r in cal["rows"]:
         assert f"| {r['freq']:.2f} | {r['volts']:.4f} | {r['real']:.4g} | {r['standin']:.4g} |" in page
+
+
+def test_the_renderers_command_line_writes_each_page_of_its_stored_run(tmp_path):
+    """``python -m gpnarx.training.pages NAME RUN_DIR OUT.md`` writes what the page's test renders (one of each
+    kind: the benches' RESULT lines, a study page, a protocol page)."""
+    from gpnarx.training.pages.__main__ import main
+
+    for name, run, page in (("benchmarks", "runs", "benchmarks.md"), ("standin", "runs/standin", "standin.md"),
+                            ("bouc-wen", "runs/bouc-wen", "results-bouc-wen.md")):
+        out = tmp_path / page
+        assert main([name, str(DOCS / run), str(out)]) == 0
+        assert out.read_text() == (DOCS / page).read_text(), name
+    assert main(["no-such-page", "x", "y"]) == 2

@@ -81,7 +81,7 @@ def test_wheel_holds_one_import_package_and_the_shipped_configs(wheel):
     dist_info = {t for t in top if t.endswith(".dist-info")}
     assert top - dist_info == {"gpnarx"}, f"unexpected top-level entries: {sorted(top - dist_info)}"
     assert not (top & GENERIC_TOP_LEVEL)
-    for sub in ("model", "training", "training/simulators", "service", "cli", "configs"):
+    for sub in ("model", "training", "training/pages", "training/simulators", "service", "cli", "configs"):
         assert f"gpnarx/{sub}/__init__.py" in names, sub
     configs = {Path(n).stem for n in names if n.startswith("gpnarx/configs/") and n.endswith(".toml")}
     assert SHIPPED <= configs, configs

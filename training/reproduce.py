@@ -37,8 +37,9 @@ from gpnarx.training.checkout import load_study
 from gpnarx.training.config import bert_data_dir, load_config, simulate_record
 from gpnarx.training.defaults import shipped_config
 from gpnarx.training.lags import edge_message, lag_surface, write_surface
+from gpnarx.training.pages.markdown import pct
+from gpnarx.training.pages.protocol import PAGES
 from gpnarx.training.pipeline import fit, train
-from gpnarx.training.results_pages import PAGES
 from gpnarx.training.simulators.bert_standin import BertStandin
 
 PAPER = {
@@ -190,7 +191,7 @@ def receptance_study(data_dir, out: Path) -> dict:
 
 def results_page(summary: dict, surface: dict | None = None) -> str:
     """The system's results page (docs/results-SYSTEM.md) from one run's figures only (``summary.json``
-    and ``lag_surface.json``): Bouc-Wen and the stand-in by ``training.results_pages``, real BERT here."""
+    and ``lag_surface.json``): Bouc-Wen and the stand-in by ``training.pages.protocol``, real BERT here."""
     if summary.get("system") in PAGES:
         return PAGES[summary["system"]](summary, surface)
     return real_page(summary, surface)
@@ -285,9 +286,8 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
             fits = c.get("fits") or {}
             vals = [fits.get(n) for n in names]
             worst = min(vals) if vals and all(v is not None for v in vals) else None
-            cell = lambda v: "n/a" if v is None else f"{v:.1f}"  # noqa: E731
-            page += (f"| {c['ny']} | {c['nu']} | {cell(worst)} | {cell(c.get('fit'))} | "
-                     + " | ".join(cell(v) for v in vals) + " |\n")
+            page += (f"| {c['ny']} | {c['nu']} | {pct(worst)} | {pct(c.get('fit'))} | "
+                     + " | ".join(pct(v) for v in vals) + " |\n")
     return page
 
 

@@ -5,16 +5,16 @@ drift from its runs (tests/test_results_pages.py re-renders it).
 A run file holds RESULT lines as a bench script prints them; a ``# run: TEXT`` line says what the file's
 runs are (machine, load, settings) and a ``# `` line right before a RESULT line names its command.
 
-Usage (from the repository root): ``python bench/results_page.py [docs/benchmarks.md]``; to publish a new
-run, put its RESULT lines (with their ``#`` command line) in a file under docs/runs/bench/ and re-render.
+Usage (from the repository root): ``python -m gpnarx.training.pages benchmarks docs/runs docs/benchmarks.md``; to
+publish a new run, put its RESULT lines (with their ``#`` command line) in a file under docs/runs/bench/ and
+re-render.
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-RUNS = ROOT / "docs" / "runs"
+from gpnarx.training.pages.markdown import row, rule, stored_run
+
 # the stored run files, in page order: (path under docs/runs, heading, command of lines that name none)
 SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/full.txt", "Full-size runs", None),
@@ -52,8 +52,9 @@ COLUMNS = ("ratio", "baseline", "baseline_what", "user_ratio", "user_baseline")
 METHOD = """\
 # Benchmarks
 
-Rendered by `python bench/results_page.py` from the stored RESULT lines in `docs/runs/bench/` (and the GPU run in
-`docs/runs/accelerator/bench_gpu.txt`); do not edit by hand: `tests/test_results_pages.py` re-renders the page
+Rendered by `python -m gpnarx.training.pages benchmarks docs/runs docs/benchmarks.md` from the stored RESULT lines
+in `docs/runs/bench/` (and the GPU run in `docs/runs/accelerator/bench_gpu.txt`); do not edit by hand:
+`tests/test_results_pages.py` re-renders the page
 and fails when it differs. The history of earlier runs (before/after tables, commit hashes, load) is in
 [CHANGELOG.md](../CHANGELOG.md#history-of-published-figures).
 
@@ -170,20 +171,6 @@ METHOD_ROWS = (
 )
 
 
-def parse(text: str) -> tuple[str | None, list[tuple[str | None, dict]]]:
-    """A run file: its ``# run:`` description and its RESULT lines as (command, {key: value})."""
-    about, rows, command = None, [], None
-    for line in text.splitlines():
-        if line.startswith("# run:"):
-            about = line[len("# run:"):].strip()
-        elif line.startswith("# "):
-            command = line[2:].strip()
-        elif line.startswith("RESULT "):
-            rows.append((command, dict(tok.split("=", 1) for tok in line[len("RESULT "):].split() if "=" in tok)))
-            command = None
-    return about, rows
-
-
 def _cell(v) -> str:
     """A field as the table prints it: a number as it is, a label in code font, '-' where the line has none."""
     if v is None:
@@ -195,14 +182,18 @@ def _cell(v) -> str:
         return f"`{v}`"
 
 
-def section(path: Path, heading: str, default_command: str | None = None) -> str:
-    about, rows = parse(path.read_text())
-    rel = path.relative_to(RUNS.parent.parent).as_posix()
-    out = [f"## {heading}\n", f"Stored run: `{rel}`." + (f" {about}" if about else "") + "\n"]
-    out.append("| command | " + " | ".join(f"`{c}=`" for c in COLUMNS) + " |")
-    out.append("|---|" + "---|" * len(COLUMNS))
+def _heading(path: Path, runs: Path, heading: str, about: str | None) -> list[str]:
+    rel = path.relative_to(runs.parent.parent).as_posix()
+    return [f"## {heading}\n", f"Stored run: `{rel}`." + (f" {about}" if about else "") + "\n"]
+
+
+def section(path: Path, runs: Path, heading: str, default_command: str | None = None) -> str:
+    about, rows = stored_run(path.read_text())
+    out = _heading(path, runs, heading, about)
+    out.append(row(["command"] + [f"`{c}=`" for c in COLUMNS]))
+    out.append(rule(1 + len(COLUMNS)))
     for command, kv in rows:
-        out.append(f"| `{command or default_command}` | " + " | ".join(_cell(kv.get(c)) for c in COLUMNS) + " |")
+        out.append(row([f"`{command or default_command}`"] + [_cell(kv.get(c)) for c in COLUMNS]))
     out.append("\nThe other fields of each line:\n")
     for command, kv in rows:
         rest = " ".join(f"{k}={v}" for k, v in kv.items() if k not in COLUMNS)
@@ -210,35 +201,25 @@ def section(path: Path, heading: str, default_command: str | None = None) -> str
     return "\n".join(out) + "\n"
 
 
-def render(runs: Path = RUNS) -> str:
-    table = "\n".join(["| script | product | `ratio=`: equal-work baseline |", "|---|---|---|"]
-                      + [f"| {s} | {p} | {b} |" for s, p, b in METHOD_ROWS])
+def render(runs) -> str:
+    """The page from the stored runs under ``runs`` (the repository's ``docs/runs``)."""
+    runs = Path(runs).resolve()
+    table = "\n".join([row(["script", "product", "`ratio=`: equal-work baseline"]), rule(3)]
+                      + [row(r) for r in METHOD_ROWS])
     parts = [METHOD + table + "\n"]
     for rel, heading, command in SOURCES:
         if (runs / rel).is_file():
-            parts.append(section(runs / rel, heading, command))
+            parts.append(section(runs / rel, runs, heading, command))
     for rel, heading, command in FIGURES:
         if (runs / rel).is_file():
-            parts.append(figures_section(runs / rel, heading, command))
+            parts.append(figures_section(runs / rel, runs, heading, command))
     return "\n".join(parts)
 
 
-def figures_section(path: Path, heading: str, default_command: str | None = None) -> str:
+def figures_section(path: Path, runs: Path, heading: str, default_command: str | None = None) -> str:
     """A run of ``FIGURES``: its description and each RESULT line's fields, no baseline columns."""
-    about, rows = parse(path.read_text())
-    rel = path.relative_to(RUNS.parent.parent).as_posix()
-    out = [f"## {heading}\n", f"Stored run: `{rel}`." + (f" {about}" if about else "") + "\n"]
+    about, rows = stored_run(path.read_text())
+    out = _heading(path, runs, heading, about)
     for command, kv in rows:
         out.append(f"- `{command or default_command}`: `{' '.join(f'{k}={v}' for k, v in kv.items())}`")
     return "\n".join(out) + "\n"
-
-
-def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    out = Path(argv[0]) if argv else ROOT / "docs" / "benchmarks.md"
-    out.write_text(render())
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

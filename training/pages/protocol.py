@@ -10,25 +10,13 @@ Bouc-Wen 10 N investigation, the stand-in's calibration and scatter) live on the
 """
 from __future__ import annotations
 
+from gpnarx.training.pages.markdown import hz, lines, pct, sig, table
 from gpnarx.training.report_metrics import USES
 
 # the order records are listed in: what trained the model, what chose the lags, then held-out records
 USE_ORDER = ("training", "lag-selection", "calibration", "held-out")
 USE_LABEL = {"training": "training", "lag-selection": "lag selection", "calibration": "novelty calibration",
              "held-out": "held out"}
-
-
-def pct(v) -> str:
-    """A percentage (or fit %) as the pages print it: one decimal, 'n/a' when missing."""
-    return "n/a" if v is None else f"{float(v):.1f}"
-
-
-def sig(v, digits: int = 3) -> str:
-    return "n/a" if v is None else f"{float(v):.{digits}g}"
-
-
-def hz(v) -> str:
-    return "n/a" if v is None else f"{float(v):.2f}"
 
 
 def _ordered(records: dict) -> list[tuple[str, dict]]:
@@ -85,24 +73,24 @@ def records_table(summary: dict, clean: bool, baseline_key: str, oracle: dict | 
         (["coverage latent %"] if clean else []) + [f"band width{f' [{unit}]' if unit else ''}"] + \
         (["nominal stand-in (oracle) fit clean %"] if oracle else []) + [f"{b} {bl} %" for b in bnames] + \
         ["PSD peak measured / predicted [Hz]"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    rows = []
     for name, r in _ordered(summary["records"]):
         peaks = (r.get("psd_peaks_measured") or [None])[0], (r.get("psd_peaks_predicted") or [None])[0]
-        row = [name, USE_LABEL.get(r.get("use"), str(r.get("use"))), str(r.get("role")), pct(r.get("fit"))]
+        cells = [name, USE_LABEL.get(r.get("use"), str(r.get("use"))), str(r.get("role")), pct(r.get("fit"))]
         if clean:
-            row.append(pct(r.get("fit_clean")))
-        row.append(pct(r.get("coverage")))
+            cells.append(pct(r.get("fit_clean")))
+        cells.append(pct(r.get("coverage")))
         if clean:
-            row.append(pct(r.get("coverage_latent")))
-        row.append(sig(r.get("band_width")))
+            cells.append(pct(r.get("coverage_latent")))
+        cells.append(sig(r.get("band_width")))
         if oracle:
-            row.append(pct((oracle.get(name) or {}).get("fit_clean")))
+            cells.append(pct((oracle.get(name) or {}).get("fit_clean")))
         for b in bnames:
             v = _baseline_fit(summary.get("baselines"), name, b, baseline_key)
-            row.append("unstable" if v is not None and v < -1e4 else pct(v))
-        row.append(f"{hz(peaks[0])} / {hz(peaks[1])}")
-        lines.append("| " + " | ".join(row) + " |")
-    return "\n".join(lines) + "\n\n"
+            cells.append("unstable" if v is not None and v < -1e4 else pct(v))
+        cells.append(f"{hz(peaks[0])} / {hz(peaks[1])}")
+        rows.append(cells)
+    return "\n".join(table(head, rows)) + "\n\n"
 
 
 def lags_table(summary: dict, surface: dict | None) -> str:
@@ -119,17 +107,15 @@ def lags_table(summary: dict, surface: dict | None) -> str:
               "(`lag_grid_edge` in the summary).\n\n")
     if surface and surface.get("cells"):
         names = sorted({k for c in surface["cells"] for k in (c.get("fits") or {})})
-        rule = ("the smallest ny + nu within "
-                f"{surface.get('tolerance', 0.5)} points of the best" if surface.get("criterion") != "worst"
-                else "the highest worst-record fit")
-        s += (f"Lag surface: free-run fit % of a model trained at each (ny, nu) on the `train` records, scored on "
-              f"the `lags` record(s) ({', '.join(names)}); chosen by {rule}.\n\n"
-              "| ny \\ nu | " + " | ".join(str(v) for v in surface["nu"]) + " |\n|" + "---|" * (1 + len(surface["nu"]))
-              + "\n")
+        criterion = ("the smallest ny + nu within "
+                     f"{surface.get('tolerance', 0.5)} points of the best" if surface.get("criterion") != "worst"
+                     else "the highest worst-record fit")
         fits = {(c["ny"], c["nu"]): c.get("fit") for c in surface["cells"]}
-        for ny in surface["ny"]:
-            s += f"| {ny} | " + " | ".join(pct(fits.get((ny, nu))) for nu in surface["nu"]) + " |\n"
-        s += "\n"
+        s += (f"Lag surface: free-run fit % of a model trained at each (ny, nu) on the `train` records, scored on "
+              f"the `lags` record(s) ({', '.join(names)}); chosen by {criterion}.\n\n"
+              + lines(table(["ny \\ nu"] + [str(v) for v in surface["nu"]],
+                            [[str(ny)] + [pct(fits.get((ny, nu))) for nu in surface["nu"]] for ny in surface["ny"]]))
+              + "\n")
     return s
 
 
@@ -137,12 +123,12 @@ def loops_table(summary: dict) -> str:
     rows = [(n, r) for n, r in _ordered(summary["records"]) if r.get("loop_area_predicted") is not None]
     if not rows:
         return ""
-    s = ("Loop areas (restoring force R = u - m y'' against y, J): the noise-free, measured and predicted loops "
-         "of each record.\n\n| record | use | noise-free | measured | predicted |\n|---|---|---|---|---|\n")
-    for n, r in rows:
-        s += (f"| {n} | {USE_LABEL.get(r.get('use'), '')} | {sig(r.get('loop_area_clean'), 4)} | "
-              f"{sig(r.get('loop_area_measured'), 4)} | {sig(r.get('loop_area_predicted'), 4)} |\n")
-    return s + "\n"
+    return ("Loop areas (restoring force R = u - m y'' against y, J): the noise-free, measured and predicted loops "
+            "of each record.\n\n"
+            + lines(table(["record", "use", "noise-free", "measured", "predicted"],
+                          [[n, USE_LABEL.get(r.get("use"), ""), sig(r.get("loop_area_clean"), 4),
+                            sig(r.get("loop_area_measured"), 4), sig(r.get("loop_area_predicted"), 4)]
+                           for n, r in rows])) + "\n")
 
 
 def config_lags(system: str, summary: dict) -> tuple[dict, str]:
@@ -181,6 +167,14 @@ def _header(title: str, system: str, summary: dict) -> str:
             + model_line(system, summary))
 
 
+def _sections(summary: dict, surface: dict | None, *, lags: str = "Lags", records: str = "Records",
+              clean: bool = True, key: str = "fit", oracle: dict | None = None, loops: bool = True) -> str:
+    """The lags and the per-record table (and the loop areas) every protocol page holds."""
+    return (f"## {lags}\n\n" + lags_table(summary, surface)
+            + f"## {records}\n\n" + _columns_note(clean) + records_table(summary, clean, key, oracle=oracle)
+            + (loops_table(summary) if loops else ""))
+
+
 def bouc_wen_page(summary: dict, surface: dict | None = None) -> str:
     page = _header("Results: Bouc-Wen benchmark (section 3)", "bouc-wen", summary)
     page += ("Protocol (`configs/bouc-wen.toml`): train on the 10 N and 80 N sweeps (5-150 Hz, 53 Hz/s) with output "
@@ -189,10 +183,7 @@ def bouc_wen_page(summary: dict, surface: dict | None = None) -> str:
              "is the lag-selection record; only the 35.59 Hz sines and the multisines at 10/50/80 N are held out. "
              "Baselines are scored against the noise-free output. The investigation of the 10 N sweep's miss "
              "and of remedies is in [study-bouc-wen-10n.md](study-bouc-wen-10n.md).\n\n")
-    page += "## Lags\n\n" + lags_table(summary, surface)
-    page += "## Records\n\n" + _columns_note(True) + records_table(summary, True, "fit_clean")
-    page += loops_table(summary)
-    return page
+    return page + _sections(summary, surface, key="fit_clean")
 
 
 def standin_page(summary: dict, surface: dict | None = None) -> str:
@@ -205,9 +196,7 @@ def standin_page(summary: dict, surface: dict | None = None) -> str:
              "held out: a 0.15 V sweep, an 18 Hz sine at 0.15 V and 0-110 Hz noise at 0.30 V, each a new "
              "realization. The paper uses 4096 Monte Carlo paths. \"Nominal stand-in (oracle)\": the stand-in's "
              "own nominal equations predicting the realization, what realization scatter alone costs.\n\n")
-    page += "## Lags\n\n" + lags_table(summary, surface)
-    page += ("## Records\n\n" + _columns_note(True)
-             + records_table(summary, True, "fit", oracle=summary.get("oracle")))
+    page += _sections(summary, surface, oracle=summary.get("oracle"), loops=False)
     mon = summary.get("monitor")
     if mon:
         page += ("## The bolt-loosening monitor\n\n`configs/bert-standin-monitor.toml`, trained by the same run: "
@@ -217,13 +206,12 @@ def standin_page(summary: dict, surface: dict | None = None) -> str:
         if nv:
             page += (f"Threshold {sig(nv.get('threshold'), 4)} at a {pct(100 * nv['false_alarm_rate'])} % "
                      f"false-alarm rate from {nv.get('n_healthy')} healthy records.\n\n")
-        page += ("| record | use | role | fit % | fit clean % | coverage % | coverage latent % | novelty score | "
-                 "verdict |\n|---|---|---|---|---|---|---|---|---|\n")
-        for name, r in _ordered(mon["records"]):
-            page += (f"| {name} | {USE_LABEL.get(r.get('use'), '')} | {r.get('role')} | {pct(r.get('fit'))} | "
-                     f"{pct(r.get('fit_clean'))} | {pct(r.get('coverage'))} | {pct(r.get('coverage_latent'))} | "
-                     f"{sig(r.get('novelty_score'), 4)} | {r.get('verdict', '')} |\n")
-        page += "\n"
+        page += lines(table(
+            ["record", "use", "role", "fit %", "fit clean %", "coverage %", "coverage latent %", "novelty score",
+             "verdict"],
+            [[name, USE_LABEL.get(r.get("use"), ""), str(r.get("role")), pct(r.get("fit")), pct(r.get("fit_clean")),
+              pct(r.get("coverage")), pct(r.get("coverage_latent")), sig(r.get("novelty_score"), 4),
+              str(r.get("verdict", ""))] for name, r in _ordered(mon["records"])])) + "\n"
     nov = summary.get("novelty")
     if nov:
         classes = list(nov["scores"])
@@ -233,14 +221,13 @@ def standin_page(summary: dict, surface: dict | None = None) -> str:
                  f"free run from its first ny measured outputs, score method `{nov.get('method')}`. Thresholds: the "
                  f"quantile of a log-normal fit to {len(nov['calibration_scores'])} healthy 5 N m calibration "
                  f"realizations; {nov['n_per_class']} records per class below, none used for calibration. "
-                 f"Direction: {nov.get('direction')}. ROC curve: `novelty_roc.png` in the run folder.\n\n"
-                 "| false-alarm rate | threshold | " + " | ".join(f"{c} flagged" for c in classes) + " |\n|"
-                 + "---|" * (2 + len(classes)) + "\n")
-        for far, thr in nov["thresholds"].items():
-            rates = nov["rates"][far]
-            page += (f"| {pct(100 * float(far))} % | {sig(thr, 4)} | "
-                     + " | ".join(f"{round(rates[c] * nov['n_per_class'])} / {nov['n_per_class']} "
-                                  f"({pct(100 * rates[c])} %)" for c in classes) + " |\n")
+                 f"Direction: {nov.get('direction')}. ROC curve: `novelty_roc.png` in the run folder.\n\n")
+        n = nov["n_per_class"]
+        page += lines(table(
+            ["false-alarm rate", "threshold"] + [f"{c} flagged" for c in classes],
+            [[f"{pct(100 * float(far))} %", sig(thr, 4)]
+             + [f"{round(nov['rates'][far][c] * n)} / {n} ({pct(100 * nov['rates'][far][c])} %)" for c in classes]
+             for far, thr in nov["thresholds"].items()]))
         page += ("\nScores (min-max): " + "; ".join(
             f"{c} {sig(min(v), 4)}-{sig(max(v), 4)}" for c, v in nov["scores"].items())
             + f"; calibration {sig(min(nov['calibration_scores']), 4)}-{sig(max(nov['calibration_scores']), 4)}.\n")
@@ -261,23 +248,20 @@ def real_paper_page(summary: dict, surface: dict | None = None) -> str:
              "The band is the method's own, eqs. (8)-(9) propagated by Monte Carlo, with no calibration. The "
              "model shipped for every excitation class is `bert-real` ([results-bert-real.md]"
              "(results-bert-real.md)).\n\n")
-    page += "## Lags (the 0.10 V sweep)\n\n" + lags_table(summary, surface)
-    page += "## Verification and validation\n\n" + _columns_note(False) + records_table(summary, False, "fit")
-    page += loops_table(summary)
+    page += _sections(summary, surface, lags="Lags (the 0.10 V sweep)", records="Verification and validation",
+                      clean=False)
     rec = summary.get("receptance") or {}
     if rec.get("runs"):
         page += ("## Receptance of the sweeps (Fig. 12(a))\n\nFrom each sweep's LMS FRF export (velocity per volt, "
                  "divided by 2 pi f: displacement per volt). The peak moving down and flattening as the drive "
                  "grows is the joint's softening and added damping. Figure: `docs/runs/bert-real-paper/"
                  "receptance.png`.\n\n![receptance](runs/bert-real-paper/receptance.png)\n\n"
-                 "| sweep | RMS drive [V] | receptance peak [Hz] | peak [m/V] |\n|---|---|---|---|\n")
-        for r in rec["runs"]:
-            page += f"| {r['name']} | {sig(r['u_rms'], 3)} | {r['peak_freq']:.4g} | {sig(r['peak'], 4)} |\n"
-        page += "\n"
+                 + lines(table(["sweep", "RMS drive [V]", "receptance peak [Hz]", "peak [m/V]"],
+                               [[r["name"], sig(r["u_rms"], 3), f"{r['peak_freq']:.4g}", sig(r["peak"], 4)]
+                                for r in rec["runs"]])) + "\n")
     return page
 
 
 PAGES = {"bouc-wen": bouc_wen_page, "bert-standin": standin_page, "bert-real-paper": real_paper_page}
 
-__all__ = ["PAGES", "bouc_wen_page", "hz", "lags_table", "pct", "real_paper_page", "records_table", "sig",
-           "standin_page"]
+__all__ = ["PAGES", "bouc_wen_page", "lags_table", "real_paper_page", "records_table", "standin_page"]
