@@ -18,7 +18,8 @@ uses the linearised band (``method=linear``), the same on all three, so the wire
 Answer sizes are the bytes on the wire (``Content-Length``).
 
 The published run is stored in ``docs/runs/bench/wire.txt``; ``--render PAGE`` re-renders the table of PAGE
-(docs/api.md, "Wire formats") from it (tests/test_wire_formats.py checks that the page is that render).
+(docs/api.md, "Wire formats") from it with the results pages' renderer (``gpnarx.training.pages.wire``;
+tests/test_wire_formats.py checks that the page is that render).
 
 Baseline: the JSON body and answer. Prints one line ``RESULT json_bytes=... gzip_bytes=... npz_bytes=...
 json_ms=... gzip_ms=... npz_ms=... json_wire_ms=... baseline=<json_wire_ms> ratio=<median of the per-repetition
@@ -133,55 +134,6 @@ def call(client, kind: str, u: np.ndarray, fs: float):
 
 
 RUN = ROOT / "docs" / "runs" / "bench" / "wire.txt"
-BEGIN = "<!-- wire-table: rendered by bench/bench_wire.py --render from docs/runs/bench/wire.txt -->"
-END = "<!-- /wire-table -->"
-
-
-def stored_run(path: Path = RUN) -> tuple[str, str, dict]:
-    """A stored run file: its ``# run:`` description, its command and its (last) RESULT line's fields."""
-    about = command = ""
-    kv: dict = {}
-    for line in path.read_text().splitlines():
-        if line.startswith("# run:"):
-            about = line[len("# run:"):].strip()
-        elif line.startswith("# "):
-            command = line[2:].strip()
-        elif line.startswith("RESULT "):
-            kv = dict(tok.split("=", 1) for tok in line[len("RESULT "):].split() if "=" in tok)
-    if not kv:
-        raise ValueError(f"{path}: no RESULT line")
-    return about, command, kv
-
-
-def render(about: str, command: str, kv: dict) -> str:
-    """The wire table of docs/api.md from a stored run."""
-    mb = {k: int(kv[f"{k}_bytes"]) / 1e6 for k in ("json", "gzip", "npz")}
-    wire = {k: float(kv[f"{k}_wire_ms"]) for k in ("json", "gzip", "npz")}
-    total = {k: float(kv[f"{k}_ms"]) for k in ("json", "gzip", "npz")}
-    gz = wire["gzip"] / wire["json"]
-    gz_note = ": compression costs CPU on loopback, it pays on a slow link" if gz > 1 else ""
-    rows = [
-        ("JSON (the only format before)", f"{mb['json']:.2f} MB", f"{wire['json']:.0f} ms"),
-        ("JSON, answer gzip-compressed", f"{mb['gzip']:.2f} MB ({float(kv['gzip_size_ratio']):.1f}x smaller)",
-         f"{wire['gzip']:.0f} ms ({gz:.1f}x JSON's{gz_note})"),
-        ("NPZ both ways", f"{mb['npz']:.2f} MB ({float(kv['npz_size_ratio']):.1f}x smaller)",
-         f"{wire['npz']:.0f} ms ({float(kv['ratio']):.1f}x less)"),
-    ]
-    lines = [BEGIN, "", f"Stored run `docs/runs/bench/wire.txt` (`{command}`). {about} \"Wire\" is the end-to-end "
-             "time of the call minus the prediction itself (from `Server-Timing`): encoding, transfer, validation, "
-             "rendering and decoding into numpy arrays on both sides; sizes are the answer's bytes on the wire.", "",
-             "| body and answer | answer size | wire time | end to end, prediction included |", "|---|---|---|---|"]
-    for (label, size, w), k in zip(rows, ("json", "gzip", "npz")):
-        lines.append(f"| {label} | {size} | {w} | {total[k] / 1e3:.1f} s |")
-    return "\n".join(lines + ["", END])
-
-
-def render_page(page: Path, run: Path = RUN) -> None:
-    text = page.read_text()
-    if BEGIN not in text or END not in text:
-        raise ValueError(f"{page} has no {BEGIN!r} ... {END!r} block")
-    head, rest = text.split(BEGIN, 1)
-    page.write_text(head + render(*stored_run(run)) + rest.split(END, 1)[1])
 
 
 def main() -> None:
@@ -195,7 +147,9 @@ def main() -> None:
                     help="only re-render PAGE's wire table from the stored run docs/runs/bench/wire.txt")
     args = ap.parse_args()
     if args.render:
-        render_page(args.render)
+        from gpnarx.training.pages.wire import render_page
+
+        render_page(args.render, RUN)
         return
     if args.quick:
         args.seconds, args.repeats = 8.0, 2

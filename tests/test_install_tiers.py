@@ -127,9 +127,10 @@ def test_tools_are_dependency_groups_and_the_test_extra_lists_them_again():
 
 
 def test_docs_install_sizes_are_the_render_of_the_stored_run_of_this_lock():
-    """docs/deploy.md's install sizes are tools/install_sizes.py's render of docs/runs/install/sizes.json, a run of
-    the Dockerfile's steps on the requirements.lock in force: the image's packages are the lock's pins (same
-    versions) and gpnarx; the core holds neither matplotlib nor tqdm, the core with `train` holds both."""
+    """docs/deploy.md's install sizes are the render (gpnarx.training.pages.install_sizes) of tools/install_sizes.py's
+    stored run docs/runs/install/sizes.json, a run of the Dockerfile's steps on the requirements.lock in force: the
+    image's packages are the lock's pins (same versions) and gpnarx; the core holds neither matplotlib nor tqdm, the
+    core with `train` holds both."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("install_sizes", ROOT / "tools" / "install_sizes.py")

@@ -263,20 +263,18 @@ def test_npz_body_with_stream_query_fields(client):
 
 
 def test_docs_wire_table_is_the_render_of_its_stored_run():
-    """docs/api.md's table of one 64 s predict answer as JSON, gzip JSON and NPZ is bench/bench_wire.py's render
-    of the stored run docs/runs/bench/wire.txt (re-render: ``python bench/bench_wire.py --render docs/api.md``)."""
-    import importlib.util
+    """docs/api.md's table of one 64 s predict answer as JSON, gzip JSON and NPZ is the render of the stored run
+    docs/runs/bench/wire.txt of bench/bench_wire.py (``gpnarx.training.pages.wire``; re-render:
+    ``python bench/bench_wire.py --render docs/api.md``)."""
+    from gpnarx.training.pages import wire
 
     root = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("bench_wire", root / "bench" / "bench_wire.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    about, command, kv = bench.stored_run()
+    about, command, kv = wire.last_result(root / "docs" / "runs" / "bench" / "wire.txt")
     assert int(kv["samples"]) == 65536 and "--seconds 64" in command  # the issue's 64 s record at 1024 Hz
     assert int(kv["json_bytes"]) > int(kv["npz_bytes"]) > 0 and int(kv["json_bytes"]) > int(kv["gzip_bytes"]) > 0
     page = (root / "docs" / "api.md").read_text()
-    block = page[page.index(bench.BEGIN):page.index(bench.END) + len(bench.END)]
-    assert block == bench.render(about, command, kv), "docs/api.md's wire table differs from its stored run's render"
+    block = page[page.index(wire.BEGIN):page.index(wire.END) + len(wire.END)]
+    assert block == wire.render(about, command, kv), "docs/api.md's wire table differs from its stored run's render"
 
 
 def _member_data_offset(raw: bytes, name: str) -> int:

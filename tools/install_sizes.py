@@ -34,13 +34,13 @@ import sys
 import tempfile
 from pathlib import Path
 
+from gpnarx.training.pages.install_sizes import BEGIN, END, render
+from gpnarx.training.pages.markdown import replace_block
+
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "docs" / "runs" / "install" / "sizes.json"
 LOCK = ROOT / "requirements.lock"
 DOCKERFILE = ROOT / "Dockerfile"
-# the page block this script renders (docs/deploy.md, "Install tiers")
-BEGIN = "<!-- install-sizes: rendered by tools/install_sizes.py from docs/runs/install/sizes.json -->"
-END = "<!-- /install-sizes -->"
 # what a fresh venv already holds (the base image's Python has them too)
 BASE_PACKAGES = {"pip", "setuptools", "wheel"}
 LARGEST = 8
@@ -165,45 +165,6 @@ def measure(keep: Path | None = None) -> dict:
             "tiers": tiers}
 
 
-def _mb(n: int) -> str:
-    return f"{n / 1e6:.0f} MB"
-
-
-def render(run: dict) -> str:
-    """The block of docs/deploy.md: the tiers' sizes and packages, from a stored run."""
-    t = run["tiers"]
-    core, train, image = t["core"], t["train"], t["image"]
-    lines = [BEGIN, "",
-             f"Installed from `requirements.lock` ({run['lock_pins']} pins with hashes; the wheels "
-             f"{_mb(run['wheels_bytes'])}) into fresh venvs, offline, by `tools/install_sizes.py` (Python "
-             f"{run['python']}, {run['machine']}); sizes are the bytes of the files each adds to an empty venv's "
-             "site-packages, byte-compiled files included. Stored run: `docs/runs/install/sizes.json`.", "",
-             "| install | packages | site-packages | of which `__pycache__` | largest |", "|---|---|---|---|---|"]
-    for label, tier in (("core: `gpnarx`", core), ("core before the tiers: `gpnarx[train]`", train),
-                        (f"the image: `{image['spec']}`", image)):
-        big = ", ".join(f"{k} {_mb(v)}" for k, v in tier["largest"][:4])
-        lines.append(f"| {label} | {tier['n_packages']} | {_mb(tier['site_packages_bytes'])} | "
-                     f"{_mb(tier['pycache_bytes'])} | {big} |")
-    only_train = sorted(set(train["packages"]) - set(core["packages"]))
-    only_image = sorted(set(image["packages"]) - set(train["packages"]))
-    lines += ["",
-              f"The core's packages: {', '.join(f'{k} {v}' for k, v in core['packages'].items())}.", "",
-              f"`train` adds {len(only_train)}: {', '.join(only_train)} "
-              f"({_mb(train['site_packages_bytes'] - core['site_packages_bytes'])}); the image's extras add "
-              f"{len(only_image)} more: {', '.join(only_image)}.", "",
-              f"The image's Python layer is thus about {_mb(image['site_packages_bytes'])} on top of its base image "
-              f"`{run['base_image']}`, before the default registry that `gpnarx build-defaults` writes at image "
-              "build.", "", END]
-    return "\n".join(lines)
-
-
-def replace_block(page: str, block: str) -> str:
-    if BEGIN not in page or END not in page:
-        raise ValueError(f"the page has no {BEGIN!r} ... {END!r} block")
-    head, rest = page.split(BEGIN, 1)
-    return head + block + rest.split(END, 1)[1]
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=RUN,
@@ -215,7 +176,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.render:
         run = json.loads(args.out.read_text())
-        args.render.write_text(replace_block(args.render.read_text(), render(run)))
+        args.render.write_text(replace_block(args.render.read_text(), BEGIN, END, render(run)))
         return 0
     run = measure(args.keep)
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -165,6 +165,11 @@ METHOD_ROWS = (
     ('`bench_stream.py`',
      'a record predicted in chunks with state tokens',
      'the same record whole'),
+    ('`bench_streams.py`',
+     'streams per replica: the most clients one `gpnarx serve` follows in real time, each streaming a record in '
+     '1 s chunks with state tokens (p99 under the chunk time, no 503, error or lag)',
+     'one stream alone: the bound floor(workers x chunk / its median chunk latency) if chunks shared the workers '
+     'perfectly'),
     ('`bench_first_start.py`',
      '`gpnarx serve` on an empty registry',
      'the previous start path (build, then serve)'),
