@@ -175,6 +175,7 @@ def main(argv=None) -> int:
             C.stop_server(proc)
     C.result(bench="streams", model=model, operation=args.operation, method=args.method, chunk_s=args.chunk,
              stream_s=len(parts) * args.chunk, workers=args.workers, streams=best, baseline=bound,
+             baseline_what="workers-x-chunk/one-stream-p50",
              ratio=round(best / bound, 3) if bound else None, single_p50_ms=round(one["p50_ms"], 1),
              p99_ms_at_max=round(at_best["p99_ms"], 1) if at_best else None,
              tried=",".join(str(n) for n, _ in rows),

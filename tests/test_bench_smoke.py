@@ -135,3 +135,17 @@ def test_bench_load_quick():
     assert int(kv["other_5xx"]) == 0 and int(kv["health_errors"]) == 0, kv
     health = float(kv["health_p95_overload_ms"])
     assert math.isfinite(health) and 0 < health < 5000, kv  # the event loop is never blocked for seconds
+
+
+def test_bench_streams_quick():
+    """Streams per replica (bench/bench_streams.py --quick): streams with state tokens against a real `gpnarx serve`,
+    every chunk answered; the figure is the largest count whose p99 stays under the chunk time."""
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_streams.py"), "--quick"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, f"exited {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr[-3000:]}"
+    kv = parse_result(proc.stdout)
+    check_contract(kv)
+    assert int(kv["baseline"]) >= 1 and math.isfinite(float(kv["single_p50_ms"])), kv
+    assert int(kv["stream_s"]) >= 2 and kv["tried"], kv
+    # a stream is followed only when every chunk got its 200 in time; 0 streams would mean not even the first count
+    assert int(kv["streams"]) >= 1 and kv["limit"] in ("found", "lower-bound"), kv
