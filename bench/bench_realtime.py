@@ -58,14 +58,15 @@ import numpy as np
 import _common as C
 
 BASELINE_CODE = (
-    "import sys; import gpnarx.model.freerun as F; import gpnarx.model.freerun.reference as R; "
-    "F.simulate_linear = R.simulate_linear_reference; "
+    "import sys; import gpnarx.model.freerun as F; "
+    "from gpnarx.model.freerun.linear_stepwise import run_linear_stepwise; "
+    "F.RUNNERS[('linear', 'numpy')] = run_linear_stepwise; "
     "from gpnarx.cli.main import main; sys.argv = ['gpnarx'] + sys.argv[1:]; sys.exit(main())"
 )
 # the product's code with pass 2 on the calling thread only (no worker thread beside the mean recursion)
 SERIAL_CODE = (
-    "import sys, functools; import gpnarx.model.freerun as F; "
-    "F.simulate_linear = functools.partial(F.simulate_linear, workers=0); "
+    "import sys, dataclasses; import gpnarx.model.freerun as F; lin = F.RUNNERS[('linear', 'numpy')]; "
+    "F.RUNNERS[('linear', 'numpy')] = lambda p, u, s: lin(p, u, dataclasses.replace(s, workers=0)); "
     "from gpnarx.cli.main import main; sys.argv = ['gpnarx'] + sys.argv[1:]; sys.exit(main())"
 )
 
