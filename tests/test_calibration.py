@@ -69,6 +69,47 @@ def test_heldout_calibration_widens_an_overconfident_model(clean_and_noisy, mode
     assert cov_p < 80.0 and cov_c >= 97.0
 
 
+@pytest.mark.parametrize("mode", ["exact", "sparse"])
+def test_predict_rows_in_blocks_is_one_call(clean_and_noisy, mode):
+    """eqs. 8-9 over many rows in row blocks (estimator._predict_rows: the memory of a few blocks, not of
+    K(all rows, points)) give what one posterior.predict over every row gives."""
+    from gpnarx.model.estimator import ROW_BLOCK_ALIGN, _predict_rows
+    from gpnarx.model.regressors import stack_regressors
+
+    train, held, test = clean_and_noisy
+    m = GPNARX(ny=4, nu=4, mode=mode, n_inducing=64, max_train_points=400, n_restarts=0).fit([train])
+    X = m.x_scaler_.transform(stack_regressors([train, held, test], 4, 4)[0])  # 2688 rows: 10 blocks and a tail
+    mu, var = m.posterior_.predict(X)
+    floats = ROW_BLOCK_ALIGN * m.posterior_.n_points  # blocks of ROW_BLOCK_ALIGN rows
+    bm, bv = _predict_rows(m.posterior_, X, block_floats=floats)
+    np.testing.assert_allclose(bm, mu, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(bv, var, rtol=1e-12, atol=1e-15)
+    mean_only, none = _predict_rows(m.posterior_, X, return_var=False, block_floats=floats)
+    assert none is None
+    np.testing.assert_array_equal(mean_only, bm)
+    # fewer floats than one aligned block: still whole ROW_BLOCK_ALIGN-row blocks
+    np.testing.assert_array_equal(_predict_rows(m.posterior_, X, block_floats=1)[0], bm)
+
+
+def test_heldout_calibration_in_row_blocks_is_the_one_call_calibration(clean_and_noisy, monkeypatch):
+    """The held-out calibration's one-step predictions run in row blocks (ROW_BLOCK_FLOATS): the same
+    calibrated sigma_y^2 and posterior as one call over every held-out row (the code before the blocks)."""
+    import gpnarx.model.estimator as est
+
+    train, held, test = clean_and_noisy
+    kw = dict(ny=4, nu=4, max_train_points=400, n_restarts=0)
+    theta = GPNARX(**kw).fit([train]).theta_
+    monkeypatch.setattr(est, "ROW_BLOCK_FLOATS", 1 << 62)  # one call over every row
+    one = GPNARX(**kw).fit([train], theta=theta, heldout=[held, test])
+    monkeypatch.setattr(est, "ROW_BLOCK_FLOATS", est.ROW_BLOCK_ALIGN * 400)  # 1192 rows in 5 blocks
+    blocks = GPNARX(**kw).fit([train], theta=theta, heldout=[held, test])
+    for key, value in one.noise_calibration_.items():
+        assert blocks.noise_calibration_[key] == (value if isinstance(value, str) else pytest.approx(value, rel=1e-12))
+    assert blocks.noise_var_ > 100 * blocks.noise_var_ml2_  # the calibration did raise it
+    for name, arr in one.fitted_arrays().items():
+        np.testing.assert_allclose(blocks.fitted_arrays()[name], arr, rtol=1e-12, atol=0, err_msg=name)
+
+
 def test_calibration_never_lowers_ml2_noise(sdof_data):
     u, yn = sdof_data["u"][:1500], sdof_data["yn"][:1500]
     m = GPNARX(ny=4, nu=4, max_train_points=400, n_restarts=0).fit(
