@@ -23,13 +23,13 @@ def undecided(monkeypatch):
 
 def _spy(monkeypatch):
     seen = []
-    step = GPNARX._simulate
+    step = GPNARX._run  # the free run itself (freerun.run through the estimator)
 
     def spied(self, *a, **kw):
         seen.append(blas_counts())
         return step(self, *a, **kw)
 
-    monkeypatch.setattr(GPNARX, "_simulate", spied)
+    monkeypatch.setattr(GPNARX, "_run", spied)
     return seen
 
 
@@ -54,7 +54,7 @@ def test_simulate_restores_the_callers_threads_when_it_raises(sdof_model, undeci
         assert blas_counts() == {1}
         raise RuntimeError("step failed")
 
-    monkeypatch.setattr(GPNARX, "_simulate", boom)
+    monkeypatch.setattr(GPNARX, "_run", boom)
     with threadpool_limits(limits=3, user_api="blas"):
         with pytest.raises(RuntimeError, match="step failed"):
             sdof_model.simulate(np.zeros(50), n_paths=4)

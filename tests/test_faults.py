@@ -469,7 +469,7 @@ def test_job_that_cannot_start_in_time_is_refused_at_once():
         assert ex.wait_estimate() == 0.0  # a worker is free
         await ex.run(time.sleep, 0.2, work=1000)  # measured: about 0.2 ms per work unit
         await ex.run(time.sleep, 0.4, work=2000)
-        assert 0.8 < ex.model.estimate(JobSize.work(4000)) < 2.0
+        assert 0.7 < ex.model.estimate(JobSize.work(4000)) < 2.0  # about 0.8 s: 0.2 ms per unit, timer noise aside
         release = threading.Event()
         running = asyncio.ensure_future(ex.run(release.wait, 10, work=5000))  # about 1 s by the measure
         await asyncio.sleep(0.1)
