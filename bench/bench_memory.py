@@ -25,7 +25,7 @@ work (a different model size), labelled by ``user_baseline=``.
     linearised; the 64 s 0.10 V sweep, ``PREDICT_RECORD``);
   * mc: ``gpnarx predict --method mc --mc 1024`` of the first 16 s of that record;
   * build_defaults (``--defaults``, minutes): ``gpnarx build-defaults`` into an empty registry (with the lab
-    records, bert-real and its monitor too).
+    records, bert-real and its monitor too; ``defaults_built=`` names the bundles it wrote).
 Each figure is the child's high-water mark (``ru_maxrss`` of ``wait4``: the process and the children it waited
 for, each counted alone) and ``..._tree_pss_mib``, the largest sum of the proportional set sizes of the process
 and its descendants seen at 0.1 s samples (forked workers: a shared page counted once, as a cgroup charges it).
@@ -316,13 +316,15 @@ def pipeline(args) -> None:
         if args.defaults:
             res["defaults"] = _peak(py + ["-m", "gpnarx", "build-defaults", "--registry", str(tmp / "defaults")],
                                     env, "build-defaults")
+            built = sorted(d.name for d in (tmp / "defaults").iterdir() if d.is_dir() and any(
+                v.is_dir() and (v / "manifest.json").is_file() for v in d.iterdir()))
     figures = ["train", "predict", "mc"] + (["defaults"] if args.defaults else [])
     worst = max(max(res[k]["rss"], res[k]["pss"]) for k in figures)
     extra = {}
     if args.defaults:
         extra = {"build_defaults_peak_mib": res["defaults"]["rss"],
                  "build_defaults_tree_pss_mib": res["defaults"]["pss"], "build_defaults_s": res["defaults"]["s"],
-                 "bert_data": int((bert_data_dir() / "Sine").is_dir())}
+                 "defaults_built": ",".join(built), "bert_data": int((bert_data_dir() / "Sine").is_dir())}
     C.result(train_peak_mib=res["train"]["rss"], baseline=res["baseline"]["rss"],
              baseline_what="train-with-heldout-calibration-predict-in-one-call-same-config",
              ratio=res["baseline"]["rss"] / res["train"]["rss"], config=name,
