@@ -42,7 +42,10 @@ def test_reproduce_bert_real_quick(tmp_path, capsys):
     row = table["records"]["Rand0p10"]
     for key in ("whole_linear", "whole_mc", "arx_search", "arx_class"):
         assert row[key]["fit"] is not None, key
-    assert row["arx_class"]["trained_on"] == ["Rand0p25"] and row["whole_linear"]["sharpness"] > 0
+    # the class ARX is fitted on every other noise run of the data folder, never on the run it scores
+    others = sorted(n for n, c in classes.items() if c == "noise" and n != "Rand0p10")
+    assert "Rand0p25" in others and sorted(row["arx_class"]["trained_on"]) == others
+    assert row["whole_linear"]["sharpness"] > 0
     assert table["arx_search"]["criterion"] == "worst" and len(table["arx_search"]["cells"]) == 4
     checks = res["real_table_checks"]
     assert checks["n_records"] == len(table["records"]) and set(checks["methods"]) == {"whole_linear", "whole_mc"}
