@@ -19,6 +19,8 @@ from gpnarx.training.pages.markdown import row, rule, stored_run
 SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/full.txt", "Full-size runs", None),
            ("bench/first_start.txt", "First start: the default build on an empty registry", None),
+           ("bench/memory_pipeline.txt", "Peak memory of whole gpnarx processes: train, predict, Monte Carlo predict "
+            "and build-defaults (bench_memory.py --pipeline)", None),
            ("bench/mc_speed.txt", "Monte Carlo with the checked local model on 2 cores (bench_mc_speed.py)", None),
            ("bench/pinned2.txt", "Two cores of a quiet machine (bench_realtime.py, bench_mc_speed.py --whole)", None),
            ("bench/exact_2core.txt", "The exact bert-real on the shared 2-core machine (bench_realtime.py, "
@@ -108,8 +110,10 @@ METHOD_ROWS = (
      'log-log slopes of fit, step, paths and record length',
      'scikit-learn `predict` per step at the largest size, same block'),
     ('`bench_memory.py`',
-     'peak memory of a Monte Carlo free run',
-     'scikit-learn loop, same size and paths'),
+     'peak memory of a Monte Carlo free run; `--pipeline`: peak RSS of whole `gpnarx train`, `predict`, '
+     '`predict --method mc` and `build-defaults` processes',
+     'scikit-learn loop, same size and paths; `--pipeline`: the same `gpnarx train` with the held-out noise '
+     'calibration in one call over every row (the code before its row blocks), same run'),
     ('`bench_bert_scale.py`',
      "the BERT stand-in run at the paper's scale, sparse",
      '`NumpySparse` on the same posterior, same first steps'),
