@@ -51,7 +51,8 @@ class ServiceMetrics:
         self.shed = Counter("gpnarx_requests_shed", "Requests refused with 503 because the work queue was full",
                             registry=r)
         self.timed_out = Counter("gpnarx_requests_timed_out", "Requests past their time limit, by the stage "
-                                 "their job was in (queued -> 503, running -> 504)", ["stage"], registry=r)
+                                 "their job was in (queued -> 503, running -> 504, predicted: a 504 at once)",
+                                 ["stage"], registry=r)
         self.abandoned = Counter("gpnarx_requests_abandoned", "Requests whose client disconnected before the "
                                  "answer (their job was cancelled)", registry=r)
         self.answers = Counter("gpnarx_answers", "Answered predict, loops and novelty calls by model and operation",

@@ -275,6 +275,13 @@ class ServiceState:
                                     f"(GPNARX_REQUEST_TIMEOUT) for a worker; retry after {after} s",
                                headers={"Retry-After": str(after)}, limit=timeout) from None
         except WontStart as exc:
+            if exc.need is not None and timeout is not None and exc.need > timeout:
+                # too slow even on an idle service: a retry cannot help, what the request can change does
+                self.metrics.timed_out.labels("predicted").inc()
+                raise ProblemError(504, f"the request would not finish within its time limit of {timeout:g} s "
+                                        f"(GPNARX_REQUEST_TIMEOUT): it needs about {exc.need:.2g} s on its own, by "
+                                        f"the requests of its size run so far; {too_slow[0]}", too_slow[1],
+                                   limit=timeout) from None
             self.metrics.shed.inc()
             after = self.retry_after(exc.retry_after)
             raise ProblemError(503, f"the service is busy ({exc}); retry after {after} s",

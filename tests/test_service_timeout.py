@@ -253,3 +253,25 @@ def test_fast_requests_unaffected_by_the_limit():
         assert r1.status_code == 200 and r2.status_code == 200
         run = built_registry().model.simulate(small, n_paths=16, seed=3)
         assert np.array_equal(np.asarray(r1.json()["mean"]), run.mean)  # the progress hook changes nothing
+
+
+def test_a_request_too_slow_even_alone_gets_the_504_advice_at_once():
+    """Priced past the limit on an idle service (its size already measured), a request is not refused with a 503
+    and a Retry-After that cannot help: it gets the 504's advice and field at once, without computing."""
+    from gpnarx.service.worker import JobSize
+
+    app = create_app(built_registry().root, Settings(workers=1, queue_size=2, request_timeout=0.5))
+    u = multisine(3000, 7)
+    with LiveServer(app) as srv, httpx.Client(base_url=srv.url, timeout=60) as c:
+        version = c.get("/v1/models/boucwen").json()["versions"][-1]
+        version = version["version"] if isinstance(version, dict) else version
+        key = f"boucwen:{version}:predict:linear:numpy"
+        app.state.service.executor.model.observe(JobSize.of(key, u.size, 0), 5.0)  # this size took 5 s
+        t0 = time.perf_counter()
+        r = c.post("/v1/models/boucwen/predict", json={"u": u.tolist(), "fs": FS, "method": "linear"})
+        took = time.perf_counter() - t0
+        assert r.status_code == 504, r.text[:300]
+        p = r.json()
+        assert p["field"] == "u" and "on its own" in p["detail"] and "shorter record" in p["detail"], p
+        assert "retry-after" not in r.headers and took < 0.5, (r.headers, took)
+        assert 'gpnarx_requests_timed_out_total{stage="predicted"} 1.0' in c.get("/metrics").text
