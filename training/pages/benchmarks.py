@@ -38,6 +38,8 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
             "(bench_local_check.py)", None),
            ("bench/wire.txt", "One 64 s predict answer as JSON, gzip JSON and NPZ (bench_wire.py)", None),
            ("bench/stream.txt", "A real 64 s record in 1 s chunks against the record whole (bench_stream.py)", None),
+           ("bench/streams.txt", "Streams per replica: sensor streams one 2-core replica of the exact bert-real "
+            "follows in real time (bench_streams.py)", None),
            ("bench/estimator_blas.txt", "The Python API's free run with and without its own BLAS limit "
             "(bench_estimator_blas.py)", None),
            ("accelerator/bench_gpu.txt", "GPU run, H100 (results: [results-accelerator.md](results-accelerator.md))",
