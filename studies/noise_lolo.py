@@ -19,20 +19,21 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnarx.model.metrics import coverage, fit_percent
 from gpnarx.storage.record_files import read_record
 from gpnarx.training.baselines import LinearARX
+from studies import real_table as rt
 from studies.real_table import CLASS_ARX_LAGS, TARGETS, Z99, find_records, record_class
 
 NOISE = "noise"
 
 
-def noise_runs(data_dir) -> dict[str, Path]:
-    """{folder name: folder} of the data folder's broadband noise runs (``real_table.record_class``)."""
+def noise_runs(data_dir) -> dict[str, tuple[Path, object]]:
+    """{folder name: (folder, its record)} of the data folder's broadband noise runs (``real_table.record_class``)."""
     out = {}
     for f in find_records(data_dir):
-        if record_class(f, read_record(f)) == NOISE:
-            out[f.name] = f
+        rec = read_record(f)
+        if record_class(f, rec) == NOISE:
+            out[f.name] = (f, rec)
     return out
 
 
@@ -58,12 +59,11 @@ def fold_config(cfg, held: Path, others: list[Path]):
     return dataclasses.replace(cfg, records=keep + moved)
 
 
-def _scores(y, run, arx_rmse: float | None) -> dict:
-    half = float(np.mean(run.upper - run.lower) / 2.0)
-    f = fit_percent(y, run.mean)
-    return {"fit": float(f) if np.isfinite(f) else None, "coverage": coverage(y, run.lower, run.upper),
-            "half_width_over_std": half / float(np.std(y)),
-            "sharpness": half / (Z99 * arx_rmse) if arx_rmse else None, "seconds": float(run.seconds)}
+def _scores(rec, run, env, arx_rmse: float | None) -> dict:
+    """``real_table``'s scores of a whole-record run, with the sharpness against the class ARX's RMS error."""
+    g = rt._scores(rec.y, run, rec.u, env)
+    g["sharpness"] = g["half_width"] / (Z99 * arx_rmse) if g["half_width"] is not None and arx_rmse else None
+    return g
 
 
 def lolo_table(cfg, data_dir, *, mc_paths: int = 1024, seed: int = 0, max_seconds: float | None = None,
@@ -82,7 +82,9 @@ def lolo_table(cfg, data_dir, *, mc_paths: int = 1024, seed: int = 0, max_second
         def fit(c):
             return pipeline_fit(c, c.records_for("train"), c.records_for)
     t0 = time.perf_counter()
-    runs = noise_runs(data_dir)
+    found = noise_runs(data_dir)
+    runs = {name: folder for name, (folder, _) in found.items()}
+    recs = {name: rec for name, (_, rec) in found.items()}
     rows = {}
     for name, folder in runs.items():
         others = [f for n, f in runs.items() if n != name]
@@ -90,25 +92,23 @@ def lolo_table(cfg, data_dir, *, mc_paths: int = 1024, seed: int = 0, max_second
             continue
         t1 = time.perf_counter()
         model = fit(fold_config(cfg, folder, others))
-        rec = read_record(folder)
+        rec = recs[name]
         if max_seconds:
             rec = rec.window(0.0, min(max_seconds, rec.n / rec.fs))
-        arx = LinearARX(*CLASS_ARX_LAGS).fit([read_record(f) for f in others])
+        arx = rt._arx_scores(LinearARX(*CLASS_ARX_LAGS).fit([recs[f.name] for f in others]), rec)
+        env = getattr(model, "envelope_", None)
         with np.errstate(all="ignore"):
-            yh = arx.simulate(rec.u)
-            arx_fit = float(fit_percent(rec.y, yh))
-            arx_rmse = float(np.sqrt(np.mean((rec.y - yh) ** 2)))
             row = {"trained_on": [f.name for f in others], "input_rms": float(np.std(rec.u)),
-                   "measured_std": float(np.std(rec.y)),
-                   "arx_class": {"fit": arx_fit if np.isfinite(arx_fit) else None, "rmse": arx_rmse},
-                   "whole_linear": _scores(rec.y, model.simulate(rec.u, method="linear"), arx_rmse)}
+                   "measured_std": float(np.std(rec.y)), "arx_class": {"fit": arx["fit"], "rmse": arx["rmse"]},
+                   "whole_linear": _scores(rec, model.simulate(rec.u, method="linear"), env, arx["rmse"])}
             if mc_paths:
-                row["whole_mc"] = _scores(rec.y, model.simulate(rec.u, n_paths=int(mc_paths), seed=seed), arx_rmse)
+                row["whole_mc"] = _scores(rec, model.simulate(rec.u, n_paths=int(mc_paths), seed=seed), env,
+                                          arx["rmse"])
         row["fold_seconds"] = time.perf_counter() - t1
         rows[name] = row
         g = row["whole_linear"]
         log(f"  leave {name} out (trained on {', '.join(row['trained_on'])}): fit {g['fit']:.1f} % "
-            f"(class ARX {arx_fit:.1f} %), coverage {g['coverage']:.1f} %, sharpness {g['sharpness']:.2f}")
+            f"(class ARX {rt._fmt(arx['fit'])} %), coverage {g['coverage']:.1f} %, sharpness {g['sharpness']:.2f}")
     table = {"runs": rows, "mc_paths": int(mc_paths), "targets": dict(TARGETS), "max_seconds": max_seconds,
              "seconds": time.perf_counter() - t0}
     table["checks"] = lolo_checks(table)
