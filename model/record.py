@@ -37,17 +37,39 @@ class RecordError(ValueError):
     """A record is malformed (shape, NaN/inf, length, fs)."""
 
 
+#: most channels a record's u or y may hold (columns of a two-dimensional u or y)
+MAX_CHANNELS = 64
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One measured signal of a record: its ``name`` (e.g. the LMS channel label ``Acc1:+X``) and ``unit``
+    (e.g. ``m/s^2``; "" when not stated)."""
+
+    name: str
+    unit: str = ""
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "unit": self.unit}
+
+
 @dataclass
 class Record:
     """One input/output record sampled at ``fs``.
 
-    u: input samples (e.g. force [N] or shaker voltage [V]), 1-D float64.
-    y: output samples (e.g. displacement [m] or velocity [m/s]), 1-D float64, or None when only
-       the excitation is known (prediction requests).
+    u: input samples (e.g. force [N] or shaker voltage [V]), 1-D float64 (n,), or (n, n_inputs) for
+       several input channels (one column each).
+    y: output samples (e.g. displacement [m] or velocity [m/s]), 1-D float64 (n,) or (n, n_outputs), or
+       None when only the excitation is known (prediction requests).
     fs: sampling frequency [Hz].
-    units: ``{"u": "N", "y": "m"}`` style labels.
+    units: ``{"u": "N", "y": "m"}`` style labels: the unit of the single input and output; with several
+       channels of one unit that unit, else "" (each channel's unit is in ``channels``).
     name: free text naming where the record came from.
     meta: extra metadata (e.g. seed, amplitude, torque).
+    channels: the name and unit of every channel, ``{"u": [Channel, ...], "y": [Channel, ...]}`` in column
+       order; None (the default, and every single-channel reader's record) names them ``u`` and ``y``
+       (``u0``, ``u1``, ... for several columns) with the units of ``units``. A (n, 1) array is one
+       channel and is kept as (n,), as before.
     """
 
     u: np.ndarray
@@ -56,15 +78,18 @@ class Record:
     units: dict = field(default_factory=lambda: {"u": "", "y": ""})
     name: str = "record"
     meta: dict = field(default_factory=dict)
+    channels: dict | None = None
 
     def __post_init__(self) -> None:
         self.u = _as_signal(self.u, "u", self.name)
         if self.y is not None:
             self.y = _as_signal(self.y, "y", self.name)
-            if self.y.shape != self.u.shape:
+            if self.y.shape[0] != self.u.shape[0]:
                 raise RecordError(
-                    f"{self.name}: u has {self.u.size} samples but y has {self.y.size}; they must match"
+                    f"{self.name}: u has {self.u.shape[0]} samples but y has {self.y.shape[0]}; they must match"
                 )
+        if self.channels is not None:
+            self.channels = _check_channels(self.channels, self.u, self.y, self.name)
         try:
             fs = float(self.fs)
         except (TypeError, ValueError):
@@ -76,7 +101,66 @@ class Record:
     @property
     def n(self) -> int:
         """Number of samples."""
-        return int(self.u.size)
+        return int(self.u.shape[0])
+
+    @property
+    def n_inputs(self) -> int:
+        """Input channels: 1 for a 1-D u, its columns otherwise."""
+        return 1 if self.u.ndim == 1 else int(self.u.shape[1])
+
+    @property
+    def n_outputs(self) -> int:
+        """Output channels (0 without y)."""
+        if self.y is None:
+            return len(self.channels["y"]) if self.channels and self.channels.get("y") else 0
+        return 1 if self.y.ndim == 1 else int(self.y.shape[1])
+
+    def input_channels(self) -> list[Channel]:
+        """The name and unit of every input column (``channels``, or the defaults it documents)."""
+        return self._named("u", self.n_inputs)
+
+    def output_channels(self) -> list[Channel]:
+        """The name and unit of every output column (empty without y and without named output channels)."""
+        return self._named("y", self.n_outputs)
+
+    def _named(self, key: str, k: int) -> list[Channel]:
+        if self.channels is not None and self.channels.get(key) is not None:
+            return list(self.channels[key])
+        unit = (self.units or {}).get(key, "") or ""
+        if k == 1:
+            return [Channel(key, unit)]
+        return [Channel(f"{key}{j}", unit) for j in range(k)]
+
+    def inputs_2d(self) -> np.ndarray:
+        """u as (n, n_inputs) (a view)."""
+        return self.u[:, None] if self.u.ndim == 1 else self.u
+
+    def outputs_2d(self) -> np.ndarray | None:
+        """y as (n, n_outputs) (a view), or None."""
+        if self.y is None:
+            return None
+        return self.y[:, None] if self.y.ndim == 1 else self.y
+
+    def select(self, inputs=None, outputs=None) -> "Record":
+        """The record with the named input and output channels only, in the order given (None: all of them);
+        one channel selected gives a 1-D u or y, as a single-channel record. Its ``units`` are the selected
+        channels' common unit ("" when they differ). RecordError naming the channel and those there are."""
+        ins, outs = self.input_channels(), self.output_channels()
+        iu = _pick(ins, inputs, "input", self.name)
+        iy = _pick(outs, outputs, "output", self.name) if (outputs is not None or self.y is not None) else []
+        u = self.inputs_2d()[:, iu]
+        y = None if self.y is None else self.outputs_2d()[:, iy]
+        cin, cout = [ins[j] for j in iu], [outs[j] for j in iy]
+        units = dict(self.units)
+        units["u"] = _common_unit(cin)
+        if cout:
+            units["y"] = _common_unit(cout)
+        chans = {"u": cin, "y": cout}
+        u = u[:, 0] if u.shape[1] == 1 else u
+        if y is not None and y.shape[1] == 1:
+            y = y[:, 0]
+        return Record(np.ascontiguousarray(u), None if y is None else np.ascontiguousarray(y), self.fs, units,
+                      self.name, dict(self.meta), chans)
 
     @property
     def t(self) -> np.ndarray:
@@ -98,7 +182,67 @@ class Record:
             dict(self.units),
             f"{self.name}[{i0}:{i1}]",
             dict(self.meta),
+            None if self.channels is None else dict(self.channels),
         )
+
+
+def _common_unit(chans) -> str:
+    units = {c.unit for c in chans}
+    return units.pop() if len(units) == 1 else ""
+
+
+def _pick(chans, wanted, what: str, name: str) -> list[int]:
+    if wanted is None:
+        return list(range(len(chans)))
+    if isinstance(wanted, str):
+        wanted = [wanted]
+    names = [c.name for c in chans]
+    out = []
+    for w in wanted:
+        if w not in names:
+            raise RecordError(f"{name}: no {what} channel {w!r} (channels: {', '.join(map(repr, names)) or 'none'})")
+        if names.index(w) in out:
+            raise RecordError(f"{name}: {what} channel {w!r} is selected twice")
+        out.append(names.index(w))
+    if not out:
+        raise RecordError(f"{name}: select at least one {what} channel")
+    return out
+
+
+def _as_channel(c, key: str, name: str) -> Channel:
+    if isinstance(c, Channel):
+        return c
+    if isinstance(c, dict):
+        c = (c.get("name"), c.get("unit", ""))
+    try:
+        nm, unit = c
+    except (TypeError, ValueError):
+        raise RecordError(f"{name}: channels[{key!r}] entries must be (name, unit) pairs, got {c!r}") from None
+    if not isinstance(nm, str) or not nm.strip() or not isinstance(unit, str):
+        raise RecordError(f"{name}: a channel of {key} needs a non-blank name and a unit string, got {c!r}")
+    return Channel(nm, unit)
+
+
+def _check_channels(channels, u, y, name: str) -> dict:
+    """``channels`` as {"u": [Channel], "y": [Channel]}, one per column of u and y, names unique per side."""
+    if not isinstance(channels, dict) or set(channels) - {"u", "y"}:
+        raise RecordError(f"{name}: channels must be a dict with keys 'u' and 'y'")
+    out = {}
+    for key, arr in (("u", u), ("y", y)):
+        given = channels.get(key)
+        if given is None:
+            out[key] = None
+            continue
+        chans = [_as_channel(c, key, name) for c in given]
+        if arr is not None:
+            k = 1 if arr.ndim == 1 else arr.shape[1]
+            if len(chans) != k:
+                raise RecordError(f"{name}: {key} has {k} channel(s) but channels names {len(chans)}")
+        names = [c.name for c in chans]
+        if len(set(names)) != len(names):
+            raise RecordError(f"{name}: channel names of {key} must be unique, got {names}")
+        out[key] = chans
+    return out
 
 
 def _as_signal(a, label: str, name: str) -> np.ndarray:
@@ -107,15 +251,21 @@ def _as_signal(a, label: str, name: str) -> np.ndarray:
     except (TypeError, ValueError):
         raise RecordError(f"{name}: {label} must be numeric samples") from None
     if arr.ndim != 1:
-        arr = np.squeeze(arr)
-        if arr.ndim != 1:
-            raise RecordError(f"{name}: {label} must be 1-D, got shape {np.shape(a)}")
+        sq = np.squeeze(arr)
+        if sq.ndim == 1:
+            arr = sq
+        elif arr.ndim == 2 and arr.shape[1] > 1 and arr.shape[0] > 1:  # (n, channels)
+            if arr.shape[1] > MAX_CHANNELS:
+                raise RecordError(f"{name}: {label} has {arr.shape[1]} channels (columns); at most "
+                                  f"{MAX_CHANNELS} are read (a signal is (n,) or (n, channels))")
+        else:
+            raise RecordError(f"{name}: {label} must be 1-D (n,) or (n, channels), got shape {np.shape(a)}")
     if arr.size == 0:
         raise RecordError(f"{name}: {label} is empty")
     bad = ~np.isfinite(arr)
     if bad.any():
         raise RecordError(
             f"{name}: {label} holds {int(bad.sum())} non-finite value(s) (NaN/inf), "
-            f"first at sample {int(np.argmax(bad))}"
+            f"first at sample {int(np.argmax(bad.reshape(arr.shape[0], -1).any(axis=1)))}"
         )
     return arr

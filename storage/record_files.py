@@ -12,7 +12,10 @@ service's ``POST /v1/records/parse``):
   from the time step, which must be uniform (every step within 1 % of the mean step); without one,
   ``fs`` must be given. Lines starting with ``#`` and blank lines are skipped.
 - ``.npz``: arrays ``u`` (required) and ``y`` (optional), scalar ``fs`` [Hz] (or the ``fs``
-  argument), optional strings ``units_u``, ``units_y`` and ``name``. Loaded without pickle.
+  argument), optional strings ``units_u``, ``units_y`` and ``name``. Loaded without pickle. Several
+  channels: ``u`` (n, n_inputs) and/or ``y`` (n, n_outputs) with ``channels_u`` / ``channels_y`` (one
+  name per column; a two-dimensional u or y without them is refused as before) and ``units_u`` /
+  ``units_y`` one unit per channel (or one for all); at most ``MAX_CHANNELS`` (64) columns.
 - ``.npy``: a 2-D array with columns ``u, y`` (``(n, 2)``) or ``u`` only (``(n,)`` or ``(n, 1)``),
   or a structured array with fields ``u``, optional ``y`` and ``time``; ``fs`` must be given unless
   there is a ``time`` field. Loaded without pickle.
@@ -32,7 +35,11 @@ service's ``POST /v1/records/parse``):
   ``y_values.quantity.unit_transformation`` (``display = factor * value + offset``); the reader
   applies that transformation so the samples are in the labelled unit (factor 1 and offset 0 for
   the laser and shaker channels). ``Record.meta`` keeps the channel labels, the run name and the
-  creation time.
+  creation time. Every channel of the export by its label: ``read_record(folder, outputs=["Laser:+X",
+  "Acc1:+X", ...], inputs=["Shaker:-X"])`` (``record_formats.lms_channels``; the struct ``Signal`` of
+  ``Time.mat`` holds the accelerometers ``Acc1:+X`` to ``Acc4:+X``, whose quantity label says ``g`` but
+  whose values Test.Lab saved in MKS: they are read as m/s^2, untransformed; ``Time_Laser__X`` also
+  names the laser). ``Record.channels`` holds each channel's name and unit.
 
 ``fs`` given as an argument must agree (0.1 %) with any fs stored in the file. ``fs_default`` is
 used only when the file carries no sampling information (CSV without time, NPY).
@@ -47,7 +54,8 @@ unknown unit, corrupt or truncated file, inconsistent fs) raises :class:`RecordF
 Writing
 -------
 ``write_record(path, record)`` writes ``.npz`` (``u``, ``y`` float64 1-D, scalar ``fs``, ``units_u``,
-``units_y``, ``name``), ``.csv`` (header ``time,u,y``, 17 significant digits) or ``.mat``
+``units_y``, ``name``; a record with several channels or named channels: ``u`` (n, n_inputs), ``y``
+(n, n_outputs), ``channels_u``, ``channels_y`` and ``units_u``, ``units_y`` one string per channel), ``.csv`` (header ``time,u,y``, 17 significant digits) or ``.mat``
 (``u``, ``y``, ``fs``, ``units_u``, ``units_y``). Writes are atomic: the data goes to a temporary
 file in the destination folder which is then renamed over the destination with ``os.replace``;
 on any error the temporary file is removed and an existing destination is left untouched.
@@ -63,7 +71,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpnarx.model.record import Record
+from gpnarx.model.record import Record, RecordError
 from gpnarx.storage.atomicio import atomic_file
 
 # The parsers live in gpnarx.storage.record_formats (no filesystem access there), so the service can
@@ -96,13 +104,30 @@ _LMS_OUTPUT = LMS_OUTPUT
 
 
 # ============================================================================ reading
-def read_record(path, fs=None, name=None, fs_default=None) -> Record:
+def read_record(path, fs=None, name=None, fs_default=None, inputs=None, outputs=None) -> Record:
     """Read a record file or LMS folder (see the module docstring) into a :class:`Record`.
 
     path: file or folder. fs: sampling frequency [Hz]; required when the file has none, checked
     against the file's otherwise. name: record name (default: the file or folder stem).
     fs_default: used only when the file carries no sampling information.
+    inputs, outputs: channel names to read, in that order (None: the file's default, which for an LMS
+    folder is the shaker voltage and the laser alone; ``Record.select`` for the other formats).
     """
+    rec = _read_record(path, fs, name, fs_default, inputs, outputs)
+    if (inputs is not None or outputs is not None) and not is_lms_folder(_lms_root(path)):
+        try:
+            rec = rec.select(inputs, outputs)
+        except RecordError as exc:
+            raise RecordFileError(path, str(exc).split(": ", 1)[-1]) from None
+    return rec
+
+
+def _lms_root(path) -> Path:
+    p = Path(os.fspath(path)).expanduser()
+    return p.parent if p.suffix.lower() == ".mat" and p.name in (_LMS_INPUT[0], _LMS_OUTPUT[0]) else p
+
+
+def _read_record(path, fs, name, fs_default, inputs, outputs) -> Record:
     p = Path(os.fspath(path)).expanduser()
     if fs is not None:
         fs = check_fs(p, fs)
@@ -112,13 +137,13 @@ def read_record(path, fs=None, name=None, fs_default=None) -> Record:
         raise RecordFileError(p, "no such file or folder")
     if p.is_dir():
         if is_lms_folder(p):
-            return read_lms(p, fs=fs, name=name)
+            return read_lms(p, fs=fs, name=name, inputs=inputs, outputs=outputs)
         raise RecordFileError(
             p, "folder is not an LMS Test.Lab export (expected Time.mat and TimeShaker.mat in it)"
         )
     ext = p.suffix.lower()
     if ext == ".mat" and p.name in (_LMS_INPUT[0], _LMS_OUTPUT[0]) and is_lms_folder(p.parent):
-        return read_lms(p.parent, fs=fs, name=name)
+        return read_lms(p.parent, fs=fs, name=name, inputs=inputs, outputs=outputs)
     if ext not in FORMATS:
         raise RecordFileError(
             p, f"unsupported record format {p.suffix or '(no extension)'!r}; use {FORMATS_TEXT}"
@@ -136,8 +161,10 @@ def is_lms_folder(path) -> bool:
     return p.is_dir() and (p / _LMS_INPUT[0]).is_file() and (p / _LMS_OUTPUT[0]).is_file()
 
 
-def read_lms(folder, fs=None, name=None) -> Record:
-    """Read an LMS Test.Lab export folder: u = shaker voltage, y = laser velocity (see module doc)."""
+def read_lms(folder, fs=None, name=None, inputs=None, outputs=None) -> Record:
+    """Read an LMS Test.Lab export folder: u = shaker voltage, y = laser velocity (see module doc); with
+    ``inputs`` / ``outputs``, the channels of those names (``record_formats.parse_lms_channels``: e.g.
+    ``outputs=["Laser:+X", "Acc1:+X", "Acc2:+X", "Acc3:+X", "Acc4:+X"]``, the accelerometers in m/s^2)."""
     folder = Path(folder)
     pin = folder / _LMS_INPUT[0]
     pout = folder / _LMS_OUTPUT[0]
@@ -147,7 +174,7 @@ def read_lms(folder, fs=None, name=None) -> Record:
     try:
         with open(pin, "rb") as fin, open(pout, "rb") as fout:
             return parse_lms(fin, fout, fs=fs, name=name or folder.name, source=folder,
-                             shaker_source=pin, time_source=pout)
+                             shaker_source=pin, time_source=pout, inputs=inputs, outputs=outputs)
     except OSError as exc:
         raise RecordFileError(folder, f"cannot read the LMS export ({type(exc).__name__}: {exc})") from None
 
@@ -164,12 +191,24 @@ def write_record(path, record: Record) -> Path:
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise RecordFileError(p, f"folder {parent} does not exist")
+    if ext != ".npz" and (record.u.ndim == 2 or (record.y is not None and record.y.ndim == 2)):
+        raise RecordFileError(p, "a record with several channels is written as .npz (channels_u, channels_y)")
     u = np.ascontiguousarray(record.u, dtype=np.float64)
     y = None if record.y is None else np.ascontiguousarray(record.y, dtype=np.float64)
     units = {k: normalize_unit(record.units.get(k, ""), p) for k in ("u", "y")}
     try:
         with atomic_file(p) as fh:
-            if ext == ".npz":
+            if ext == ".npz" and (record.channels is not None or u.ndim == 2 or (y is not None and y.ndim == 2)):
+                arrays = {"u": u, "fs": np.float64(record.fs), "name": np.str_(record.name)}
+                for key, chans in (("u", record.input_channels()), ("y", record.output_channels())):
+                    if key == "y" and y is None:
+                        continue
+                    arrays[f"channels_{key}"] = np.array([c.name for c in chans], dtype=str)
+                    arrays[f"units_{key}"] = np.array([normalize_unit(c.unit, p) for c in chans], dtype=str)
+                if y is not None:
+                    arrays["y"] = y
+                np.savez(fh, **arrays)
+            elif ext == ".npz":
                 arrays = {"u": u, "fs": np.float64(record.fs), "units_u": np.str_(units["u"]),
                           "units_y": np.str_(units["y"]), "name": np.str_(record.name)}
                 if y is not None:

@@ -34,7 +34,7 @@ from pathlib import PurePath
 
 import numpy as np
 
-from gpnarx.model.record import Record, RecordError
+from gpnarx.model.record import MAX_CHANNELS, Channel, Record, RecordError
 
 from .archive_bounds import NPY_READ_ERRORS, ArchiveError, member, npy_header, open_archive
 from .record_formats_lab import LAB_FORMATS
@@ -51,6 +51,9 @@ __all__ = [
     "check_fs",
     "parse_record",
     "parse_lms",
+    "parse_lms_channels",
+    "lms_channels",
+    "LMS_MKS_UNITS",
     "check_bounds",
     "npy_header",
     "NPY_READ_ERRORS",
@@ -181,7 +184,7 @@ def parse_record(data, filename: str, *, fs=None, name=None, fs_default=None, so
 
 
 def parse_lms(shaker, time, *, fs=None, name=None, source="LMS export", shaker_source=None,
-              time_source=None, max_samples=None, max_bytes=None) -> Record:
+              time_source=None, max_samples=None, max_bytes=None, inputs=None, outputs=None) -> Record:
     """Parse an LMS Test.Lab export from the contents of its two files (see ``storage.record_files``).
 
     shaker: ``TimeShaker.mat`` (input u, struct ``Time_Shaker__X``); time: ``Time.mat`` (output y,
@@ -189,7 +192,14 @@ def parse_lms(shaker, time, *, fs=None, name=None, source="LMS export", shaker_s
     messages and ``meta["source"]``; shaker_source / time_source name the two files (default
     ``SOURCE/TimeShaker.mat`` and ``SOURCE/Time.mat``). name: record name (default: source's name).
     max_samples, max_bytes: as for :func:`parse_record`, checked on each file.
+    inputs, outputs: channels to read by name (:func:`parse_lms_channels`: ``TimeShaker.mat``'s channels
+    for u, ``Time.mat``'s for y, e.g. ``outputs=["Laser:+X", "Acc1:+X"]``), in that order; None (both):
+    the shaker voltage and the laser velocity, the single-channel record of every release.
     """
+    if inputs is not None or outputs is not None:
+        return parse_lms_channels(shaker, time, fs=fs, name=name, source=source, shaker_source=shaker_source,
+                                  time_source=time_source, max_samples=max_samples, max_bytes=max_bytes,
+                                  inputs=inputs, outputs=outputs)
     if fs is not None:
         fs = check_fs(source, fs)
     pin = shaker_source if shaker_source is not None else f"{source}/{LMS_INPUT[0]}"
@@ -224,6 +234,156 @@ def parse_lms(shaker, time, *, fs=None, name=None, source="LMS export", shaker_s
     }
     return _make(source, cin["values"], cout["values"], fs, {"u": cin["unit"], "y": cout["unit"]},
                  name or PurePath(str(source)).name, meta)
+
+
+def lms_channels(data, *, source="Time.mat", max_samples=None, max_bytes=None) -> list[dict]:
+    """Every channel of one file of an LMS Test.Lab export (``Time.mat`` or ``TimeShaker.mat``), in file order.
+
+    A struct with ``x_values`` and ``y_values`` holds one channel (``Time_Laser__X``: the laser) or, with
+    (n, k) values, k channels (``Signal``: the accelerometers ``Acc1:+X`` to ``Acc4:+X``). Each channel is a
+    dict: ``name`` (its ``function_record.primary_channel.label``, e.g. ``Laser:+X``, ``Acc1:+X``; the
+    struct's name when it has none), ``struct`` (the struct's name, also accepted as the name of a
+    single-channel struct: ``Time_Laser__X``), ``values`` (n,), ``unit`` and ``increment`` [s].
+
+    The unit is what the values hold. Test.Lab saves values in MKS units and labels the quantity by its
+    display unit, ``display = factor * value + offset`` (``y_values.quantity.unit_transformation``). When the
+    quantity says so (``quantity.info`` "Data saved by Test.Lab in MKS") and its label has an MKS unit in
+    ``LMS_MKS_UNITS`` (the accelerometers' ``g``: m/s^2), the values are kept and the unit is the MKS one:
+    at 20 Hz, Acc1 equals the time derivative of the laser velocity [m/s] in m/s^2 (tests/test_mimo_records.py).
+    Otherwise the transformation is applied and the unit is the label (the single-channel reader's rule;
+    the laser [m/s] and the shaker [V] have factor 1). Bounded as :func:`parse_record`: the file by
+    ``check_bounds`` (bytes), each channel's samples by ``max_samples``, and at most ``MAX_CHANNELS``
+    columns per struct.
+    """
+    fh = _binary(data)
+    if max_samples is not None or max_bytes is not None:
+        check_bounds(fh, "Time.mat", max_samples=max_samples, max_bytes=max_bytes, source=source)
+    d = _loadmat(source, fh)
+    out = []
+    for sname in sorted(k for k in d if not k.startswith("__")):
+        s = d[sname]
+        if not (hasattr(s, "_fieldnames") and "x_values" in s._fieldnames and "y_values" in s._fieldnames):
+            continue
+        out.extend(_lms_struct_channels(source, s, sname, max_samples))
+    if not out:
+        names = sorted(k for k in d if not k.startswith("__"))
+        raise RecordFileError(source, f"no LMS channel in the file (variables: {', '.join(names) or 'none'})")
+    # the laser first, as the export lists it; then the other structs in name order
+    out.sort(key=lambda c: c["struct"] not in (LMS_OUTPUT[1], LMS_INPUT[1]))
+    return out
+
+
+#: the MKS unit of an LMS display-unit label, for quantities Test.Lab saved in MKS (``lms_channels``)
+LMS_MKS_UNITS = {"g": "m/s^2", "m/s^2": "m/s^2", "m/s": "m/s", "m": "m", "V": "V", "N": "N", "mm/s": "m/s",
+                 "mm": "m", "mm/s^2": "m/s^2", "kN": "N", "mV": "V"}
+
+
+def _lms_struct_channels(p, s, sname: str, max_samples) -> list[dict]:
+    inc = _scalar(p, _field(p, s, "x_values.increment"), f"{sname}.x_values.increment")
+    if not math.isfinite(inc) or inc <= 0:
+        raise RecordFileError(p, f"{sname}.x_values.increment must be a positive sample period in s, got {inc!r}")
+    nval = int(_scalar(p, _field(p, s, "x_values.number_of_values"), f"{sname}.x_values.number_of_values"))
+    if max_samples is not None and nval > max_samples:
+        raise RecordTooLarge(p, sname, nval, max_samples, "samples")
+    values = np.asarray(_field(p, s, "y_values.values"))
+    if values.ndim == 1:
+        values = values[:, None]
+    if values.ndim != 2 or values.shape[0] != nval:
+        raise RecordFileError(p, f"{sname}.y_values.values has shape {values.shape} but x_values.number_of_values "
+                                 f"says {nval} samples (truncated?)")
+    k = values.shape[1]
+    if k > MAX_CHANNELS:
+        raise RecordFileError(p, f"{sname} holds {k} channels; at most {MAX_CHANNELS} are read")
+    q = _field(p, s, "y_values.quantity")
+    label = _string(_field(p, q, "label"))
+    info = _string(getattr(q, "info", "")) if hasattr(q, "_fieldnames") and "info" in q._fieldnames else ""
+    factor, offset = 1.0, 0.0
+    try:
+        ut = _field(p, q, "unit_transformation")
+        factor = float(getattr(ut, "factor", 1.0))
+        offset = float(getattr(ut, "offset", 0.0))
+    except (RecordFileError, TypeError, ValueError):
+        pass
+    if "MKS" in info and label in LMS_MKS_UNITS:
+        unit, factor, offset = LMS_MKS_UNITS[label], 1.0, 0.0
+    else:
+        unit = normalize_unit(label, p)
+    try:
+        labels = np.atleast_1d(np.asarray(s.function_record.primary_channel.label, dtype=object)).ravel()
+        labels = [str(x) for x in labels]
+    except AttributeError:
+        labels = []
+    if len(labels) != k:
+        labels = [sname] if k == 1 else [f"{sname}[{j}]" for j in range(k)]
+    out = []
+    for j in range(k):
+        sig = _signal(p, values[:, j], f"{sname}.y_values.values[:, {j}]")
+        if factor != 1.0 or offset != 0.0:
+            sig = sig * factor + offset
+        out.append({"name": labels[j], "struct": sname, "values": sig, "unit": unit, "increment": inc})
+    return out
+
+
+def _lms_find(p, chans: list[dict], wanted, file: str) -> list[dict]:
+    if isinstance(wanted, str):
+        wanted = [wanted]
+    out = []
+    for w in wanted:
+        hit = [c for c in chans if c["name"] == w]
+        if not hit:  # a single-channel struct by its struct's name (Time_Laser__X)
+            hit = [c for c in chans if c["struct"] == w and sum(d["struct"] == w for d in chans) == 1]
+        if not hit:
+            raise RecordFileError(p, f"{file} has no channel {w!r} (channels: "
+                                     f"{', '.join(repr(c['name']) for c in chans)})")
+        if any(h is hit[0] for h in out):
+            raise RecordFileError(p, f"channel {w!r} is selected twice")
+        out.append(hit[0])
+    if not out:
+        raise RecordFileError(p, f"select at least one channel of {file}")
+    return out
+
+
+def parse_lms_channels(shaker, time, *, fs=None, name=None, source="LMS export", shaker_source=None,
+                       time_source=None, max_samples=None, max_bytes=None, inputs=None, outputs=None) -> Record:
+    """An LMS Test.Lab export as a record of the named channels (:func:`lms_channels`): u from
+    ``TimeShaker.mat`` (``inputs``, default its first channel, the shaker voltage), y from ``Time.mat``
+    (``outputs``, default the laser alone), each in the order named; one channel gives a 1-D u or y.
+    ``Record.channels`` holds every selected channel's name and unit; ``units`` their common unit ("" when
+    they differ). ``meta["input_channels"]`` / ``meta["output_channels"]`` list the names.
+    """
+    if fs is not None:
+        fs = check_fs(source, fs)
+    pin = shaker_source if shaker_source is not None else f"{source}/{LMS_INPUT[0]}"
+    pout = time_source if time_source is not None else f"{source}/{LMS_OUTPUT[0]}"
+    try:
+        cins = lms_channels(shaker, source=pin, max_samples=max_samples, max_bytes=max_bytes)
+        couts = lms_channels(time, source=pout, max_samples=max_samples, max_bytes=max_bytes)
+    except RecordFileError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise RecordFileError(source, f"cannot read the LMS export ({type(exc).__name__}: {exc})") from None
+    sel_in = _lms_find(pin, cins, [cins[0]["name"]] if inputs is None else inputs, LMS_INPUT[0])
+    sel_out = _lms_find(pout, couts, [couts[0]["name"]] if outputs is None else outputs, LMS_OUTPUT[0])
+    inc = sel_in[0]["increment"]
+    n = sel_in[0]["values"].size
+    for c in sel_in + sel_out:
+        if abs(c["increment"] - inc) > 1e-9 * inc:
+            raise RecordFileError(source, f"sample periods differ: {sel_in[0]['name']} {inc:g} s, "
+                                          f"{c['name']} {c['increment']:g} s")
+        if c["values"].size != n:
+            raise RecordFileError(source, f"{sel_in[0]['name']} has {n} samples but {c['name']} has "
+                                          f"{c['values'].size}")
+    fs = _reconcile_fs(source, float(f"{1.0 / inc:.12g}"), fs)
+
+    def stack(sel):
+        return sel[0]["values"] if len(sel) == 1 else np.column_stack([c["values"] for c in sel])
+
+    chans = {"u": [Channel(c["name"], c["unit"]) for c in sel_in], "y": [Channel(c["name"], c["unit"]) for c in sel_out]}
+    units = {k: (v[0].unit if len({c.unit for c in v}) == 1 else "") for k, v in chans.items()}
+    meta = {"source": str(source), "format": "lms-testlab", "input_channel": sel_in[0]["name"],
+            "output_channel": sel_out[0]["name"], "input_channels": [c.name for c in chans["u"]],
+            "output_channels": [c.name for c in chans["y"]]}
+    return Record(stack(sel_in), stack(sel_out), fs, units, name or PurePath(str(source)).name, meta, chans)
 
 
 # ============================================================================ bounds
@@ -712,11 +872,58 @@ def _read_npz(p, fh, fs, name, stem) -> Record:
         u = z["u"]
         y = z["y"] if "y" in keys else None
         file_fs = _scalar(p, z["fs"], "fs") if "fs" in keys else None
+        if "channels_u" in keys or "channels_y" in keys:  # several channels, named
+            fs = _reconcile_fs(p, file_fs, fs)
+            fname = _string(z["name"]) if "name" in keys else None
+            return _npz_channels(p, z, keys, u, y, fs, name or fname or stem)
         units = {"u": _string(z["units_u"]) if "units_u" in keys else "",
                  "y": _string(z["units_y"]) if "units_y" in keys else ""}
         fname = _string(z["name"]) if "name" in keys else None
     fs = _reconcile_fs(p, file_fs, fs)
     return _make(p, u, y, fs, units, name or fname or stem)
+
+
+def _strings(p, z, key: str, k: int, what: str) -> list[str]:
+    """A string array of the .npz (k entries; a scalar string applies to all k)."""
+    a = np.asarray(z[key])
+    if a.dtype.kind not in "US":
+        raise RecordFileError(p, f"{key} must hold strings, got dtype {a.dtype}")
+    vals = [str(a.item())] * k if a.ndim == 0 else [str(x) for x in a.ravel()]
+    if len(vals) != k:
+        raise RecordFileError(p, f"{key} names {len(vals)} {what} but the signal has {k} channel(s)")
+    return vals
+
+
+def _npz_channels(p, z, keys, u, y, fs, name) -> Record:
+    """A .npz record with named channels: ``u`` (n,) or (n, n_inputs) with ``channels_u`` (one name per column),
+    ``y`` likewise with ``channels_y``; ``units_u`` / ``units_y`` one unit per channel (or one for all)."""
+    chans, sig = {}, {}
+    for key, arr in (("u", u), ("y", y)):
+        if arr is None:
+            continue
+        a = np.asarray(arr)
+        if a.ndim == 2 and a.shape[1] > MAX_CHANNELS:
+            raise RecordFileError(p, f"{key} has {a.shape[1]} channels; at most {MAX_CHANNELS} are read")
+        if a.ndim == 2 and a.shape[1] == 1:
+            a = a[:, 0]
+        if a.ndim not in (1, 2):
+            raise RecordFileError(p, f"{key} must be (n,) or (n, channels), got shape {a.shape}")
+        cols = [a] if a.ndim == 1 else [a[:, j] for j in range(a.shape[1])]
+        cols = [_signal(p, c, key if a.ndim == 1 else f"{key}[:, {j}]") for j, c in enumerate(cols)]
+        k = len(cols)
+        names = _strings(p, z, f"channels_{key}", k, "channels") if f"channels_{key}" in keys else (
+            [key] if k == 1 else [f"{key}{j}" for j in range(k)])
+        units = _strings(p, z, f"units_{key}", k, "units") if f"units_{key}" in keys else [""] * k
+        chans[key] = [Channel(nm, normalize_unit(un, p)) for nm, un in zip(names, units)]
+        sig[key] = cols[0] if k == 1 else np.column_stack(cols)
+    if "y" in sig and sig["y"].shape[0] != sig["u"].shape[0]:
+        raise RecordFileError(p, f"u has {sig['u'].shape[0]} samples but y has {sig['y'].shape[0]}; they must match")
+    units = {k: (v[0].unit if len({c.unit for c in v}) == 1 else "") for k, v in chans.items()}
+    units.setdefault("y", "")
+    try:
+        return Record(sig["u"], sig.get("y"), fs, units, name, {"source": str(p)}, chans)
+    except RecordError as exc:
+        raise RecordFileError(p, _strip_name(str(exc))) from None
 
 
 def _read_npy(p, fh, fs, name, fs_default) -> Record:
