@@ -36,6 +36,7 @@ COMMAND_MODULES = [
     "gpnarx.cli.cmd_validate",
     "gpnarx.cli.cmd_stream",
     "gpnarx.cli.cmd_calibrate",
+    "gpnarx.cli.cmd_update",
     "gpnarx.cli.cmd_serve",
     "gpnarx.cli.cmd_alias",
     "gpnarx.cli.cmd_build",

@@ -108,6 +108,21 @@ def training_envelope(pairs) -> dict:
             "n_records": len(pairs), "u_bands": band_envelope([u for u, _ in pairs])}
 
 
+def extend_envelope(env: dict | None, pairs) -> dict | None:
+    """The training envelope ``env`` grown to cover more training (u, y) pairs (``GPNARX.partial_fit``): the
+    larger peaks, the records counted, each band's larger strength (``u_bands`` only where ``env`` has them).
+    None stays None (a model trained without an envelope is not range-checked)."""
+    if env is None:
+        return None
+    new = training_envelope(pairs)
+    out = {**env, "u_peak": max(float(env["u_peak"]), new["u_peak"]),
+           "y_peak": max(float(env["y_peak"]), new["y_peak"]),
+           "n_records": int(env.get("n_records") or 0) + new["n_records"]}
+    if env.get("u_bands") is not None:
+        out["u_bands"] = [max(float(a), b) for a, b in zip(env["u_bands"], new["u_bands"])]
+    return out
+
+
 def check_envelope(env) -> dict | None:
     """``env`` as a validated envelope dict, or None when absent (a model trained without one)."""
     if env is None:
@@ -189,4 +204,4 @@ def assess(env: dict | None, run, u, y=None) -> dict:
 
 __all__ = ["BAND_BINS", "DIVERGENCE_FACTOR", "FRAME", "FREQUENCY_FACTOR", "FREQUENCY_SHARE", "RANGE_FACTOR",
            "RANGE_FIELDS", "assess", "band_envelope", "band_strengths", "check_envelope", "divergence_limit",
-           "frequency_share", "out_of_range", "training_envelope"]
+           "extend_envelope", "frequency_share", "out_of_range", "training_envelope"]

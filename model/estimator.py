@@ -350,6 +350,105 @@ class GPNARX(ParamsMixin):
             self.theta_ = np.concatenate([np.asarray(self.theta_, dtype=float)[:-1], [np.log(s2)]])
             self.posterior_ = build(s2)
 
+    def partial_fit(self, records, rows: int | None = None) -> "GPNARX":
+        """Condition the fitted exact posterior also on new records, hyperparameters, scalers and lags held.
+
+        records: Record objects or (u, y) pairs, in the model's units (each longer than max(ny, nu-1) + 1
+            samples); a Record's ``meta["row_weight"]`` weighs its share of the rows as in ``fit``.
+        rows: how many of the new records' regressor rows join the posterior, chosen by the model's
+            ``selection`` rule (``model.selection.select_rows``). Default: the parent's rows per regressor row,
+            ``n_train_ / n_rows_``, times the new records' regressor rows (at least 1); when that would pass the
+            row budget, the budget's share of the new regressor rows, ``max_train_points / (n_rows_ + new)``.
+
+        The rows are appended by a rank update of the posterior's factor (``model.gp_update.append_rows``,
+        O(N^2 k) for k rows on N; no refactorisation). The row budget ``max_train_points`` is kept by the
+        selection rule, not a sliding window: when the posterior would hold more, the rule picks which of its
+        present rows stay (``select_rows`` over them in their order: stride keeps every record's share, so an
+        update does not forget the records it was trained on), those are refactored (``gp_update.keep_rows``,
+        O(N^3 / 3), the one step that is not a rank update), then the new rows are appended. The training
+        envelope grows to cover the new records. The noise variance stays as it is (``recalibrate_noise`` redoes the held-out
+        calibration); so do the band's discrepancy term and the novelty threshold (the training layer's
+        ``gpnarx update`` recalibrates them). What was done is in ``update_``. The sparse posterior cannot take
+        rows (it keeps no N-row statistics): ``ValueError`` saying it needs a retrain.
+        """
+        from .envelope import extend_envelope
+        from .gp_update import append_rows, keep_rows, targets
+
+        self._check_fitted()
+        if self.posterior_.kind != "exact":
+            raise ValueError(f"partial_fit: the {self.posterior_.kind} posterior keeps no statistics of its N "
+                             "training rows to update; it needs a retrain (fit, or gpnarx train)")
+        pairs = _as_pairs(records)
+        weights = _row_weights(records)
+        need = first_index(self.ny, self.nu) + 2
+        for k, (u, _y) in enumerate(pairs):
+            if u.size < need:
+                raise ValueError(f"records[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} need at least "
+                                 f"{need}")
+        X, Y, rec_idx = stack_regressors(pairs, self.ny, self.nu)
+        n_new = int(X.shape[0])
+        n_rows = getattr(self, "n_rows_", None)
+        budget = None if self.max_train_points is None else int(self.max_train_points)
+        post = self.posterior_
+        if rows is None:
+            if not n_rows:
+                raise ValueError("rows: this model does not know its training regressor rows (n_rows_); give the "
+                                 "number of new rows to take")
+            rows = max(1, int(round(n_new * self.n_train_ / n_rows)))
+            if budget is not None and post.n_points + rows > budget:
+                rows = max(1, int(round(n_new * budget / (n_rows + n_new))))
+        if not is_int(rows, 1, None):
+            raise ValueError(f"rows must be an integer >= 1, got {rows!r}")
+        take = min(int(rows), n_new, budget or n_new)
+        Ys = (Y - self.y_scaler_.mean_[0]) / self.y_scaler_.scale_[0]
+        sel = select_rows(Ys, rec_idx, take, self.selection, self.seed, weights=weights)
+        drop = 0 if budget is None else max(0, post.n_points + sel.size - budget)
+        if drop:
+            keep = budget - sel.size
+            if keep < 1:
+                raise ValueError(f"rows: {sel.size} new rows leave none of the {post.n_points} present rows within "
+                                 f"max_train_points={budget}")
+            kept = select_rows(targets(post), np.zeros(post.n_points, dtype=int), keep, self.selection, self.seed)
+            post = keep_rows(post, kept)
+        self.posterior_ = append_rows(post, self.x_scaler_.transform(X[sel]), Ys[sel])
+        self.envelope_ = extend_envelope(getattr(self, "envelope_", None), pairs)
+        self.n_train_ = int(self.posterior_.n_points)
+        self.n_rows_ = None if not n_rows else int(n_rows) + n_new
+        self.update_ = {"rule": f"selection:{self.selection}", "new_regressor_rows": n_new,
+                        "rows_added": int(sel.size), "rows_dropped": int(drop), "rows": self.n_train_,
+                        "budget": budget,
+                        "factor": "rank update" if not drop else "kept rows refactored, then rank update"}
+        return self
+
+    def recalibrate_noise(self, heldout) -> dict | None:
+        """Redo ``fit(heldout=...)``'s noise calibration on the posterior's present rows (after ``partial_fit``):
+        the posterior at ML-II's sigma_y^2 (``noise_var_ml2_``), then sigma_y^2 raised to the held-out maximum-
+        likelihood value of ``heldout``'s one-step residuals (``_calibrate_noise``, the same rule). Exact posterior
+        only; each sigma_y^2 that differs from the present one refactors the posterior (O(N^3), hyperparameters
+        otherwise held). Returns ``noise_calibration_``."""
+        from .gp_update import refactor, targets
+
+        self._check_fitted()
+        if self.posterior_.kind != "exact":
+            raise ValueError("recalibrate_noise: exact posterior only (a sparse one needs a retrain)")
+        try:
+            held = _as_pairs(heldout)
+        except ValueError as exc:
+            raise ValueError(f"heldout: {exc}") from None
+        X, y = self.posterior_.X_train, targets(self.posterior_)
+        kernel = self.posterior_.kernel
+
+        def build(nv):
+            return refactor(kernel, nv, X, y)
+
+        ml2 = float(self.noise_var_ml2_)
+        if self.noise_var_ != ml2:
+            self.noise_var_ = ml2
+            self.theta_ = np.concatenate([np.asarray(self.theta_, dtype=float)[:-1], [np.log(ml2)]])
+            self.posterior_ = build(ml2)
+        self._calibrate_noise(held, build)
+        return self.noise_calibration_
+
     def calibrate_band(self, records, window: int, method: str = "linear", n_paths: int = 256,
                        confidence: float = 0.99, kind: str = "centred", hold: int = 0,
                        gp_scales=(1.0,)) -> dict:
@@ -563,6 +662,9 @@ class GPNARX(ParamsMixin):
             else model.noise_var_
         model.nlml_ = float("nan") if description["nlml"] is None else float(description["nlml"])
         model.n_train_ = int(description["n_train"])
+        # the training regressor rows (a bundle manifest's training block), which partial_fit's row share reads
+        n_rows = (description.get("training") or {}).get("n_rows")
+        model.n_rows_ = int(n_rows) if is_int(n_rows, 1, None) else None
         model.x_scaler_ = Standardizer.from_arrays(arrays["x_mean"], arrays["x_scale"])
         model.y_scaler_ = Standardizer.from_arrays(arrays["y_mean"], arrays["y_scale"])
         post = {k[len("posterior_"):]: v for k, v in arrays.items() if k.startswith("posterior_")}

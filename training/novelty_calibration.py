@@ -33,7 +33,7 @@ from gpnarx.model.probe import probe_contract
 from gpnarx.model.record import FS_RTOL, fs_matches, resample_advice
 from gpnarx.storage.bundle import Bundle, derive_bundle
 
-__all__ = ["calibrate", "score_healthy"]
+__all__ = ["calibrate", "calibration_of", "score_healthy"]
 
 
 def _score_one(bundle: Bundle, rec, k: int, method: str, n_paths: int, seed: int, propagation: str, progress) -> dict:
@@ -103,15 +103,13 @@ def score_healthy(bundle: Bundle, records, method: str, n_paths: int = 1024, see
     return [_score_one(bundle, rec, k, method, n_paths, seed, propagation, progress) for k, rec in enumerate(records)]
 
 
-def calibrate(bundle: Bundle, records, registry, *, false_alarm_rate: float = 0.01, score_method: str | None = None,
-              n_paths: int = 1024, seed: int = 0, propagation: str = "mc", version=None, progress=None,
-              name: str | None = None, jobs: int = 1, groups=None) -> dict:
-    """Write a new version of ``bundle`` calibrated on healthy ``records``; returns its name, version,
-    path, the novelty calibration and each record's score and verdict under it. ``name``: write it
-    under that model name instead (a monitor derived from a model, same GP). ``jobs``: healthy records
-    scored at once (``score_healthy``; the same scores). ``groups``: one label per record (the recording
-    each window was cut from): the threshold is then the grouped fit of ``calibrate_threshold``, whose
-    spread is that of a new recording, not of more windows of the recordings seen."""
+def calibration_of(bundle: Bundle, records, *, false_alarm_rate: float = 0.01, score_method: str | None = None,
+                   n_paths: int = 1024, seed: int = 0, propagation: str = "mc", progress=None, jobs: int = 1,
+                   groups=None) -> tuple[dict, list[dict]]:
+    """The novelty calibration of ``bundle``'s model on healthy ``records`` (the manifest's ``novelty`` block:
+    threshold, score method, envelope, probe contract, what it was calibrated on) and each record's score and
+    verdict under it; nothing is written. ``calibrate`` writes it as a new version, ``gpnarx update`` (training.update)
+    recalibrates an updated model with it."""
     records = list(records)
     if len(records) < 2:
         raise ValueError(f"at least 2 healthy records are needed to calibrate, got {len(records)}")
@@ -133,6 +131,21 @@ def calibrate(bundle: Bundle, records, registry, *, false_alarm_rate: float = 0.
         novelty["calibration"]["groups"] = groups
     for s, r in zip(scored, records):
         s["verdict"] = judge(novelty, s["score"], r.u, r.y, r.fs)["verdict"]
+    return novelty, scored
+
+
+def calibrate(bundle: Bundle, records, registry, *, false_alarm_rate: float = 0.01, score_method: str | None = None,
+              n_paths: int = 1024, seed: int = 0, propagation: str = "mc", version=None, progress=None,
+              name: str | None = None, jobs: int = 1, groups=None) -> dict:
+    """Write a new version of ``bundle`` calibrated on healthy ``records``; returns its name, version,
+    path, the novelty calibration and each record's score and verdict under it. ``name``: write it
+    under that model name instead (a monitor derived from a model, same GP). ``jobs``: healthy records
+    scored at once (``score_healthy``; the same scores). ``groups``: one label per record (the recording
+    each window was cut from): the threshold is then the grouped fit of ``calibrate_threshold``, whose
+    spread is that of a new recording, not of more windows of the recordings seen."""
+    novelty, scored = calibration_of(bundle, records, false_alarm_rate=false_alarm_rate, score_method=score_method,
+                                     n_paths=n_paths, seed=seed, propagation=propagation, progress=progress,
+                                     jobs=jobs, groups=groups)
     path = derive_bundle(bundle, registry, {"novelty": novelty}, version=version, name=name)
     return {"name": name or bundle.name, "version": path.name, "path": str(path), "source_version": bundle.version,
             "novelty": novelty, "records": scored}
