@@ -1,0 +1,137 @@
+"""The model with several inputs and outputs (issue 52): the regressors of eq. (3) over every channel, one GP
+per output over the shared regressor, the free run feeding every output back together (linearised with the
+joint covariance, Monte Carlo drawing all outputs at each step); with one output, GPNARX's numbers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpnarx.model.estimator import GPNARX
+from gpnarx.model.freerun.reference import simulate_mc_reference
+from gpnarx.model.mimo import MIMOGPNARX
+from gpnarx.model.record import Record
+from gpnarx.model.regressors import mimo_columns, mimo_regressors, narx_regressors, stack_mimo_regressors
+
+
+def _sdof(n=600, seed=0):
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=n)
+    y = np.zeros(n)
+    for i in range(2, n):
+        y[i] = 1.5 * y[i - 1] - 0.7 * y[i - 2] + 0.3 * u[i] + 0.1 * u[i - 1] - 0.05 * y[i - 1] ** 3
+    return u, y + 0.01 * rng.normal(size=n)
+
+
+def _two_outputs(n=600, seed=0):
+    """Two coupled outputs driven by one input: y1 a resonant filter of u, y2 a filter of y1 with a cubic term."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=n)
+    y1, y2 = np.zeros(n), np.zeros(n)
+    for i in range(2, n):
+        y1[i] = 1.4 * y1[i - 1] - 0.6 * y1[i - 2] + 0.4 * u[i] - 0.05 * y1[i - 1] ** 3
+        y2[i] = 0.7 * y2[i - 1] + 0.5 * y1[i - 1] - 0.1 * y2[i - 1] * y1[i - 1]
+    return u, np.column_stack([y1, y2]) + 0.01 * rng.normal(size=(n, 2))
+
+
+def test_mimo_regressors_eq3_for_every_channel():
+    u, y = _sdof(50)
+    X1, Y1 = narx_regressors(u, y, 3, 2)
+    Xm, Ym = mimo_regressors(u, y, 3, 2)
+    assert np.array_equal(X1, Xm) and np.array_equal(Y1, Ym[:, 0])  # one channel each: eq. (3) as it is
+    rng = np.random.default_rng(1)
+    U, Y = rng.normal(size=(30, 2)), rng.normal(size=(30, 3))
+    X, T = mimo_regressors(U, Y, 2, 3)
+    cols = mimo_columns(3, 2, 2, 3)
+    assert X.shape == (28, 3 * 2 + 2 * 3) == (28, len(cols)) and T.shape == (28, 3)
+    i0 = 2
+    for c, (kind, ch, lag) in enumerate(cols):  # every column is the lag it says, of the channel it says
+        src = Y if kind == "y" else U
+        assert np.array_equal(X[:, c], src[i0 - lag: 30 - lag, ch]), (kind, ch, lag)
+    assert np.array_equal(T, Y[i0:])
+    Xs, Ts, idx = stack_mimo_regressors([(U, Y), (U[:10], Y[:10])], 2, 3)
+    assert Xs.shape[0] == 28 + 8 and np.array_equal(idx, np.r_[np.zeros(28), np.ones(8)])
+    with pytest.raises(ValueError, match="record 1: its channels differ"):
+        stack_mimo_regressors([(U, Y), (U, Y[:, :2])], 2, 3)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    u, y = _sdof(500)
+    kw = dict(ny=3, nu=2, max_train_points=250, n_restarts=0, seed=0)
+    return u, y, GPNARX(**kw).fit([(u, y)]), MIMOGPNARX(**kw).fit([(u, y)])
+
+
+def test_one_output_reduces_to_gpnarx(pair):
+    u, y, single, mimo = pair
+    g = mimo.outputs_[0]
+    assert np.allclose(g.theta_, single.theta_, rtol=1e-10, atol=1e-12)
+    assert g.noise_var_ == pytest.approx(single.noise_var_, rel=1e-10)
+    m1, s1 = single.predict_one_step([(u, y)])
+    mm, sm = mimo.predict_one_step([(u, y)])
+    assert np.allclose(mm[:, 0], m1, rtol=1e-10, atol=1e-12) and np.allclose(sm[:, 0], s1, rtol=1e-10, atol=1e-12)
+    ut = _sdof(300, seed=5)[0]
+    # linearised: GPNARX's three-pass run, to round-off
+    a = single.simulate(ut, method="linear")
+    b = mimo.simulate(ut, method="linear")
+    assert b.mean.shape == (300, 1)
+    scale = np.max(np.abs(a.mean))
+    assert np.max(np.abs(b.mean[:, 0] - a.mean)) < 1e-9 * scale
+    assert np.allclose(b.std[:, 0], a.std, rtol=1e-7, atol=1e-12 * scale)
+    assert np.allclose(b.latent_upper[:, 0], a.latent_upper, rtol=1e-7, atol=1e-9 * scale)
+    # from measured outputs
+    a0 = single.simulate(ut, method="linear", y0=y[:3])
+    b0 = mimo.simulate(ut, method="linear", y0=y[:3, None])
+    assert np.max(np.abs(b0.mean[:, 0] - a0.mean)) < 1e-9 * scale
+    # Monte Carlo: eq. 8-9 at every path (GPNARX's reference loop), the same seed gives the same paths
+    ref = simulate_mc_reference(single.posterior_, single.x_scaler_, single.y_scaler_, 3, 2, ut[:120], n_paths=64,
+                                seed=3)
+    mc = mimo.simulate(ut[:120], method="mc", n_paths=64, seed=3)
+    for f in ("mean", "std", "lower", "upper", "latent_lower", "latent_upper"):
+        assert np.allclose(getattr(mc, f)[:, 0], getattr(ref, f), rtol=1e-9, atol=1e-12 * scale), f
+    one = MIMOGPNARX.channel_run(mc, 0)
+    assert one.mean.shape == (120,) and np.array_equal(one.upper, mc.upper[:, 0])
+
+
+@pytest.fixture(scope="module")
+def two():
+    u, y = _two_outputs(700)
+    rec = Record(u, y, 100.0, channels={"u": [("F", "N")], "y": [("x1", "m"), ("x2", "m")]})
+    m = MIMOGPNARX(ny=2, nu=2, max_train_points=300, n_restarts=0, n_jobs=2).fit([rec])
+    return rec, m
+
+
+def test_two_outputs_own_hyperparameters_and_parallel_fit(two):
+    rec, m = two
+    assert m.n_outputs_ == 2 and [c.name for c in m.output_channels_] == ["x1", "x2"]
+    assert not np.allclose(m.outputs_[0].theta_, m.outputs_[1].theta_)  # each output its own ML-II
+    serial = MIMOGPNARX(ny=2, nu=2, max_train_points=300, n_restarts=0, n_jobs=1).fit([rec])
+    for a, b in zip(m.outputs_, serial.outputs_):  # threads give the numbers of the serial fit
+        assert np.allclose(a.theta_, b.theta_, rtol=1e-8)
+    # each output alone is that output's GPNARX-like fit on the shared regressor: one-step fit is good
+    mean, std = m.predict_one_step([rec])
+    resid = rec.y[2:] - mean
+    assert np.all(np.sqrt(np.mean(resid ** 2, axis=0)) < 0.05 * np.std(rec.y, axis=0))
+
+
+def test_two_outputs_free_run_joint_covariance_and_mc(two):
+    rec, m = two
+    u, y = _two_outputs(400, seed=9)
+    lin = m.simulate(u, method="linear")
+    mc = m.simulate(u, method="mc", n_paths=400, seed=0)
+    assert lin.mean.shape == mc.mean.shape == (400, 2)
+    for run in (lin, mc):
+        err = y - run.mean
+        fit = 100 * (1 - np.linalg.norm(err, axis=0) / np.linalg.norm(y - y.mean(axis=0), axis=0))
+        assert np.all(fit > 80), fit
+        inside = np.mean((y >= run.lower) & (y <= run.upper), axis=0)
+        assert np.all(inside > 0.9), inside
+    # the two propagations agree on the band where the model is nearly linear (within Monte Carlo error)
+    assert np.median(np.abs(mc.std[50:] / lin.std[50:] - 1)) < 0.15
+    # the joint propagation matters: x2 depends on x1's lags, so x2's linearised variance exceeds its own
+    # GP's one-step variance once x1's uncertainty has propagated
+    _, s1 = m.predict_one_step([(u, y)])
+    assert np.median(lin.std[50:, 1]) > 2.0 * np.median(s1[48:, 1])
+    with pytest.raises(ValueError, match=r"u must be \(n, 1\)"):
+        m.simulate(np.ones((10, 2)))
+    with pytest.raises(ValueError, match="y0 must hold"):
+        m.simulate(u, y0=np.zeros((2, 1)))
