@@ -19,11 +19,13 @@ from .backend import check_backend
 from .discrepancy import calibrate_scale, check_discrepancy, widen_chunk
 from .envelope import check_envelope, divergence_limit, training_envelope
 from .freerun import Predictor, RunSpec
+from .freerun.horizon import check_horizon, join_runs, run_horizon
+from .gaps import find_gaps, pieces
 from .gp import ExactPosterior, SparsePosterior, choose_inducing
 from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, kernel_from_dict, make_kernel
 from .ml2 import default_warm_start_subset, fit_ml2
 from .params import ParamsMixin
-from .record import Record, RecordError
+from .record import Record, RecordError, allowing_gaps
 from .regressors import check_lags, first_index, narx_regressors, stack_regressors
 from .scaling import Standardizer
 from .selection import SELECTIONS, select_rows
@@ -78,7 +80,8 @@ def _as_pairs(records) -> list[tuple[np.ndarray, np.ndarray]]:
                 u, y = r
             except (TypeError, ValueError):
                 raise ValueError(f"records[{k}] must be a Record or a (u, y) pair") from None
-            r = Record(u, y, 1.0, name=f"records[{k}]")
+            with allowing_gaps():  # NaN samples are gaps: no lag window crosses them (model.regressors)
+                r = Record(u, y, 1.0, name=f"records[{k}]")
         if r.y is None:
             raise ValueError(f"records[{k}] ({r.name}) has no output y; training needs u and y")
         pairs.append((r.u, r.y))
@@ -102,6 +105,55 @@ def _row_weights(records) -> list[float] | None:
             raise ValueError(f"records[{k}] ({records[k].name}): row_weight must be a positive number, got {v!r}")
         out.append(float(v))
     return out
+
+
+def _gap_free(pairs, need: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The (u, y) pairs cut at their gaps (``model.gaps``): the gap-free pieces of at least ``need`` samples
+    (every piece of a record without gaps: the record itself)."""
+    out = []
+    for u, y in pairs:
+        gaps = find_gaps(u, y)
+        if not gaps:
+            out.append((u, y))
+            continue
+        out.extend((u[a:b], y[a:b]) for a, b in pieces(u.size, gaps) if b - a >= need)
+    if not out:
+        raise ValueError(f"records: no gap-free piece of at least {need} samples")
+    return out
+
+
+def _has_nan(u) -> bool:
+    try:
+        return bool(np.isnan(np.asarray(u, dtype=float)).any())
+    except (TypeError, ValueError):
+        return False  # ``_as_input`` names what is wrong
+
+
+def _as_record_series(a, name: str) -> np.ndarray:
+    """A 1-D, non-empty series of numbers or NaN (a gap, ``model.gaps``); ValueError naming ``name`` otherwise
+    (an infinite value too)."""
+    try:
+        arr = np.asarray(a, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a 1-D array of numbers") from None
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be 1-D, got shape {arr.shape}")
+    if arr.size == 0:
+        raise ValueError(f"{name} is empty")
+    if np.isinf(arr).any():
+        raise ValueError(f"{name} holds infinite values (a gap is NaN)")
+    if np.isnan(arr).all():
+        raise ValueError(f"{name} holds no sample: every one is NaN (a gap)")
+    return arr
+
+
+def _held(y: np.ndarray, confidence: float, method: str):
+    """The measured outputs as a run that holds them (no uncertainty): a piece after a gap too short to predict
+    from its first ny measured outputs."""
+    y = np.asarray(y, dtype=float)
+    z = np.zeros(y.size)
+    return freerun.FreeRun(y.copy(), z, y.copy(), y.copy(), float(confidence), 0, method,
+                           latent_lower=y.copy(), latent_upper=y.copy())
 
 
 def _as_input(u, name: str = "u") -> np.ndarray:
@@ -276,7 +328,7 @@ class GPNARX(ParamsMixin):
                     raise ValueError(f"{label}[{k}] has {u.size} samples; ny={self.ny}, nu={self.nu} "
                                      f"need at least {need}")
         X, Y, rec_idx = stack_regressors(pairs, self.ny, self.nu)
-        self.envelope_ = training_envelope(pairs)
+        self.envelope_ = training_envelope(_gap_free(pairs, need))
         self.x_scaler_ = Standardizer().fit(X)
         self.y_scaler_ = Standardizer().fit(Y[:, None])
         Xs = self.x_scaler_.transform(X)
@@ -514,7 +566,7 @@ class GPNARX(ParamsMixin):
     def simulate(self, u, n_paths: int = 1024, seed: int | None = 0, y0=None, confidence: float = 0.99,
                  method: str = "mc", float32: bool = False, keep_paths: bool = False, progress=None,
                  cov_window: int = 0, backend: str | None = None, state=None, open_end: bool = False,
-                 local: bool = True):
+                 local: bool = True, y=None, horizon: int | None = None):
         """Free-run prediction for input u (input units) with uncertainty propagation.
 
         method: 'mc' (Monte Carlo over n_paths, seeded) or 'linear' (first-order propagation).
@@ -541,6 +593,18 @@ class GPNARX(ParamsMixin):
             slightly from the whole record's (elsewhere it is the same).
         local: Monte Carlo on the numpy backend, serve steps from the checked local model of eq. 8-9
             (``freerun.mc``); False evaluates eq. 8-9 exactly at every path.
+        y: the record's measured output (output units, u's length), or None: what a k-step prediction and a
+            restart after a gap start from.
+        horizon: k-step-ahead prediction (``freerun.horizon``, numpy backend): every k = ``horizon`` samples
+            the run restarts from the measured outputs (y required; the run starts from y's first ny samples, so
+            y0 does not apply). Its band is eqs. 8-9 propagated over the at most k steps since the last measured
+            outputs, without the discrepancy term; k = 1 is ``predict_one_step``'s, k >= len(u) - ny the free
+            run from y's first ny samples.
+        Gaps (``model.gaps``): NaN samples in u, or in y when given, are gaps. The answer holds NaN through each
+        gap; after it the run restarts as at a record's start, from the measured outputs (the piece's first ny
+        samples) when y is given, from rest otherwise; the piece before the first gap starts as asked (y0 or
+        rest). Each piece's Monte Carlo paths draw with the seed plus the piece's index. Neither gaps nor a
+        horizon continue a stream (``state``).
         Returns a ``freerun.FreeRun`` (mean, std, lower, upper in output units); Monte Carlo runs
         count in ``diverged_paths`` the paths that left the training envelope (``model.envelope``).
         When the band was calibrated (``calibrate_band``), std and both bands include the
@@ -554,6 +618,10 @@ class GPNARX(ParamsMixin):
         """
         self._check_fitted()
         backend = check_backend(backend)
+        if horizon is not None or y is not None or _has_nan(u):
+            return self._simulate_pieces(u, y, horizon, n_paths=n_paths, seed=seed, y0=y0, confidence=confidence,
+                                         method=method, float32=float32, progress=progress, backend=backend,
+                                         state=state, open_end=open_end, local=local)
         if state is not None and backend != "numpy":
             raise ValueError("state: continuing a stream runs on the numpy backend only, got backend "
                              f"{backend!r}")
@@ -571,6 +639,54 @@ class GPNARX(ParamsMixin):
             out.state.amp_tail = tail
             out.state.amp_hold = None if last is None else np.array([last])
         return out
+
+    def _simulate_pieces(self, u, y, horizon, *, n_paths, seed, y0, confidence, method, float32, progress, backend,
+                         state, open_end, local):
+        """``simulate`` of a record with gaps or a horizon: each gap-free piece on its own (``model.gaps``), the
+        k-step prediction of each when ``horizon`` is given (``freerun.horizon``), joined with NaN in the gaps."""
+        u = _as_record_series(u, "u")
+        if y is not None:
+            y = _as_record_series(y, "y")
+            if y.size != u.size:
+                raise ValueError(f"y has {y.size} samples but u has {u.size}; they must have the same length")
+        if horizon is not None:
+            horizon = check_horizon(horizon, y, u.size)
+            if u.size <= self.ny:
+                raise ValueError(f"u must be longer than ny={self.ny} samples for a k-step prediction, got {u.size}")
+            if backend != "numpy":
+                raise ValueError(f"horizon: a k-step prediction runs on the numpy backend, got backend {backend!r}")
+        gaps = find_gaps(u, y)
+        if state is not None or open_end:
+            what = "a k-step prediction (horizon)" if horizon is not None else "a record with gaps (NaN)"
+            if horizon is not None or gaps:
+                raise ValueError(f"state: {what} does not continue a stream; send the record whole")
+        if not gaps and horizon is None:
+            return self.simulate(u, n_paths=n_paths, seed=seed, y0=y0, confidence=confidence, method=method,
+                                 float32=float32, progress=progress, backend=backend, state=state,
+                                 open_end=open_end, local=local)
+        n, ny = u.size, self.ny
+        parts = []
+        for j, (a, b) in enumerate(pieces(n, gaps)):
+            seed_j = seed if (seed is None or j == 0) else int(seed) + j
+            measured = y is not None and (horizon is not None or a > 0)
+            if measured and b - a <= ny:  # too short to predict from measured outputs: the measured outputs
+                parts.append((a, _held(y[a:b], confidence, method)))
+                continue
+            if horizon is not None:
+                self._check_fitted()
+                if method == "mc" and not is_int(n_paths, 1, MAX_PATHS):
+                    raise ValueError(f"n_paths must be an integer between 1 and {MAX_PATHS}, got {n_paths!r}")
+                spec = RunSpec(method=freerun.check_method(method), n_paths=int(n_paths), seed=seed_j,
+                               confidence=confidence, include_noise=self.include_noise, float32=float32,
+                               local=local, progress=progress)
+                with free_run_blas():
+                    parts.append((a, run_horizon(self.predictor(), u[a:b], y[a:b], spec, horizon)))
+                continue
+            start = y[a:a + ny] if measured else (y0 if a == 0 else None)
+            parts.append((a, self.simulate(u[a:b], n_paths=n_paths, seed=seed_j, y0=start, confidence=confidence,
+                                           method=method, float32=float32, progress=progress, backend=backend,
+                                           local=local)))
+        return join_runs(n, parts)
 
     def predictor(self) -> Predictor:
         """The fitted model as the free runs read it (``freerun.Predictor``): posterior, scalers, lags and the

@@ -65,7 +65,15 @@ def band_width(lower, upper) -> float:
 
 
 def summary(y, mean, lower=None, upper=None) -> dict:
-    """All metrics for a measured record y against a prediction."""
+    """All metrics for a measured record y against a prediction. Gaps (``model.gaps``: NaN in y or in the
+    prediction) are skipped: the metrics are those of the samples measured and predicted."""
+    y, mean = _pair(y, mean)
+    gap = np.isnan(y) | np.isnan(mean)
+    if gap.any():
+        keep = ~gap
+        if lower is not None and upper is not None:
+            lower, upper = np.asarray(lower, float).ravel()[keep], np.asarray(upper, float).ravel()[keep]
+        y, mean = y[keep], mean[keep]
     out = {"fit": fit_percent(y, mean), "rmse": rmse(y, mean), "nrmse": nrmse(y, mean)}
     if lower is not None and upper is not None:
         out["coverage"] = coverage(y, lower, upper)

@@ -4,6 +4,8 @@ files and folders are read by ``storage.record_files``), and the sampling-rate r
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,6 +33,22 @@ def resample_advice(fs: float, model_fs: float) -> str:
         if ratio > 0 and math.isclose(float(ratio), r, rel_tol=FS_RTOL):
             how = f"scipy.signal.resample_poly(x, up={ratio.numerator}, down={ratio.denominator})"
     return f"resample u and y to {float(model_fs):g} Hz first, e.g. {how}"
+
+
+#: whether the records built here may hold gaps (NaN samples, ``model.gaps``): set by ``allowing_gaps``
+_GAPS: ContextVar[bool] = ContextVar("gpnarx_record_gaps", default=False)
+
+
+@contextmanager
+def allowing_gaps():
+    """Within this block, records built (``Record``, and so every record reader) may hold gaps: NaN samples in u
+    or y (``model.gaps``); an infinite value is still refused. Outside it a NaN is refused, as before: only
+    what takes gaps (predict, ``gpnarx validate``, ``GPNARX.fit``) reads records inside it."""
+    token = _GAPS.set(True)
+    try:
+        yield
+    finally:
+        _GAPS.reset(token)
 
 
 class RecordError(ValueError):
@@ -263,6 +281,8 @@ def _as_signal(a, label: str, name: str) -> np.ndarray:
     if arr.size == 0:
         raise RecordError(f"{name}: {label} is empty")
     bad = ~np.isfinite(arr)
+    if bad.any() and _GAPS.get() and not np.isinf(arr).any():
+        return arr  # NaN marks gaps (``allowing_gaps``)
     if bad.any():
         raise RecordError(
             f"{name}: {label} holds {int(bad.sum())} non-finite value(s) (NaN/inf), "

@@ -1,6 +1,7 @@
 """NARX regressors, eq. (3): x_i = [y_{i-1}, ..., y_{i-ny}, u_i, u_{i-1}, ..., u_{i-nu+1}].
 
-Regressors are built per record and stacked, so no lag window straddles two records.
+Regressors are built per record and stacked, so no lag window straddles two records. A gap (NaN samples in u
+or y, ``model.gaps``) is a record break too: a row whose lag window holds a missing sample is left out.
 """
 from __future__ import annotations
 
@@ -40,7 +41,9 @@ def _series(name: str, v) -> np.ndarray:
 def narx_regressors(u: np.ndarray, y: np.ndarray, ny: int, nu: int) -> tuple[np.ndarray, np.ndarray]:
     """Regression matrix X (n - i0, ny + nu) and targets Y (n - i0,) for one record, eq. (3).
 
-    Row r is x_i for i = i0 + r, i0 = max(ny, nu - 1). Raises ValueError (naming the argument and the
+    Row r is x_i for i = i0 + r, i0 = max(ny, nu - 1). A record with gaps (NaN in u or y, ``model.gaps``) is
+    cut at them: a row is kept when no sample of u or y in [i - i0, i] is missing, so no lag window crosses a gap
+    and the rows are those of the gap-free pieces, each stacked as a record of its own. Raises ValueError (naming the argument and the
     limit) for invalid lags, u/y that are not 1-D sequences of numbers of one length, or a record
     with no complete lag window.
     """
@@ -60,7 +63,16 @@ def narx_regressors(u: np.ndarray, y: np.ndarray, ny: int, nu: int) -> tuple[np.
         X[:, j - 1] = y[i0 - j : n - j]
     for j in range(nu):  # u_{i-j}
         X[:, ny + j] = u[i0 - j : n - j]
-    return X, y[i0:].copy()
+    Y = y[i0:].copy()
+    miss = np.isnan(u) | np.isnan(y)
+    if miss.any():  # keep row i when no sample of u or y in [i - i0, i] is missing (the piece's own rows)
+        c = np.concatenate([[0], np.cumsum(miss)])
+        keep = c[i0 + 1: n + 1] - c[: n - i0] == 0
+        if not keep.any():
+            raise ValueError(f"record has no complete lag window outside its gaps (NaN samples): ny={ny}, nu={nu} "
+                             f"need {i0 + 1} consecutive samples")
+        X, Y = X[keep], Y[keep]
+    return X, Y
 
 
 def stack_regressors(records, ny: int, nu: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -35,13 +35,15 @@ LOCAL_BACKOFF = 16  # steps that start at the next level after a failed check
 LOCAL_EXACT_SHARE = (0, 16, 4)  # levels: exact at none, at the farthest 1/16, 1/4 of the paths; then all exact
 
 
-def run_mc(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
+def run_mc(predictor: Predictor, u: np.ndarray, spec: RunSpec, restarts: dict | None = None) -> FreeRun:
     """Monte Carlo free run over ``spec.n_paths`` paths of input ``u`` (input units); see the module docstring.
 
     ``spec.local`` False: every step exact (``reference.simulate_mc_reference``'s numbers). ``spec.state``: the
     ``FreeRun.state`` of an earlier run to continue: the same paths, generators and local-model schedule, so a
     record run in chunks gives the numbers of the record run whole. ``FreeRun.local_steps`` counts the steps the
     local model served (wholly or partly); ``FreeRun.diverged_paths`` the paths past ``predictor.diverge_limit``.
+    ``restarts``: {sample i: its ny output lags [y_{i-1}, ..., y_{i-ny}] (output units)}: before step i every
+    path's lags are set to them (a k-step prediction's restart from measured outputs, ``horizon``).
     """
     posterior, ny = predictor.posterior, predictor.ny
     seed, state, progress, float32 = spec.seed, spec.state, spec.progress, spec.float32
@@ -71,6 +73,11 @@ def run_mc(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
     var = np.empty(P)
     step = _LocalStep(posterior, st, n_check, check_rng) if use_local else None
     for i in range(i0, n):
+        if restarts and i in restarts:
+            lags = restarts[i]
+            st.restart(lags)
+            if not (lo < float(lags.min()) and float(lags.max()) < hi):
+                clip_until = max(clip_until, i + ny - 1)
         clipped = i <= clip_until
         done = False
         if use_local and not clipped:

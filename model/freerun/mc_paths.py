@@ -94,6 +94,12 @@ class McPaths:
         """The mean over the paths of each column of ``ylag_raw`` (ny,): a view, valid until the next draw."""
         return self._lag_means[self._o: self._o + self.ny]
 
+    def restart(self, lags: np.ndarray) -> None:
+        """Set every path's last ny outputs to ``lags`` (ny,), newest first (output units): a restart from measured
+        outputs (``horizon``)."""
+        self.lags_t[:] = np.asarray(lags, dtype=float)[:, None]
+        self.lag_means[:] = lags
+
     def draw(self, i: int, mu: np.ndarray, var: np.ndarray) -> np.ndarray:
         """Sample step i of every path, feed it back and return the samples (output units)."""
         sd = np.sqrt(var + self.noise)
