@@ -306,3 +306,75 @@ def test_cli_update_json_and_errors(monitored, tmp_path, capsys):
     for argv, needle, code in cases:
         assert main(argv) == code, argv
         assert needle in capsys.readouterr().err, argv
+
+
+# ------------------------------------------------------------------------------------------ with the config
+SMALL = """
+name = "bw-up"
+[system]
+fs = 750.0
+units = { u = "N", y = "m" }
+output = "displacement"
+[physics]
+mass = 2.0
+[model]
+ny = 4
+nu = 4
+max_train_points = 200
+restarts = 0
+noise_calibration = "lags"
+band_calibration = "lags"
+[predict]
+mc_paths = 32
+method = "linear"
+[[records]]
+name = "train-sweep"
+roles = ["train"]
+simulate = { system = "bouc-wen", excitation = "sweep", amplitude = 30.0, duration = 1.0, f0 = 20.0, f1 = 60.0 }
+noise = { fraction = 0.01, seed = 1 }
+[[records]]
+name = "lag-sweep"
+roles = ["lags"]
+simulate = { system = "bouc-wen", excitation = "sweep", amplitude = 40.0, duration = 1.0, f0 = 20.0, f1 = 60.0 }
+[[records]]
+name = "h1"
+roles = ["healthy"]
+simulate = { system = "bouc-wen", excitation = "sweep", amplitude = 30.0, duration = 0.5, f0 = 20.0, f1 = 60.0 }
+noise = { fraction = 0.01, seed = 2 }
+[[records]]
+name = "h2"
+roles = ["healthy"]
+simulate = { system = "bouc-wen", excitation = "sweep", amplitude = 30.0, duration = 0.5, f0 = 20.0, f1 = 60.0 }
+noise = { fraction = 0.01, seed = 3 }
+"""
+
+
+def test_update_with_the_config_recalibrates_noise_band_and_threshold(tmp_path):
+    from gpnarx.training.config import load_config, simulate_record
+    from gpnarx.training.pipeline import train
+    from gpnarx.training.update import UpdateError, update
+
+    path = tmp_path / "small.toml"
+    path.write_text(SMALL)
+    cfg = load_config(path)
+    reg = tmp_path / "reg"
+    trained = train(cfg, reg, report=False)
+    parent = load_bundle(trained["path"])
+    assert parent.manifest["noise_calibration"] and parent.manifest["band_discrepancy"] and parent.manifest["novelty"]
+    new = simulate_record({"system": "bouc-wen", "excitation": "sweep", "amplitude": 35.0, "duration": 1.0,
+                           "f0": 20.0, "f1": 60.0}, name="new-sweep")
+    res = update(parent, [new], reg, config=cfg)
+    man = load_bundle(res["path"]).manifest
+    rec = man["lineage"]["recalibrated"]
+    assert rec["noise"]["noise_var"] == man["noise_var"] and man["noise_calibration"]["n_records"] == 1
+    assert rec["band"]["scale"] == man["band_discrepancy"]["scale"]
+    assert rec["novelty"]["threshold"] == man["novelty"]["threshold"] and rec["novelty"]["records"] == 2
+    assert man["novelty"]["calibration"]["records"] == ["h1", "h2"]
+    assert man["n_train"] == 200 and man["lineage"]["rows"]["rows_dropped"] > 0  # the budget was full
+    # a held-out record of the config cannot become a training record
+    with pytest.raises(UpdateError, match="it is the config's held-out record 'lag-sweep'"):
+        update(parent, cfg.records_for("lags"), reg, config=cfg)
+    other = tmp_path / "other.toml"
+    other.write_text(SMALL.replace("ny = 4", "ny = 6"))
+    with pytest.raises(UpdateError, match="config: bw-up has ny=6, nu=4, the bundle ny=4, nu=4"):
+        update(parent, [new], reg, config=load_config(other))
