@@ -378,3 +378,15 @@ def test_update_with_the_config_recalibrates_noise_band_and_threshold(tmp_path):
     other.write_text(SMALL.replace("ny = 4", "ny = 6"))
     with pytest.raises(UpdateError, match="config: bw-up has ny=6, nu=4, the bundle ny=4, nu=4"):
         update(parent, [new], reg, config=load_config(other))
+
+
+def test_a_sparse_model_is_refused_with_a_retrain(tmp_path, capsys):
+    from gpnarx.training.update import UpdateError, update
+
+    m = GPNARX(ny=2, nu=2, mode="sparse", n_inducing=16, max_train_points=100).fit([record(0, 200)], theta=theta(1.0))
+    path = save_bundle(m, tmp_path, "sp", fs=FS, units={})
+    with pytest.raises(UpdateError, match="model sp:1 has a sparse posterior.*needs a retrain"):
+        update(load_bundle(path), [record(1, 200)], tmp_path)
+    rec = write_npz(tmp_path / "r.npz", record(1, 200))
+    assert main(["update", "sp", str(rec), "--registry", str(tmp_path)]) == 1
+    assert "needs a retrain (gpnarx train)" in capsys.readouterr().err
