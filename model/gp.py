@@ -44,16 +44,19 @@ class _Posterior:
         grad = self.kernel.grad_x(xs, self.points).T @ w
         return mean, var, grad
 
-    def mean_var_grad(self, Xs: np.ndarray, block: int = 256):
+    def mean_var_grad(self, Xs: np.ndarray, block: int = 256, stride: int = 1):
         """``mean_grad`` for many points at once: mean (eq. 8), latent variance (eq. 9, as ``predict``)
         and d mean / d xs for every row of Xs, (rows,), (rows,), (rows, D); one kernel block per row block
-        sharing one Gram product with the mean's gradient (``LinearisableKernel.value_and_grad_dot``)."""
+        sharing one Gram product with the mean's gradient (``LinearisableKernel.value_and_grad_dot``).
+        ``stride`` s > 1: eq. 9 only at the rows ``stride_rows(rows, s)`` (every s-th and the last), linearly
+        interpolated between (``interpolate_rows``); mean and gradient at every row."""
         Xs = np.ascontiguousarray(Xs, dtype=float)
         n = Xs.shape[0]
         mean, var = np.empty(n), np.empty(n)
         grad = np.empty(Xs.shape)
         X, w = self.points, self.mean_weights
         sqX = np.einsum("ij,ij->i", X, X)
+        keep = None if stride <= 1 else stride_rows(n, stride)
         for r0 in range(0, n, block):
             r1 = min(n, r0 + block)
             xb = Xs[r0:r1]
@@ -61,9 +64,27 @@ class _Posterior:
                                                               sqX)
             np.dot(Ks, w, out=mean[r0:r1])
             mean[r0:r1] += self.mean_shift
-            var[r0:r1] = self.kernel.diag(xb) - self.reduction_rows(Ks)
+            if keep is None:
+                var[r0:r1] = self.kernel.diag(xb) - self.reduction_rows(Ks)
+            else:
+                sel = keep[(keep >= r0) & (keep < r1)] - r0
+                if sel.size:
+                    var[sel + r0] = self.kernel.diag(xb[sel]) - self.reduction_rows(Ks[sel])
+        if keep is not None:
+            var[:] = interpolate_rows(var[keep], keep, n)
         np.maximum(var, 1e-300, out=var)
         return mean, var, grad
+
+
+def stride_rows(n: int, stride: int) -> np.ndarray:
+    """The rows of n at which a strided eq. 9 is evaluated: every ``stride``-th from the first, and the last."""
+    rows = np.arange(0, n, max(int(stride), 1))
+    return rows if not n or rows[-1] == n - 1 else np.append(rows, n - 1)
+
+
+def interpolate_rows(values: np.ndarray, rows: np.ndarray, n: int) -> np.ndarray:
+    """Values at ``rows`` (``stride_rows``) linearly interpolated to all n rows."""
+    return np.interp(np.arange(n, dtype=float), rows.astype(float), values)
 
 
 class ExactPosterior(_Posterior):

@@ -57,8 +57,9 @@ class Posterior(Protocol):
     def mean_grad(self, xs: np.ndarray) -> tuple[float, float, np.ndarray]:
         """Mean, latent variance and d mean / d xs at one point xs (D,)."""
 
-    def mean_var_grad(self, Xs: np.ndarray, block: int = 256):
-        """``mean_grad`` at every row of Xs: (rows,), (rows,), (rows, D)."""
+    def mean_var_grad(self, Xs: np.ndarray, block: int = 256, stride: int = 1):
+        """``mean_grad`` at every row of Xs: (rows,), (rows,), (rows, D); ``stride`` > 1: eq. 9 at every
+        stride-th row (and the last), interpolated between."""
 
     def arrays(self) -> dict:
         """The arrays a bundle stores (names unchanged across versions)."""

@@ -20,6 +20,13 @@ Three passes, the numbers of one ``mean_grad`` call per step (``linear_stepwise`
 3. the covariance recursion, chunk by chunk in order as pass 2 finishes them, on the calling thread once pass 1
    has ended, so that it overlaps the workers' pass 2 (``_CovarianceRecursion``).
 
+Where numba is installed (the extra ``fast``; ``GPNARX_COMPILED=0`` turns it off), pass 1 is compiled
+(``linear_compiled``): the same kernel-row evaluation serves the mean, its gradient J and eq. 9's rows, so pass 2
+is only the triangular products on those rows; the numbers are the numpy passes' to round-off.
+``RunSpec.variance_stride`` s > 1 (opt-in): eq. 9 at every s-th step of each chunk (and its last), linearly
+interpolated between (``gp.stride_rows``, ``gp.interpolate_rows``); the band's difference per real record is in
+docs/numerics.md.
+
 A posterior other than a ``posterior.Posterior`` whose kernel gives ``MeanTerms`` (e.g. an object with only
 ``mean_grad`` and ``noise_var``) runs stepwise (``linear_stepwise``).
 """
@@ -36,9 +43,12 @@ from ..kernels import LinearisableKernel, require
 from ..linalg import two_cpus
 from ..normal import band_z
 from ..posterior import Posterior
+from ..gp import interpolate_rows, stride_rows
+from .linear_compiled import CompiledMean
 from .linear_stepwise import run_linear_stepwise
 from .results import FreeRun, FreeRunState, check_state
-from .spec import LAG_CLIP, VAR_CAP, Predictor, RunSpec, check_confidence, next_u_tail, start_index
+from .spec import (LAG_CLIP, VAR_CAP, Predictor, RunSpec, check_confidence, check_stride, next_u_tail,
+                   start_index)
 
 
 def run_linear(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
@@ -55,6 +65,7 @@ def run_linear(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
     fast = _MeanRecursion.build(predictor)
     if workers is not None and int(workers) < 0:
         raise ValueError(f"workers must be >= 0 (0: no worker thread), got {workers}")
+    stride = check_stride(spec.variance_stride)
     if state is not None:
         check_state(state, "linear", ny, nu, y0)
         if fast is None:
@@ -85,13 +96,38 @@ def run_linear(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
     grad = np.empty((rows, ny + nu))
     win = np.lib.stride_tricks.sliding_window_view(hist, ny)[:, ::-1]  # row i: [y_{i-1}, ..., y_{i-ny}]
 
-    def pass2(k0: int, k1: int) -> None:
+    def regressors(k0: int, k1: int) -> np.ndarray:
         Xb = X[k0:k1]
         np.subtract(win[i0 + k0: i0 + k1], xm[:ny], out=Xb[:, :ny])
         Xb[:, :ny] /= xs[:ny]
         np.clip(Xb[:, :ny], -LAG_CLIP, LAG_CLIP, out=Xb[:, :ny])
         Xb[:, ny:] = Ulag[i0 + k0: i0 + k1]
-        _, var_f[k0:k1], grad[k0:k1] = posterior.mean_var_grad(Xb)
+        return Xb
+
+    def pass2(k0: int, k1: int) -> None:
+        Xb = regressors(k0, k1)
+        if stride > 1:
+            _, var_f[k0:k1], grad[k0:k1] = posterior.mean_var_grad(Xb, stride=stride)
+        else:
+            _, var_f[k0:k1], grad[k0:k1] = posterior.mean_var_grad(Xb)
+
+    compiled = CompiledMean.build(fast, posterior)
+    rows_of: dict = {}  # compiled pass 1: the kernel rows of each chunk (by its first step) until pass 2 takes them
+
+    def want_rows(c0: int, c1: int):
+        keep = stride_rows(c1 - c0, stride)
+        slots = np.full(c1 - c0, -1, dtype=np.int64)
+        slots[keep] = np.arange(keep.size)
+        return slots, np.empty((keep.size, posterior.n_points))
+
+    def pass2_rows(k0: int, k1: int) -> None:
+        # eq. 9 on the kernel rows pass 1 left (every stride-th step of the chunk and its last)
+        K = rows_of.pop(k0)
+        keep = stride_rows(k1 - k0, stride)
+        Xk = regressors(k0, k1)[keep]
+        v = posterior.kernel.diag(Xk) - posterior.reduction_rows(K)
+        var_f[k0:k1] = v if stride == 1 else interpolate_rows(v, keep, k1 - k0)
+        np.maximum(var_f[k0:k1], 1e-300, out=var_f[k0:k1])
 
     L = max(ny, int(spec.cov_window or 0))
     band = np.zeros((n, L)) if L > ny else None
@@ -104,12 +140,25 @@ def run_linear(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
     def pass3(k0: int, k1: int) -> None:
         np.add(var_f[k0:k1], noise, out=q[k0:k1])
         q[k0:k1] *= ys * ys
-        np.multiply(grad[k0:k1, :ny], ys / xs[:ny], out=Jall[k0:k1])
+        if compiled is None:
+            np.multiply(grad[k0:k1, :ny], ys / xs[:ny], out=Jall[k0:k1])
         cov.advance(q[k0:k1], Jall[k0:k1])
 
-    with _Workers(pass2, _linear_workers(workers, rows, _PASS1_CHUNK), then=pass3) as pool:
-        fast.run(hist, Ulag, i0, n, ym, ys, progress, chunk=_PASS1_CHUNK,
-                 on_chunk=lambda c0, c1: pool.submit(c0 - i0, c1 - i0))
+    n_workers = _linear_workers(workers, rows, _PASS1_CHUNK)
+    if compiled is None:
+        with _Workers(pass2, n_workers, then=pass3) as pool:
+            fast.run(hist, Ulag, i0, n, ym, ys, progress, chunk=_PASS1_CHUNK,
+                     on_chunk=lambda c0, c1: pool.submit(c0 - i0, c1 - i0))
+    else:
+        # the compiled pass 1 outruns pass 2: the caller takes queued chunks itself past two, which bounds the
+        # kernel rows held at once
+        with _Workers(pass2_rows, n_workers, then=pass3, queued=2) as pool:
+            def chunk_done(c0, c1, K):
+                rows_of[c0 - i0] = K
+                pool.submit(c0 - i0, c1 - i0)
+
+            compiled.run(hist, Ulag, i0, n, ym, ys, Jall, want_rows, progress, chunk=_PASS1_CHUNK,
+                         on_chunk=chunk_done)
     mean = hist[ny:].copy()
     std = np.zeros(n)
     lstd = np.zeros(n)  # latent std: var(y_i) without the reporting step's sigma_y^2
@@ -152,10 +201,12 @@ class _Workers:
     and, on leaving the ``with`` block, on the calling thread too until none is left (n = 0: at once,
     on the caller). ``then(*task)``, when given, runs on the calling thread for every task after ``fn`` has
     finished it, in the order the tasks were submitted: on leaving the block, between the caller's own
-    tasks (n = 0: right after ``fn``). The first error a task raises is raised on leaving the block."""
+    tasks (n = 0: right after ``fn``). The first error a task raises is raised on leaving the block.
+    ``queued``: with workers, the caller runs a queued task itself at ``submit`` while more than that many wait
+    (bounds what the waiting tasks hold)."""
 
-    def __init__(self, fn, n: int, then=None):
-        self.fn, self.n, self.then = fn, int(n), then
+    def __init__(self, fn, n: int, then=None, queued: int | None = None):
+        self.fn, self.n, self.then, self.queued = fn, int(n), then, queued
         self.tasks: queue.SimpleQueue = queue.SimpleQueue()
         self.errors: list[BaseException] = []
         self.order: list[tuple] = []  # submitted tasks, in order
@@ -173,6 +224,11 @@ class _Workers:
         if self.n:
             self.order.append(task)
             self.tasks.put(task)
+            while self.queued is not None and self.tasks.qsize() > self.queued and not self.errors:
+                try:  # more than ``queued`` waiting: the caller runs one
+                    self._run(self.tasks.get_nowait())
+                except queue.Empty:
+                    break
         else:
             self.fn(*task)
             if self.then is not None:

@@ -63,6 +63,8 @@ class RunSpec:
     in ``FreeRun.paths``. latent: also the latent band. local: Monte Carlo on numpy served by the checked local
     model (``mc``). cov_window: linearised, the output covariance over that many lags (``FreeRun.cov_band``).
     workers: linearised on numpy, pass 2's worker threads (None: one where the process may use two CPUs).
+    variance_stride: linearised on numpy, eq. 9's latent variance at every s-th step only, linearly interpolated
+    between (1: every step, exact; opt-in: the band's difference per real record is in docs/numerics.md).
     progress: ``progress(done_steps, total_steps)``, or None.
     """
 
@@ -80,6 +82,7 @@ class RunSpec:
     local: bool = True
     cov_window: int = 0
     workers: int | None = None
+    variance_stride: int = 1
     progress: Callable[[int, int], Any] | None = None
 
 
@@ -88,6 +91,13 @@ def check_confidence(confidence: float) -> float:
     if not 0.5 <= c < 1.0:
         raise ValueError(f"confidence must be in [0.5, 1), got {confidence}")
     return c
+
+
+def check_stride(stride) -> int:
+    """A variance stride (``RunSpec.variance_stride``) as a positive int; anything else is refused."""
+    if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or int(stride) < 1:
+        raise ValueError(f"variance_stride must be a positive integer, got {stride!r}")
+    return int(stride)
 
 
 def start_index(n: int, ny: int, y0) -> tuple[int, np.ndarray]:
