@@ -154,3 +154,17 @@ def test_workers_bound_the_queued_tasks_by_running_them_on_the_caller():
     assert followed == list(range(8))  # then() in submission order
     assert any(on_main for _, on_main in ran_on)
     assert max(queued_seen) <= 1
+
+
+def test_numerics_page_holds_the_render_of_the_stored_stride_run():
+    import json
+    from pathlib import Path
+
+    from gpnarx.training.pages.variance_stride import BEGIN, END, render, worst
+
+    root = Path(__file__).resolve().parents[1]
+    table = json.loads((root / "docs" / "runs" / "variance-stride" / "table.json").read_text())
+    page = (root / "docs" / "numerics.md").read_text()
+    assert BEGIN + page.split(BEGIN, 1)[1].split(END, 1)[0] + END == render(table)
+    assert len(table["records"]) >= 19 and set(table["strides"]) == {2, 4, 8}
+    assert min(worst(table, "gp").values()) > table["bound"]  # the page's verdict: no stride is within the bound

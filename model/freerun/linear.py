@@ -39,16 +39,15 @@ import time
 
 import numpy as np
 
+from ..gp import interpolate_rows, stride_rows
 from ..kernels import LinearisableKernel, require
 from ..linalg import two_cpus
 from ..normal import band_z
 from ..posterior import Posterior
-from ..gp import interpolate_rows, stride_rows
 from .linear_compiled import CompiledMean
 from .linear_stepwise import run_linear_stepwise
 from .results import FreeRun, FreeRunState, check_state
-from .spec import (LAG_CLIP, VAR_CAP, Predictor, RunSpec, check_confidence, check_stride, next_u_tail,
-                   start_index)
+from .spec import LAG_CLIP, VAR_CAP, Predictor, RunSpec, check_confidence, check_stride, next_u_tail, start_index
 
 
 def run_linear(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:

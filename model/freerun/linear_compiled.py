@@ -256,7 +256,7 @@ class CompiledMean:
         """Whether the compiled kernel rows and gradient are the posterior's (to round-off) at a few points: a
         guard against a kernel whose parts the forms above misread."""
         r = self.r
-        ny, nu = r.ny, r.nu
+        ny = r.ny
         P = posterior.points
         X = P[: min(3, P.shape[0])].copy() * 0.9 + 0.05
         out = []
