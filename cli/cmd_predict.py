@@ -58,9 +58,12 @@ def add_parser(sub):
     _common(p)
     p.add_argument("--out", default=None, help="write mean/lower/upper/std (and y) to this .npz or .csv")
     p.add_argument("--confidence", type=float, default=0.99, help="band level (default 0.99)")
-    p.add_argument("--start", choices=("rest", "measured"), default="rest",
+    p.add_argument("--start", choices=("rest", "measured"), default=None,
                    help="initial state of the free run: 'rest' (default) or 'measured', the record's first ny "
                         "measured outputs (the service's y0; for steady-state records such as sines)")
+    p.add_argument("--horizon", type=int, default=None, metavar="K",
+                   help="k-step-ahead prediction: restart the run from the record's measured outputs every K "
+                        "samples (the record must hold y; K = 1 is the one-step prediction of eqs. 8-9)")
     p.set_defaults(func=run_predict)
     q = sub.add_parser("novelty", help="bolt-loosening novelty score, threshold and verdict for a measured record")
     _common(q)
@@ -134,8 +137,15 @@ def load(args, operation: str = "predict"):
     mc_paths(args.mc)
     if args.window:
         parse_window(args.window)
-    # the record first: a bad one (or one without fs and no --fs) fails before a default registry is built
-    rec = read_cli_record(args.record, args.fs)
+    # the record first: a bad one (or one without fs and no --fs) fails before a default registry is built;
+    # predict takes records with gaps (NaN samples, model.gaps), the others refuse them as they read them
+    if operation == "predict":
+        from gpnarx.model.record import allowing_gaps
+
+        with allowing_gaps():
+            rec = read_cli_record(args.record, args.fs)
+    else:
+        rec = read_cli_record(args.record, args.fs)
     bundle = load_model(args)
     if args.window:
         t0, t1 = parse_window(args.window)
@@ -269,9 +279,11 @@ def run_predict(args):
     bundle, rec, mc = load(args)
     args.method = args.method or bundle.default_method("predict")
     bar, cb = _progress(not args.json and sys.stderr.isatty(), rec.n)
+    horizon = getattr(args, "horizon", None)
+    start = args.start if (args.start is not None or horizon is not None) else "rest"
     try:
         a = operate("predict", bundle, rec, mc=mc, seed=args.seed, confidence=args.confidence, method=args.method,
-                    start=args.start, progress=cb, backend=args.backend, record=args.record)
+                    start=start, progress=cb, backend=args.backend, record=args.record, horizon=horizon)
     finally:
         if bar is not None:
             bar.close()
@@ -284,14 +296,15 @@ def run_predict(args):
 
 def operate(operation: str, bundle, rec, *, mc: int, seed: int = 0, confidence: float = 0.99,
             method: str | None = None, start: str | None = None, progress=None, backend: str | None = None,
-            record: str | None = None):
+            record: str | None = None, horizon: int | None = None):
     """Operation ``operation`` on a record (an ``operations.Answer``: the answer's body, the free run, the metrics)
     under the process's bounds (``operations.Limits.from_env``), its refusals as CLI errors
-    (``cli.errors.operation_error``; ``record``: the record's name in their messages)."""
+    (``cli.errors.operation_error``; ``record``: the record's name in their messages). ``horizon``: k of a
+    k-step-ahead prediction (predict; the request's ``horizon``)."""
     from gpnarx import operations
 
     req = operations.Request(u=rec.u, fs=rec.fs, y=rec.y, mc_paths=mc, seed=seed, confidence=confidence,
-                             method=method, backend=backend, start=start)
+                             method=method, backend=backend, start=start, horizon=horizon)
     try:
         plan = operations.plan(operation, req, bundle, operations.Limits.from_env())
         return operations.compute(plan, req, progress=progress)
@@ -315,6 +328,7 @@ def predict_fields(a) -> dict:
     answer's members in ``PREDICT_FIELDS``, and with a measured y its fit, RMSE, coverage and band width."""
     body = {**a.body, "n": a.body["n_samples"], "seconds": a.run.seconds}
     out = {k: body[k] for k in PREDICT_FIELDS}
+    out.update({k: body[k] for k in ("horizon", "gaps") if k in body})  # k-step prediction, a record with gaps
     if a.metrics is not None:
         out.update({k: body[k] for k in ("fit", "rmse", "coverage")}, band_width=a.metrics["band_width"])
     return out

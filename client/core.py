@@ -44,7 +44,7 @@ from gpnarx.service.wire import NPZ_MEDIA_TYPE, json_loads_npz_meta
 from gpnarx.storage.jsonsafe import dumps_json
 
 _RESPONSES = {"predict": PredictResponse, "loops": LoopsResponse, "novelty": NoveltyResponse}
-_OPTIONS = ("mc_paths", "seed", "confidence", "method", "backend", "start", "state", "return_state")
+_OPTIONS = ("mc_paths", "seed", "confidence", "method", "backend", "start", "state", "return_state", "horizon")
 
 
 # ---------------------------------------------------------------------------------------- errors
@@ -167,6 +167,13 @@ class Answer(dict):
             raise AttributeError(key) from None
 
 
+def _float_or_null(ann) -> bool:
+    """``float | None``: a number list that holds null through a gap (its nulls come back as NaN)."""
+    origin = typing.get_origin(ann)
+    return ((origin is typing.Union or str(origin) == "<class 'types.UnionType'>")
+            and set(typing.get_args(ann)) == {float, type(None)})
+
+
 def _array_fields(model: type[BaseModel]) -> dict:
     """{field: None (a list of numbers) | sub-model | (list, sub-model)} of a response schema."""
     out: dict = {}
@@ -178,7 +185,7 @@ def _array_fields(model: type[BaseModel]) -> dict:
             inner = [a for a in args if a is not type(None)]
             ann = inner[0] if len(inner) == 1 else ann
             origin, args = typing.get_origin(ann), typing.get_args(ann)
-        if origin is list and args and args[0] is float:
+        if origin is list and args and (args[0] is float or _float_or_null(args[0])):
             out[name] = None
         elif isinstance(ann, type) and issubclass(ann, BaseModel):
             out[name] = ann
@@ -342,13 +349,16 @@ class Client(_Base):
     def predict(self, name: str, u, fs: float, y=None, *, version: str | None = None, y0=None,
                 mc_paths: int | None = None, seed: int | None = None, confidence: float | None = None,
                 method: str | None = None, backend: str | None = None, start: str | None = None,
-                state: str | None = None, return_state: bool = False) -> Answer:
+                state: str | None = None, return_state: bool = False, horizon: int | None = None) -> Answer:
         """Free-run prediction of ``u`` (input units, sampled at ``fs`` [Hz]): ``mean``, ``lower``, ``upper``,
         ``std`` (output units, np.ndarray) and, with the measured ``y``, ``fit`` [%], ``rmse``, ``coverage`` [%].
-        A stream: ``return_state=True`` returns ``state``; pass it as ``state`` with the next chunk."""
+        A stream: ``return_state=True`` returns ``state``; pass it as ``state`` with the next chunk.
+        ``horizon``: k-step-ahead prediction, the run restarted from the measured ``y`` every k samples (the answer
+        says ``horizon``). NaN samples in ``u`` or ``y`` are gaps: the answer is NaN through them and lists
+        ``gaps``."""
         return self._record("predict", name, u, fs, y, version, y0, mc_paths=mc_paths, seed=seed,
                             confidence=confidence, method=method, backend=backend, start=start, state=state,
-                            return_state=return_state)
+                            return_state=return_state, horizon=horizon)
 
     def loops(self, name: str, u, fs: float, y=None, *, version: str | None = None, y0=None,
               mc_paths: int | None = None, seed: int | None = None, confidence: float | None = None,

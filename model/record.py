@@ -51,6 +51,11 @@ def allowing_gaps():
         _GAPS.reset(token)
 
 
+def gaps_allowed() -> bool:
+    """Whether records read now may hold gaps (inside ``allowing_gaps``): what the record readers ask."""
+    return _GAPS.get()
+
+
 class RecordError(ValueError):
     """A record is malformed (shape, NaN/inf, length, fs)."""
 

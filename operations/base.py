@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Any, Callable, ClassVar
 
 import numpy as np
@@ -32,6 +33,7 @@ from gpnarx.checks import is_int
 from gpnarx.model.backend import default_backend, jax_available
 from gpnarx.model.envelope import assess, out_of_range
 from gpnarx.model.freerun import FreeRunState, check_state
+from gpnarx.model.gaps import GapError, check_gaps
 from gpnarx.model.novelty import novelty_start
 from gpnarx.model.record import FS_RTOL, fs_matches, resample_advice
 
@@ -115,6 +117,7 @@ class Request:
     start: str | None = None
     state: str | None = None
     return_state: bool = False
+    horizon: int | None = None
 
 
 @dataclass(frozen=True)
@@ -127,6 +130,8 @@ class Plan:
     backend: str = "numpy"  # array backend of the free run (model.backend)
     state: FreeRunState | None = None  # the stream state the free run continues (request's `state`)
     stream_key: str | None = None  # signs the answer's state token
+    horizon: int | None = None  # k of a k-step-ahead prediction (request's `horizon`; model.freerun.horizon)
+    gaps: tuple = ()  # the record's gaps, (start, end) samples (model.gaps)
 
 
 @dataclass
@@ -237,6 +242,8 @@ class Operation:
         check_fs(req.fs, bundle)  # within FS_RTOL: the free run and what is derived from it use the model's fs
         if req.y is not None and len(req.y) != n:
             raise OperationError(f"y has {len(req.y)} samples but u has {n}; they must have the same length", "y")
+        gaps = self.check_gaps(req, bundle)
+        horizon = self.check_horizon(req, bundle)
         self.validate(req, bundle)
         ny = bundle.model.ny
         if _given(req.y0):
@@ -262,7 +269,66 @@ class Operation:
             raise OperationError("backend 'jax' is not installed here (pip install 'gpnarx[jax]'); use backend "
                                  "'numpy'", "backend")
         state = _stream_state(req, bundle, limits, method, paths, backend)
-        return Plan(self.name, bundle, method, paths, work, backend, state, limits.stream_key)
+        if horizon is not None and backend != "numpy":
+            raise OperationError(f"horizon: a k-step prediction runs on the numpy backend; send backend 'numpy' "
+                                 f"(got '{backend}')", "horizon")
+        return Plan(self.name, bundle, method, paths, work, backend, state, limits.stream_key, horizon, tuple(gaps))
+
+    # ---------------------------------------------------------------- k-step prediction and gaps
+    #: whether the operation takes records with gaps and a horizon (predict does; loops and novelty need a whole,
+    #: gap-free free run)
+    takes_gaps: ClassVar[bool] = False
+
+    def check_gaps(self, req, bundle) -> list:
+        """The record's gaps (``model.gaps``: null / NaN runs in u or y), checked against the limits; an
+        ``OperationError`` naming the field where the operation cannot take them, a stream carries them, or a
+        limit is passed."""
+        u = _series_with_gaps(req.u)
+        y = None if req.y is None else _series_with_gaps(req.y)
+        if _given(getattr(req, "y0", None)):
+            if not np.all(np.isfinite(_series_with_gaps(req.y0))):
+                raise OperationError("y0 must hold finite numbers (a measured start has no gap)", "y0")
+        miss = np.isnan(u) | (np.isnan(y) if y is not None else False)
+        if not np.any(miss):
+            return []
+        field = "u" if np.isnan(u).any() else "y"
+        if not self.takes_gaps:
+            raise OperationError(f"{field} holds gaps (null or NaN samples); {self.name} needs a gap-free record "
+                                 f"(predict takes records with gaps)", field)
+        if getattr(req, "state", None) is not None or getattr(req, "return_state", False):
+            raise OperationError(f"{field} holds gaps (null or NaN samples): a stream cannot carry a record with "
+                                 "gaps; send the record whole, without state", field)
+        try:
+            return check_gaps(u, y, float(bundle.fs))
+        except GapError as exc:
+            raise OperationError(str(exc), exc.field, limit=exc.limit) from None
+
+    def check_horizon(self, req, bundle) -> int | None:
+        """The request's ``horizon`` (k of a k-step-ahead prediction), checked: an integer >= 1, predict only, with
+        y, not in a stream. None without one."""
+        k = getattr(req, "horizon", None)
+        if k is None:
+            return None
+        if not is_int(k, 1):
+            raise OperationError(f"horizon must be an integer >= 1 (samples between restarts from the measured "
+                                 f"outputs), got {str(k)[:40]}", "horizon", limit=1)
+        if not self.takes_gaps:
+            raise OperationError(f"horizon: {self.name} answers for the free run; a k-step prediction is predict's",
+                                 "horizon")
+        if req.y is None:
+            raise OperationError("horizon: a k-step prediction restarts from the measured outputs every k samples; "
+                                 "send the record's measured output y", "y")
+        if getattr(req, "state", None) is not None or getattr(req, "return_state", False):
+            raise OperationError("horizon: a stream cannot carry a k-step prediction (it restarts from measured "
+                                 "outputs every k samples); send the record whole, without state or return_state",
+                                 "horizon")
+        if _given(req.y0) or getattr(req, "start", None) is not None:
+            raise OperationError("horizon: a k-step prediction starts from y's first ny samples; y0 and start do not "
+                                 "apply (leave them out)", "horizon")
+        if len(req.u) <= bundle.model.ny:
+            raise OperationError(f"u must be longer than ny={bundle.model.ny} samples for a k-step prediction, got "
+                                 f"{len(req.u)}", "u")
+        return int(k)
 
     def compute(self, plan: Plan, req, *, progress: Callable | None = None,
                 checkpoint: Callable[[], None] | None = None) -> Answer:
@@ -274,13 +340,20 @@ class Operation:
         if checkpoint is not None:
             checkpoint()
         b = plan.bundle
-        u = np.asarray(req.u, dtype=float)
+        u = _series_with_gaps(req.u)
         run = self._simulate(plan, req, u, progress)
-        flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
+        if plan.gaps:  # the flags of what was measured and predicted
+            keep = ~np.isnan(run.mean)
+            y_kept = None if req.y is None else _series_with_gaps(req.y)[keep]
+            flags = assess(getattr(b.model, "envelope_", None),
+                           SimpleNamespace(method=run.method, diverged_paths=run.diverged_paths, mean=run.mean[keep]),
+                           u[keep], y_kept)
+        else:
+            flags = assess(getattr(b.model, "envelope_", None), run, u, req.y)
         common = {"confidence": float(run.confidence), "mc_paths": int(run.n_paths), "method": run.method,
                   "backend": run.backend, "seed": int(req.seed), "start": self.started(plan, req), **flags}
         steps = int(run.path_steps) if run.method == "mc" else 0
-        y = None if req.y is None else np.asarray(req.y, float)
+        y = None if req.y is None else _series_with_gaps(req.y)
         body, metrics, carry = self.answer(plan, req, u, y, run, common, flags, checkpoint)
         body.update(_stream_fields(plan, req, run, carry))
         return Answer(body, steps, run, metrics)
@@ -296,7 +369,10 @@ class Operation:
     def initial_outputs(self, plan: Plan, req):
         """y0 of the free run: the record's measured start, a request's y0, or None (rest, or a stream's state)."""
         if self.start_of(req) == "measured":
-            return novelty_start(req.y if req.y is not None else [], plan.bundle.model.ny, req.y0)
+            y0 = novelty_start(req.y if req.y is not None else [], plan.bundle.model.ny, req.y0)
+            if y0 is not None and plan.gaps and np.isnan(np.asarray(y0, dtype=float)).any():
+                return None  # a gap in the first ny samples: the pieces after it start from measured outputs
+            return y0
         if plan.state is not None:
             return None
         return req.y0 if _given(req.y0) else None
@@ -320,6 +396,8 @@ class Operation:
         try:
             with np.errstate(all="ignore"):
                 stream = {"state": plan.state, "open_end": bool(getattr(req, "return_state", False))}
+                if plan.gaps or plan.horizon is not None:  # y: where the run restarts (model.gaps, freerun.horizon)
+                    stream.update(y=None if req.y is None else _series_with_gaps(req.y), horizon=plan.horizon)
                 run = model.simulate(u, n_paths=max(plan.mc_paths, 1), seed=int(req.seed),
                                      y0=self.initial_outputs(plan, req), confidence=float(req.confidence),
                                      method=plan.method, backend=plan.backend, progress=progress,
@@ -329,8 +407,9 @@ class Operation:
         except ValueError as exc:
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else "invalid record"
             raise OperationError(msg, _field_from_message(msg)) from None
-        if not (np.all(np.isfinite(run.mean)) and np.all(np.isfinite(run.lower)) and np.all(np.isfinite(run.upper))
-                and np.all(np.isfinite(run.std))):
+        keep = ~np.isnan(run.mean) if plan.gaps else slice(None)  # a gap's NaN is the answer's, not a divergence
+        if not (np.all(np.isfinite(run.mean[keep])) and np.all(np.isfinite(run.lower[keep]))
+                and np.all(np.isfinite(run.upper[keep])) and np.all(np.isfinite(run.std[keep]))):
             raise OperationError(*self._diverged(plan, req, u))
         return run
 
@@ -339,6 +418,14 @@ class Operation:
         head = (f"the free-run prediction of {plan.bundle.name}:{plan.bundle.version} diverged for this input "
                 "(non-finite outputs): ")
         return self.culprit(plan, req, u, head)
+
+
+def _series_with_gaps(a) -> np.ndarray:
+    """A record series as float64, a gap's null (None) as NaN."""
+    try:
+        return np.asarray(a, dtype=float)
+    except TypeError:  # a list holding None
+        return np.array([np.nan if v is None else v for v in a], dtype=float)
 
 
 def mc_paths_of(requested, limits: Limits, model_default: int) -> int:
@@ -401,7 +488,7 @@ def _stream_state(req, bundle, limits: Limits, method: str, paths: int, backend:
     return state
 
 
-_FIELD_RE = re.compile(r"^(u|y0|y|fs|confidence|n_paths|mc_paths|method|seed)\b")
+_FIELD_RE = re.compile(r"^(u|y0|y|fs|confidence|n_paths|mc_paths|method|seed|horizon|state)\b")
 
 
 def _field_from_message(msg: str) -> str | None:

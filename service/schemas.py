@@ -60,6 +60,19 @@ _METHOD_DESC = ("Uncertainty propagation: 'mc' (Monte Carlo over `mc_paths` path
                 "threshold was calibrated with.")
 
 
+_GAPS_DESC = (" A gap (samples the acquisition dropped) is `null`: the answer holds null through it and the free "
+              "run restarts after it, from the measured outputs where `y` is sent, from rest otherwise; the answer "
+              "lists `gaps`, and fit and coverage skip them. At most 2 s a gap and half the record in gaps "
+              "(422 naming the field otherwise); predict only (loops and novelty: 422), not in a stream.")
+_HORIZON_DESC = ("k-step-ahead prediction (predict only): every `horizon` = k samples the free run restarts from "
+                 "the measured outputs, so `y` is required. Sample s + j of a segment starting at s is predicted "
+                 "j + 1 steps ahead of the last measured output it uses (MATLAB `compare(data, sys, k)`). The run "
+                 "starts from y's first ny samples (`y0` and `start` do not apply). k = 1 is the one-step-ahead "
+                 "prediction of eqs. 8-9; k >= the record's length, the free run from the measured start. The band "
+                 "is eqs. 8-9's propagated over the at most k steps since the last restart (the free run's "
+                 "discrepancy term is not added). numpy backend; not in a stream (422). The answer says `horizon`.")
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -79,9 +92,9 @@ class RecordRequest(_Strict):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"u": [0.0, 1.5, 2.0, -0.5, -1.0, 0.25], "fs": 750.0, "mc_paths": 64, "seed": 0, "confidence": 0.99}]})
 
-    u: list[FiniteFloat] = Field(..., min_length=1, description=_U_DESC)
+    u: list[FiniteFloat | None] = Field(..., min_length=1, description=_U_DESC + _GAPS_DESC)
     fs: FiniteFloat = Field(..., gt=0, description=_FS_DESC)
-    y: list[FiniteFloat] | None = Field(None, min_length=1, description=_Y_DESC)
+    y: list[FiniteFloat | None] | None = Field(None, min_length=1, description=_Y_DESC + " A `null` sample is a gap.")
     y0: list[FiniteFloat] | None = Field(None, description=_Y0_DESC)
     mc_paths: StrictInt | None = Field(None, ge=1, description=_MC_DESC)
     seed: StrictInt = Field(0, ge=0, le=2**63 - 1, description=_SEED_DESC)
@@ -91,6 +104,7 @@ class RecordRequest(_Strict):
     start: Literal["rest", "measured"] | None = Field(None, description=_START_DESC)
     state: str | None = Field(None, min_length=1, max_length=MAX_TOKEN_CHARS, description=_STATE_DESC)
     return_state: StrictBool = Field(False, description=_RETURN_STATE_DESC)
+    horizon: StrictInt | None = Field(None, ge=1, description=_HORIZON_DESC)
 
 
 class NoveltyRequest(RecordRequest):
@@ -179,13 +193,22 @@ class _Knowledge(BaseModel):
                                                                          description=_OOR_DESC)
 
 
+class Gap(BaseModel):
+    """One gap of a record: a run of null (missing) samples in `u` or `y`."""
+
+    start: int = Field(..., description="First missing sample (index from 0).")
+    end: int = Field(..., description="First sample after the gap (exclusive end).")
+    start_s: float = Field(..., description="Start of the gap [s from the record's first sample].")
+    end_s: float = Field(..., description="End of the gap [s].")
+
+
 class PredictResponse(_Knowledge):
     model: str
     version: str
-    mean: list[float] = Field(..., description="Free-run predicted mean, output units.")
-    lower: list[float] = Field(..., description="Lower edge of the band at `confidence`.")
-    upper: list[float] = Field(..., description="Upper edge of the band at `confidence`.")
-    std: list[float] = Field(..., description="Predictive standard deviation, output units.")
+    mean: list[float | None] = Field(..., description="Free-run predicted mean, output units (null through a gap).")
+    lower: list[float | None] = Field(..., description="Lower edge of the band at `confidence`.")
+    upper: list[float | None] = Field(..., description="Upper edge of the band at `confidence`.")
+    std: list[float | None] = Field(..., description="Predictive standard deviation, output units.")
     confidence: float
     mc_paths: int = Field(..., description="Monte Carlo paths used (0 for method 'linear').")
     method: Literal["mc", "linear"]
@@ -198,6 +221,10 @@ class PredictResponse(_Knowledge):
     rmse: float | None = Field(None, description="Only when `y` was sent: RMSE, output units.")
     coverage: float | None = Field(None, description="Only when `y` was sent: % of measured samples inside "
                                       "[lower, upper].")
+    horizon: int | None = Field(None, description="Only when `horizon` was sent: k of the k-step-ahead prediction "
+                                "(samples between restarts from the measured outputs).")
+    gaps: list[Gap] | None = Field(None, description="Only when the record holds gaps (null samples in u or y): "
+                                   "each gap's samples and times; the answer is null through them.")
 
 
 class Loop(BaseModel):

@@ -147,7 +147,11 @@ def read_npz_body(raw: bytes, max_bytes: int, max_samples: int, units: dict | No
             else:
                 if arr.ndim != 1:
                     raise _bad(field, f"must be a 1-D array, got shape {arr.shape}")
-                out[field] = arr.astype(np.float64, copy=False).tolist()
+                arr = arr.astype(np.float64, copy=False)
+                out[field] = arr.tolist()
+                if field in ("u", "y") and np.isnan(arr).any():  # a gap (model.gaps): null, as in a JSON body
+                    for i in np.flatnonzero(np.isnan(arr)):
+                        out[field][i] = None
         return out
 
 

@@ -34,7 +34,7 @@ from pathlib import PurePath
 
 import numpy as np
 
-from gpnarx.model.record import MAX_CHANNELS, Channel, Record, RecordError
+from gpnarx.model.record import MAX_CHANNELS, Channel, Record, RecordError, gaps_allowed
 
 from .archive_bounds import NPY_READ_ERRORS, ArchiveError, member, npy_header, open_archive
 from .record_formats_lab import LAB_FORMATS
@@ -733,7 +733,7 @@ def _signal(p, arr, label: str) -> np.ndarray:
     if a.size == 0:
         raise RecordFileError(p, f"{label} is empty")
     bad = ~np.isfinite(a)
-    if bad.any():
+    if bad.any() and not (gaps_allowed() and not np.isinf(a).any()):  # NaN: a gap, where the reader takes them
         raise RecordFileError(
             p, f"{label} holds {int(bad.sum())} NaN/inf value(s), first at sample {int(np.argmax(bad))}"
         )
@@ -820,6 +820,8 @@ def _read_csv(p, fh, fs, name, fs_default) -> Record:
         )
     ncol = len(cells)
     data = np.empty((len(lines) - 1, ncol))
+    # a gap (model.gaps; where the reader takes them): 'nan' or an empty cell in a column other than time
+    gap_cols = {j for k, j in cols.items() if k != "time"} if gaps_allowed() else set()
     for r, (line_no, ln) in enumerate(lines[1:]):
         try:
             row = next(csv.reader([ln], delimiter=delim))
@@ -829,11 +831,13 @@ def _read_csv(p, fh, fs, name, fs_default) -> Record:
             raise RecordFileError(p, f"line {line_no}: {len(row)} fields, the header has {ncol}")
         for j, cell in enumerate(row):
             s = cell.strip()
+            if j in gap_cols and s == "":
+                s = "nan"
             try:
                 v = float(s)
             except ValueError:
                 raise RecordFileError(p, f"line {line_no}: {s[:30]!r} is not a number") from None
-            if not math.isfinite(v):
+            if not math.isfinite(v) and not (j in gap_cols and math.isnan(v)):
                 col = next((k for k, c in cols.items() if c == j), f"column {j + 1}")
                 raise RecordFileError(p, f"line {line_no}: {col} is {s[:30]!r} (NaN/inf not allowed)")
             data[r, j] = v

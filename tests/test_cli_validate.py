@@ -60,8 +60,16 @@ def test_a_model_with_the_records_lags_passes(setup, capsys):
         assert a["free_run"][k] == pytest.approx(p[k], rel=1e-12), k
     one = a["one_step"]
     assert one["n"] == 1200 - 2 and one["fit"] > 95 and one["coverage"] > 97 and 0.9 < one["z_rms"] < 1.1
-    assert a["k_step_fits"] == {"1": one["fit"], "8": None, "64": None, "512": None, "free_run": a["free_run"]["fit"]}
-    assert "not built yet" in a["k_step_note"]
+    fits = a["k_step_fits"]
+    assert list(fits) == ["1", "8", "64", "512", "free_run"] and fits["free_run"] == a["free_run"]["fit"]
+    # k = 1 is the one-step prediction, scored on every sample after the measured start (the first ny)
+    assert fits["1"] == pytest.approx(one["fit"], abs=0.2)
+    assert fits["1"] >= fits["8"] >= fits["64"] >= fits["512"] - 1e-9 and fits["512"] >= fits["free_run"] - 5
+    assert "k_step_note" not in a
+    # each is gpnarx predict --horizon K's fit
+    assert main(["predict", "--registry", str(reg), "--model", "arx", str(rec), "--horizon", "8", "--json"]) == 0
+    p8 = json.loads(capsys.readouterr().out)
+    assert p8["horizon"] == 8 and p8["fit"] == pytest.approx(fits["8"], rel=1e-12)
     t = a["residual_tests"]
     assert t["lags"] == 25 and t["n"] == one["n"] and t["limit"] == pytest.approx(2.5758293035489 / np.sqrt(1198))
     assert len(t["autocorrelation"]["r"]) == 25 and t["cross_correlation"]["lag"] == list(range(-25, 26))

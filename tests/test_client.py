@@ -213,3 +213,19 @@ def test_every_problem_type_the_service_uses_has_its_own_exception_class():
         cls = BY_TYPE[TYPE_BASE + slug]
         assert cls is not GpnarxError and issubclass(cls, GpnarxError) and cls.status == status
         assert type(error_for({"type": TYPE_BASE + slug, "status": status, "detail": "x"})) is cls
+
+
+@pytest.mark.parametrize("wire", ["npz", "json"])
+def test_horizon_and_gaps_through_the_client(server, wire):
+    """``horizon`` and NaN gaps go out on either wire; the answer's gap comes back as NaN, with ``gaps``."""
+    u, y = record()
+    ug = u.copy()
+    ug[100:120] = np.nan
+    with Client(server.url, wire=wire) as c:
+        k = c.predict("boucwen", u=u, fs=FS, y=y, method="linear", horizon=8)
+        g = c.predict("boucwen", u=ug, fs=FS, y=y, method="linear")
+        free = c.predict("boucwen", u=u, fs=FS, y=y, method="linear")
+    assert k.horizon == 8 and k.mean.dtype == np.float64 and k.fit > free.fit
+    assert "horizon" not in free and "gaps" not in free
+    assert g.gaps == [{"start": 100, "end": 120, "start_s": 100 / FS, "end_s": 120 / FS}]
+    assert np.isnan(g.mean[100:120]).all() and np.isfinite(g.mean[:100]).all() and np.isfinite(g.std[120:]).all()

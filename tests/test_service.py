@@ -298,7 +298,7 @@ def test_batch_each_item_fails_on_its_own(client):
         {"model": "boucwen", **body, "fs": 1000.0},
         {"model": "plain", "operation": "novelty", **body, "y": y.tolist()},
         {"model": "boucwen", "operation": "novelty", **body},
-        {"model": "boucwen", **body, "u": [1.0, None]},
+        {"model": "boucwen", **body, "u": [1.0, "x"]},  # (a null is a gap, model.gaps)
         {"model": "boucwen", **body, "extra": 1},
         {"model": "boucwen", **body},
     ]
