@@ -23,8 +23,15 @@ def operation(name: str) -> Operation:
 
 
 def plan(name: str, req, bundle, limits: Limits, budget: int | None = None) -> Plan:
-    """Check ``req`` against ``bundle`` and ``limits`` for operation ``name`` (``Operation.plan``)."""
-    return operation(name).plan(req, bundle, limits, budget)
+    """Check ``req`` against ``bundle`` and ``limits`` for operation ``name`` (``Operation.plan``). A model with
+    several channels (``model.mimo``) is refused on ``model``: answers per channel are not built yet."""
+    op = operation(name)
+    manifest = getattr(bundle, "manifest", None)
+    if isinstance(manifest, dict) and manifest.get("model_class") == "mimo":
+        outs = [c.get("name") for c in (manifest.get("channels") or {}).get("outputs", [])]
+        raise OperationError(f"model {manifest.get('name')!r} has several channels (outputs {outs}); {name} answers "
+                             "per channel are not built yet: use gpnarx.model.mimo.MIMOGPNARX in Python", "model")
+    return op.plan(req, bundle, limits, budget)
 
 
 def compute(plan: Plan, req, *, progress: Callable | None = None,

@@ -57,6 +57,7 @@ import numpy as np
 from gpnarx.checks import is_int
 from gpnarx.model.estimator import GPNARX
 from gpnarx.model.kernels import DEFAULT_CONSTANT_CAP
+from gpnarx.model.mimo import MIMOGPNARX
 
 from .atomicio import plain_modes
 from .jsonsafe import json_default
@@ -149,7 +150,8 @@ def default_method(manifest: dict, operation: str = "predict") -> str:
 
 @dataclass
 class Bundle:
-    """A loaded bundle: the fitted model plus its manifest."""
+    """A loaded bundle: the fitted model plus its manifest (a ``MIMOGPNARX`` for a model with several channels:
+    manifest ``model_class`` "mimo", ``channels``)."""
 
     model: GPNARX
     manifest: dict
@@ -362,7 +364,7 @@ def _publish_remote(store: RemoteStore, name: str, version, fill) -> BundleURI:
     return BundleURI(store.uri(prefix))
 
 
-def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, units: dict,
+def save_bundle(model: GPNARX | MIMOGPNARX, registry, name: str, version=None, *, fs: float, units: dict,
                 physics: dict | None = None, novelty: dict | None = None, training: dict | None = None,
                 extra: dict | None = None, extra_files: dict | None = None,
                 attach_dir: Path | None = None) -> Path:
@@ -373,7 +375,7 @@ def save_bundle(model: GPNARX, registry, name: str, version=None, *, fs: float, 
     attach_dir: optional folder copied into the bundle as ``report/`` (human-readable report; not
     needed to load the model, so not checksummed).
     """
-    if not hasattr(model, "posterior_"):
+    if not (hasattr(model, "posterior_") or hasattr(model, "outputs_")):  # GPNARX, MIMOGPNARX
         raise BundleError("cannot save an unfitted model")
     check_name(name)
     for fn in extra_files or {}:
@@ -570,6 +572,8 @@ def load_bundle(path) -> Bundle:
         for fn, sha in files.items():
             if not fn.endswith(".npy") and (not (path / fn).is_file() or _sha256(path / fn) != sha):
                 raise BundleError(f"{path / fn}: missing or sha256 checksum does not match the manifest")
+        if manifest.get("model_class") == "mimo":  # several channels (model.mimo): its own shape checks
+            return Bundle(MIMOGPNARX.from_fitted(manifest, arrays), manifest, path)
         model = GPNARX.from_fitted(manifest, arrays)  # the manifest's keys are the fitted description's
         kernel, ny, nu = model.kernel_, model.ny, model.nu
         D = ny + nu

@@ -12,6 +12,11 @@ key name below is a contract)::
     fs = 750.0                        # Hz (required); every record must have this fs
     units = { u = "N", y = "m" }      # every record must match (records without units take these)
     output = "displacement"           # or "velocity": what y is
+    inputs = ["Shaker:-X"]            # optional: the input channels by name, in order (several: a model with
+    outputs = ["Laser:+X", "Acc1:+X"] # several inputs or outputs, ``model.mimo``); each record is read with
+                                      # these channels (``read_record(inputs=, outputs=)``: an LMS folder's
+                                      # channel labels, an .npz's channels_u / channels_y); absent: the
+                                      # record's own u and y (an LMS folder's shaker and laser), as before
 
     [physics]                         # restoring force R = input_gain * u - mass * acceleration [N]
     mass = 2.0                        # kg (modal mass for the BERT stand-in)
@@ -254,7 +259,8 @@ class DatasetConfig:
                 raise _err(self.path, f"{key}.simulate", str(exc)) from None
         else:
             try:
-                rec = read_record(spec.path, fs=spec.fs, name=spec.name, fs_default=self.fs)
+                rec = read_record(spec.path, fs=spec.fs, name=spec.name, fs_default=self.fs,
+                                  inputs=self.system.get("inputs"), outputs=self.system.get("outputs"))
             except RecordFileError as exc:
                 raise _err(self.path, f"{key}.path", str(exc)) from None
         self._check_fs(spec, rec)
@@ -288,7 +294,44 @@ class DatasetConfig:
             f"record {spec.name!r} ({spec.source}) has fs {rec.fs:g} Hz but system.fs is {fs:g} Hz{like}",
         )
 
+    @property
+    def channels(self) -> bool:
+        """Whether the config selects its records' channels by name (``[system] inputs`` / ``outputs``)."""
+        return bool(self.system.get("inputs") or self.system.get("outputs"))
+
+    @property
+    def several_channels(self) -> bool:
+        """Whether the config's model has several inputs or outputs (``model.mimo``)."""
+        return len(self.system.get("inputs") or [0]) > 1 or len(self.system.get("outputs") or [0]) > 1
+
+    def _check_channel_units(self, spec: RecordSpec, rec: Record) -> Record:
+        """A record read by channel names: every record's channels hold the units of the first one read, and a
+        unit of ``system.units`` that the selected channels share must be theirs."""
+        if simulated := spec.simulate is not None:
+            try:
+                rec = rec.select(self.system.get("inputs"), self.system.get("outputs"))
+            except RecordError as exc:
+                raise _err(self.path, f"records.{spec.name}", str(exc).split(": ", 1)[-1]) from None
+        got = {"u": [(c.name, c.unit) for c in rec.input_channels()],
+               "y": [(c.name, c.unit) for c in rec.output_channels()]}
+        first = next((r for n, r in self._clean.items() if n != spec.name), None)
+        for k, side in (("u", "inputs"), ("y", "outputs")):
+            want = self.system["units"].get(k)
+            common = {u for _, u in got[k]}
+            if want and len(common) == 1 and common != {""} and common != {want}:
+                raise _err(self.path, f"records.{spec.name}", f"record {spec.name!r} ({spec.source}) has {k} in "
+                                                              f"{common.pop()!r} but system.units.{k} is {want!r}")
+            if first is not None:
+                ref = [(c.name, c.unit) for c in (first.input_channels() if k == "u" else first.output_channels())]
+                if [u for _, u in got[k]] != [u for _, u in ref] and not simulated:
+                    raise _err(self.path, f"records.{spec.name}",
+                               f"record {spec.name!r} ({spec.source}) has {side} {got[k]} but record {first.name!r} "
+                               f"has {ref}: every record's channels must hold the same units")
+        return rec
+
     def _check_units(self, spec: RecordSpec, rec: Record) -> Record:
+        if self.channels:
+            return self._check_channel_units(spec, rec)
         want = self.system["units"]
         units = dict(rec.units)
         for k in ("u", "y"):
@@ -311,14 +354,19 @@ class DatasetConfig:
             raise _err(self.path, f"records.{spec.name}.noise.reference", f"record {ref_name!r} has no output y")
         if rec.y is None:
             raise _err(self.path, f"records.{spec.name}.noise", "the record has no output y to add noise to")
-        var = float(nz["fraction"]) * float(np.mean(ref.y * ref.y))
-        std = math.sqrt(var)
         rng = np.random.default_rng(nz.get("seed"))
-        noisy = rec.y + rng.normal(0.0, std, size=rec.y.size)
+        if rec.y.ndim == 2:  # several outputs: each channel's noise from its own reference level
+            std = np.sqrt(float(nz["fraction"]) * np.mean(ref.y * ref.y, axis=0))
+            noisy = rec.y + rng.normal(0.0, 1.0, size=rec.y.shape) * std
+            std = [float(v) for v in std]
+        else:
+            var = float(nz["fraction"]) * float(np.mean(ref.y * ref.y))
+            std = math.sqrt(var)
+            noisy = rec.y + rng.normal(0.0, std, size=rec.y.size)
         meta = dict(rec.meta)
         meta.update(clean_y=rec.y.copy(), noise_std=std, noise_fraction=float(nz["fraction"]),
                     noise_reference=ref_name)
-        return Record(rec.u.copy(), noisy, rec.fs, dict(rec.units), rec.name, meta)
+        return Record(rec.u.copy(), noisy, rec.fs, dict(rec.units), rec.name, meta, rec.channels)
 
 
 # ============================================================================ simulation specs

@@ -6,7 +6,8 @@ One model per TOML table::
     DatasetDoc                the document: name (letters, digits, '.', '_', '-'; required),
                               description, [system], [physics], [model], [lags], [predict], [novelty],
                               [[records]] (required); other top-level keys are kept (DatasetConfig.extra)
-      SystemTable             fs [Hz] > 0 (required), units (UnitsTable: u, y only), output
+      SystemTable             fs [Hz] > 0 (required), units (UnitsTable: u, y only), output, inputs and
+                              outputs (channel names, unique, at most 64 each; absent: as before)
       PhysicsTable            mass [kg] > 0 (optional), input_gain [N per input unit] > 0
       ModelTable              ny, nu >= 1 (optional), kernel, mode, inducing >= 1, max_train_points >= 1,
                               selection, restarts >= 0, seed >= 0, noise_calibration, band_calibration,
@@ -59,7 +60,7 @@ from pydantic_core import PydanticCustomError
 from gpnarx.checks import is_int
 from gpnarx.model.discrepancy import WINDOW_KINDS as BAND_WINDOW_KINDS
 from gpnarx.model.novelty import METHODS as NOVELTY_METHODS
-from gpnarx.model.record import RecordError
+from gpnarx.model.record import MAX_CHANNELS, RecordError
 from gpnarx.storage.record_files import normalize_unit
 from gpnarx.training import simulation_specs as specs
 
@@ -262,10 +263,28 @@ class UnitsTable(_Closed):
     y: Annotated[Any, AfterValidator(_unit)] = Field("", description="unit of the output y, e.g. m or m/s")
 
 
+def _channel_names(value):
+    if not isinstance(value, list) or not value or not all(isinstance(v, str) and v.strip() for v in value):
+        raise _problem(f"must be a non-empty list of channel names, got {value!r}")
+    if len(set(value)) != len(value):
+        raise _problem(f"names a channel twice: {value!r}")
+    if len(value) > MAX_CHANNELS:
+        raise _problem(f"names {len(value)} channels; at most {MAX_CHANNELS}")
+    return list(value)
+
+
+ChannelNames = Annotated[Any, AfterValidator(_channel_names)]
+
+
 class SystemTable(_Closed):
+    omit_unset: ClassVar[tuple[str, ...]] = ("inputs", "outputs")
     fs: Positive = Field(description="sampling frequency in Hz")
     units: UnitsTable = Field(default_factory=UnitsTable, description="every record must match")
     output: _choice(OUTPUTS) = Field("displacement", description="what y is")
+    inputs: ChannelNames | None = Field(None, description="the input channels by name, in order (default: the "
+                                                          "record's own u)")
+    outputs: ChannelNames | None = Field(None, description="the output channels by name, in order (default: the "
+                                                           "record's own y; an LMS folder's laser)")
 
 
 class PhysicsTable(_Closed):

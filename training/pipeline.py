@@ -36,6 +36,7 @@ from gpnarx.storage.jsonsafe import to_json_safe
 from gpnarx.training.baselines import fit_baselines, score_baselines
 from gpnarx.training.config import DatasetConfig, load_config
 from gpnarx.training.distributed import TaskRunner
+from gpnarx.training.mimo_pipeline import train_mimo
 from gpnarx.training.prepare import model_from_config, shorten
 
 __all__ = ["EVAL_ROLES", "as_config", "basic_metrics", "calibrate_novelty", "evaluate", "evaluate_record", "fit",
@@ -156,8 +157,14 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     free runs and the report's per-record metrics and figures run as tasks on that cluster, with
     the fitted model and the record arrays sent to the workers; the seeds, and so the bundle's
     metrics, are those of the local run. ML-II, the baselines and the novelty calibration stay here.
+
+    A config with several input or output channels (``[system] inputs`` / ``outputs``) trains a model with
+    several channels instead (``training.mimo_pipeline.train_mimo``).
     """
     cfg = as_config(config)
+    if cfg.several_channels:
+        return train_mimo(cfg, registry, name, version, mc_paths=mc_paths, ny=ny, nu=nu, report=report, log=log,
+                          max_seconds=max_seconds, report_method=report_method)
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
     with ExitStack() as stack:

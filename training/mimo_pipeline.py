@@ -1,0 +1,198 @@
+"""The training pipeline of a config with several channels (``[system] inputs`` / ``outputs``, issue 52).
+
+``train_mimo(config, registry)`` fits a ``model.mimo.MIMOGPNARX`` (one GP per output over the shared regressor,
+the config's ``[model]`` settings) on the ``train`` records, runs the free run of every ``lags``, ``verify``,
+``validate``, ``healthy`` and ``damaged`` record (the config's ``[predict]`` method, paths and confidence; a
+record whose ``meta.initial`` is "measured" starts from its first ny measured outputs) and scores it per output
+channel (fit % eq. 14, RMSE, 99 % coverage, band width), and beside it a linear ARX per output channel (the same
+regressors of every channel's lags, least squares, free-run: ``LinearARX``'s rule for several channels). It
+writes a bundle whose manifest records the channels (names, units, their order: ``channels``), each output's
+GP, and ``training.records[NAME].channels[CHANNEL]`` the metrics; with ``report``, one figure per scored record
+(every channel, measured and predicted with the band) in the bundle's ``report/`` folder.
+
+Not built yet for several channels: the noise and band calibrations on the 'lags' records, the novelty
+calibration, the lag surface, the HTML report and the Dask runner (the single-output ``pipeline.train`` has them).
+"""
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gpnarx.model.metrics import summary
+from gpnarx.model.mimo import MIMOGPNARX
+from gpnarx.model.record import Record
+from gpnarx.model.regressors import stack_mimo_regressors
+from gpnarx.storage.bundle import save_bundle
+from gpnarx.storage.jsonsafe import to_json_safe
+from gpnarx.training.config import ConfigError, DatasetConfig, load_config
+from gpnarx.training.prepare import shorten
+
+__all__ = ["EVAL_ROLES", "MIMOLinearARX", "mimo_from_config", "train_mimo"]
+
+EVAL_ROLES = ("lags", "verify", "validate", "healthy", "damaged")
+
+
+class MIMOLinearARX:
+    """The linear ARX baseline for several channels: each output y_o,i = c_o . x_i, x_i the regressor of every
+    output's and input's lags (``regressors.mimo_regressors``), by least squares; free-run with every output fed
+    back. One input and one output: ``baselines.LinearARX``."""
+
+    name = "linear ARX"
+
+    def __init__(self, ny: int, nu: int):
+        self.ny, self.nu = int(ny), int(nu)
+
+    def fit(self, records) -> "MIMOLinearARX":
+        X, Y, _ = stack_mimo_regressors([(r.inputs_2d(), r.outputs_2d()) for r in records], self.ny, self.nu)
+        self.coef_ = np.linalg.lstsq(X, Y, rcond=None)[0]  # (columns, n_outputs)
+        return self
+
+    def simulate(self, u, y0=None) -> np.ndarray:
+        """Free-run outputs (n, n_outputs) for inputs u (n, n_inputs) [input units], from rest or from y0 (the
+        first ny outputs, (ny, n_outputs))."""
+        ny, nu = self.ny, self.nu
+        U = np.asarray(u, float)
+        U = U[:, None] if U.ndim == 1 else U
+        n, ni = U.shape
+        no = self.coef_.shape[1]
+        A = no * ny
+        Cy, Cu = self.coef_[:A], self.coef_[A:]
+        upad = np.vstack([np.zeros((nu - 1, ni)), U])
+        lagged = np.hstack([np.stack([upad[nu - 1 - j: nu - 1 - j + n, k] for j in range(nu)], axis=1)
+                            for k in range(ni)])
+        uterm = lagged @ Cu  # (n, no)
+        y = np.zeros((n + ny, no))
+        i0 = 0
+        if y0 is not None:
+            i0 = ny
+            y[ny: 2 * ny] = np.asarray(y0, float).reshape(-1, no)[:ny]
+        for i in range(i0, n):  # regressor order: output o's lags 1..ny, then the next output's
+            lags = y[i: ny + i][::-1].T.ravel()
+            y[ny + i] = lags @ Cy + uterm[i]
+        return y[ny:]
+
+
+def mimo_from_config(cfg: DatasetConfig, ny: int | None = None, nu: int | None = None) -> MIMOGPNARX:
+    """An unfitted MIMOGPNARX with the config's [model] settings (lags overridable)."""
+    m = cfg.model
+    ny = ny if ny is not None else m.get("ny")
+    nu = nu if nu is not None else m.get("nu")
+    if ny is None or nu is None:
+        raise ConfigError(f"{cfg.path}: [model] ny and nu are required for a model with several channels")
+    for key in ("noise_calibration", "band_calibration"):
+        if m.get(key, "none") != "none":
+            raise ConfigError(f"{cfg.path}: model.{key}: not built yet for several channels (use 'none')")
+    return MIMOGPNARX(ny=int(ny), nu=int(nu), kernel=m.get("kernel", "matern32+cubic"), mode=m.get("mode", "exact"),
+                      n_inducing=int(m.get("inducing", 256)), max_train_points=m.get("max_train_points", 2000),
+                      selection=m.get("selection", "stride"), n_restarts=int(m.get("restarts", 2)),
+                      seed=int(m.get("seed", 0)), hyper=m.get("hyper", "subset"))
+
+
+def _start(rec: Record, ny: int):
+    if rec.meta.get("initial") == "measured" and rec.y is not None:
+        return rec.outputs_2d()[:ny]
+    return None
+
+
+def _score(rec: Record, mean, lower, upper, channels) -> dict:
+    Y = rec.outputs_2d()
+    out = {}
+    for o, ch in enumerate(channels):
+        out[ch.name] = summary(Y[:, o], mean[:, o], None if lower is None else lower[:, o],
+                               None if upper is None else upper[:, o])
+    return out
+
+
+def train_mimo(config, registry, name: str | None = None, version: str | None = None, *, mc_paths: int | None = None,
+               ny: int | None = None, nu: int | None = None, report: bool = True, log=None,
+               max_seconds: float | None = None, report_method: str | None = None) -> dict:
+    """Train a model with several channels from a dataset config and write its bundle (see the module
+    docstring). Returns name, version, path, the per-channel metrics and the fitted model."""
+    cfg = config if isinstance(config, DatasetConfig) else load_config(config)
+    log = log or (lambda msg: None)
+    t0 = time.perf_counter()
+    method = report_method or cfg.predict.get("method", "mc")
+    n_paths = int(mc_paths or cfg.predict.get("mc_paths", 1024))
+    confidence = float(cfg.predict.get("confidence", 0.99))
+
+    def records(role):
+        recs = cfg.records_for(role)
+        return [shorten(r, max_seconds) for r in recs] if max_seconds else recs
+
+    train_recs = records("train")
+    model = mimo_from_config(cfg, ny, nu)
+    log(f"training {cfg.name}: ny={model.ny} nu={model.nu}, {train_recs[0].n_inputs} input(s), "
+        f"{train_recs[0].n_outputs} output(s), on {len(train_recs)} record(s)")
+    model.fit(train_recs, progress=log)
+    arx = MIMOLinearARX(model.ny, model.nu).fit(train_recs)
+    chans = model.output_channels_
+    scored, evals = {}, []
+    for k, (role, rec) in enumerate((role, rec) for role in EVAL_ROLES for rec in records(role)):
+        y0 = _start(rec, model.ny)
+        run = model.simulate(rec.u, method=method, n_paths=n_paths, seed=k, confidence=confidence, y0=y0)
+        entry = {"role": role, "method": run.method, "seconds": run.seconds, "diverged_paths": run.diverged_paths}
+        if rec.y is not None:
+            entry["channels"] = _score(rec, run.mean, run.lower, run.upper, chans)
+            entry["baselines"] = {"linear ARX": _score(rec, arx.simulate(rec.u, y0), None, None, chans)}
+            log(f"  {role:8s} {rec.name}: " + "; ".join(
+                f"{c} fit {m['fit']:.1f} % (ARX {entry['baselines']['linear ARX'][c]['fit']:.1f} %) "
+                f"cov {m['coverage']:.1f} %" for c, m in entry["channels"].items()))
+        scored[rec.name] = entry
+        evals.append((rec, run))
+    metrics = {"fit_seconds": model.fit_seconds_, "n_rows": model.n_rows_,
+               "n_train": [g.n_train_ for g in model.outputs_], "train_records": [r.name for r in train_recs],
+               "records": scored, "mc_paths": n_paths, "method": method, "confidence": confidence,
+               "channels": {"inputs": [c.to_dict() for c in model.input_channels_],
+                            "outputs": [c.to_dict() for c in chans]}}
+    units = {"u": _common([c.unit for c in model.input_channels_]), "y": _common([c.unit for c in chans])}
+    with tempfile.TemporaryDirectory() as tmp:
+        report_dir = None
+        if report:
+            report_dir = Path(tmp) / "report"
+            write_figures(report_dir, cfg.name, evals, chans)
+            (report_dir / "report.json").write_text(json.dumps(to_json_safe(metrics), indent=1, sort_keys=True))
+        metrics["wall_seconds"] = time.perf_counter() - t0
+        physics = dict(cfg.physics)
+        physics.setdefault("output", cfg.system.get("output", "displacement"))
+        path = save_bundle(model, registry, name or cfg.name, version, fs=cfg.fs, units=units, physics=physics,
+                           novelty=None, training=to_json_safe(metrics), attach_dir=report_dir,
+                           extra={"predict": {"method": cfg.predict.get("method", "mc"),
+                                              "mc_paths": int(cfg.predict.get("mc_paths", 1024))}})
+    log(f"bundle written to {path}")
+    return {"name": name or cfg.name, "version": path.name, "path": str(path), "metrics": to_json_safe(metrics),
+            "model": model}
+
+
+def _common(units) -> str:
+    return units[0] if len(set(units)) == 1 else ""
+
+
+def write_figures(folder: Path, title: str, evals, channels) -> None:
+    """One PNG per scored record: every output channel's measured and predicted output with the band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for rec, run in evals:
+        t = rec.t
+        Y = rec.outputs_2d()
+        fig, axes = plt.subplots(len(channels), 1, figsize=(10, 2.2 * len(channels)), sharex=True, squeeze=False)
+        for o, (ax, ch) in enumerate(zip(axes[:, 0], channels)):
+            ax.fill_between(t, run.lower[:, o], run.upper[:, o], color="tab:orange", alpha=0.3, lw=0,
+                            label=f"{100 * run.confidence:g} % band")
+            if Y is not None:
+                ax.plot(t, Y[:, o], "k", lw=0.5, label="measured")
+            ax.plot(t, run.mean[:, o], "r", lw=0.5, label=f"free run ({run.method})")
+            ax.set_ylabel(f"{ch.name} [{ch.unit or '-'}]")
+        axes[0, 0].legend(loc="upper right", fontsize=7, ncol=3)
+        axes[-1, 0].set_xlabel("time [s]")
+        fig.suptitle(f"{title}: {rec.name}")
+        fig.tight_layout()
+        fig.savefig(folder / f"{rec.name}.png", dpi=90)
+        plt.close(fig)
