@@ -91,6 +91,45 @@ def export(ref: str, repo: Path = ROOT, cache: Path | None = None) -> Path:
     return dest
 
 
+def export_package(ref: str, repo: Path = ROOT, cache: Path | None = None) -> Path:
+    """A folder to put first on PYTHONPATH so that ``import gpnarx`` in a new process is the whole package as it
+    stood at ``ref`` (exported on first use): ``gpnarx/`` of that commit with every folder its pyproject.toml maps
+    into the package (``[tool.setuptools.package-dir]``: ``model/`` as ``gpnarx/model``, ...) inside it. For
+    benches whose baseline is a whole ``gpnarx`` process; BaselineUnavailable where the commit is absent."""
+    import tomllib
+
+    commit = resolve(ref, repo)
+    dest = (cache or cache_root()) / f"{commit}-package"
+    if (dest / "gpnarx" / "__init__.py").is_file():
+        return dest
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{commit[:12]}-pkg-", dir=dest.parent))
+    try:
+        proc = subprocess.run(["git", "-C", str(repo), "archive", "--format=tar", commit], capture_output=True,
+                              check=False)
+        if proc.returncode != 0:
+            raise BaselineUnavailable("no-tree", f"git archive {commit} failed: "
+                                                 f"{proc.stderr.decode(errors='replace').strip()}")
+        src = tmp / "src"
+        with tarfile.open(fileobj=io.BytesIO(proc.stdout)) as tar:
+            tar.extractall(src, filter="data")
+        mapping = tomllib.loads((src / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+        site = tmp / "site"
+        shutil.copytree(src / mapping.get("gpnarx", "gpnarx"), site / "gpnarx")
+        for name, folder in mapping.items():
+            parts = name.split(".")
+            if len(parts) == 2 and parts[0] == "gpnarx":  # nested packages come with their parent's folder
+                shutil.copytree(src / folder, site / "gpnarx" / parts[1], dirs_exist_ok=True)
+        try:
+            site.rename(dest)
+        except OSError:  # another bench exported it first
+            if not (dest / "gpnarx" / "__init__.py").is_file():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return dest
+
+
 _ABSOLUTE = re.compile(r"^\s*(from|import)\s+gpnarx\b", re.M)
 
 

@@ -25,6 +25,11 @@ change: one ``posterior.mean_grad`` call per step), then runs the same CLI entry
 arguments: same bundle, record, tuning and output. Product and baseline processes alternate
 (A, B, A, B, ...); ratio = median over repetitions of baseline wall / product wall.
 
+``--baseline-ref REF``: the baseline is instead the same command run by the whole package as it stood at git
+commit REF (``bench/baseline.py`` ``export_package``: that commit's ``gpnarx`` first on the path, started outside
+the checkout), the previous product code end to end; ``baseline_what=`` names the commit. ``compiled=`` says
+whether the product ran the compiled pass 1 (numba importable, ``model/freerun/linear_compiled.py``).
+
 Also timed in the same alternation (``serial_ratio=``): the product's code with pass 2 (eq. 9 and the
 mean gradient) on the calling thread only (``simulate_linear(workers=0)``), to show what its worker
 thread beside the mean recursion buys on the cores this process gets.
@@ -38,6 +43,7 @@ windows (coverage, width) and its real-time factor extrapolated from the window'
 (the MC step cost does not depend on the position in the record).
 
     python bench/bench_realtime.py [--quick] [--registry R] [--record PATH] [--reps N] [--window S] [--threads N]
+                                   [--baseline-ref REF]
 
 Without --registry a bundle is trained from configs/bert-real.toml into a cache (about 10 minutes).
 --quick: a tiny Bouc-Wen model and a 2031-sample simulated sweep (bench_predict_e2e's quick
@@ -77,19 +83,23 @@ def bert_data() -> Path:
     return bert_data_dir()
 
 
-def _env():
+def _env(first: Path | None = None):
     e = dict(os.environ)
-    e["PYTHONPATH"] = str(C.ROOT) + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
+    paths = ([str(first)] if first else []) + [str(C.ROOT)] + ([e["PYTHONPATH"]] if e.get("PYTHONPATH") else [])
+    e["PYTHONPATH"] = os.pathsep.join(paths)
     e.pop("GPNARX_REGISTRY", None)
     return e
 
 
-def timed(cmd: list, cpu: list | None = None, free_run: list | None = None) -> float:
+def timed(cmd: list, cpu: list | None = None, free_run: list | None = None, package: Path | None = None) -> float:
     """Wall seconds of a subprocess; its CPU seconds (user + system) appended to ``cpu``, and the free run's own
-    seconds (the ``seconds:`` line ``gpnarx predict`` prints) to ``free_run``."""
+    seconds (the ``seconds:`` line ``gpnarx predict`` prints) to ``free_run``. ``package``: a folder that holds
+    another ``gpnarx`` (``baseline.export_package``), first on the path, the process started in it (so the
+    checkout's own ``gpnarx/`` is not found first)."""
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=C.ROOT, env=_env(), capture_output=True, text=True, timeout=3600)
+    proc = subprocess.run(cmd, cwd=package or C.ROOT, env=_env(package), capture_output=True, text=True,
+                          timeout=3600)
     dt = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
@@ -207,9 +217,12 @@ def pass_profile(model, rec) -> dict:
         return wrapper
 
     # without workers, pass 1 hands each chunk to _Workers.submit, which runs pass 2 and pass 3 on it at once
+    from gpnarx.model.freerun.linear_compiled import CompiledMean
+
     saved = (freerun._MeanRecursion.run, freerun._Workers.submit, freerun._CovarianceRecursion.advance,
-             gpmod._dtrmm_rows)
+             gpmod._dtrmm_rows, CompiledMean.run)
     freerun._MeanRecursion.run = timed_call("pass1", saved[0])
+    CompiledMean.run = timed_call("pass1", saved[4])  # the compiled pass 1, where numba is
     freerun._Workers.submit = timed_call("nested", saved[1])
     freerun._CovarianceRecursion.advance = timed_call("pass3", saved[2])
     gpmod._dtrmm_rows = timed_call("trmm", saved[3], lambda L, B, *_: float(B.shape[0]) * L.shape[0] ** 2)
@@ -224,7 +237,7 @@ def pass_profile(model, rec) -> dict:
         total = time.perf_counter() - t0
     finally:
         (freerun._MeanRecursion.run, freerun._Workers.submit, freerun._CovarianceRecursion.advance,
-         gpmod._dtrmm_rows) = saved
+         gpmod._dtrmm_rows, CompiledMean.run) = saved
     return {"serial_s": total, "pass1": spent["pass1"] - spent["nested"], "pass2": spent["nested"] - spent["pass3"],
             "pass3": spent["pass3"], "trmm": spent["trmm"],
             "trmm_gflops": trmm_flops[0] / spent["trmm"] / 1e9 if spent["trmm"] else 0.0}
@@ -235,6 +248,9 @@ def main():
         ap.add_argument("--registry", default=None, help="registry holding bert-real (default: train into a cache)")
         ap.add_argument("--record", default=None, help="64 s record (default: BERT Sine_20Hz)")
         ap.add_argument("--reps", type=int, default=None, help="interleaved repetitions (default 3; 2 with --quick)")
+        ap.add_argument("--baseline-ref", default=None,
+                        help="baseline: the whole gpnarx process of this git ref (bench/baseline.py export_package) "
+                             "instead of the reference linearised loop")
         ap.add_argument("--window", type=float, default=4.0,
                         help="seconds of each accuracy window (default 4; the exact posterior's 1024-path "
                              "reference takes about a minute per second of record)")
@@ -260,16 +276,34 @@ def main():
         argv = ["predict", "--registry", str(reg), "--model", name, str(record), "--method", "linear",
                 "--out", str(out)]
         product = [sys.executable, "-m", "gpnarx", *argv]
+        package, base_what, skipped = None, "same-cli-process-reference-linear-loop", None
         baseline = [sys.executable, "-c", BASELINE_CODE, *argv]
+        if args.baseline_ref:
+            import baseline as BL
+
+            try:
+                package = BL.export_package(args.baseline_ref)
+                baseline = [sys.executable, "-m", "gpnarx", *argv]
+                base_what = f"gpnarx-predict-process-of-git-{BL.resolve(args.baseline_ref)[:12]}"
+            except BL.BaselineUnavailable as exc:
+                print(f"bench_realtime: baseline skipped ({exc.code}): {exc}", file=sys.stderr)
+                baseline, skipped = None, exc.code
         serial = [sys.executable, "-c", SERIAL_CODE, *argv]
         timed(product)  # warm the page cache (record, bundle, libraries) for both sides
+        if baseline:
+            timed(baseline, package=package)
         load0 = C.load()
         walls = {"product": [], "baseline": [], "serial": []}
         cpus = {"product": [], "baseline": [], "serial": []}
         free_runs = []  # the product's free run alone (the recursion), from its own output
+        nan = float("nan")
         for _ in range(reps):
             walls["product"].append(timed(product, cpus["product"], free_runs))
-            walls["baseline"].append(timed(baseline, cpus["baseline"]))
+            if baseline:
+                walls["baseline"].append(timed(baseline, cpus["baseline"], package=package))
+            else:
+                walls["baseline"].append(nan)
+                cpus["baseline"].append(nan)
             walls["serial"].append(timed(serial, cpus["serial"]))
         load1 = C.load()
         model, rec_in, fidelity = open_run(reg, name, record)
@@ -318,7 +352,8 @@ def main():
     cov_gap = max(abs(w["cov_lin"] - w["cov_mc"]) for w in ws)
     width_dev = max(abs(w["width_ratio_lin"] - 1.0) for w in ws)
     few_rt = min(w["few_steps_per_s"] for w in ws) / rec.fs
-    C.result(rt_factor=rt, baseline=duration / base_wall, baseline_what="same-cli-process-reference-linear-loop",
+    extra = {"baseline_skipped": skipped} if skipped else {}
+    C.result(rt_factor=rt, baseline=duration / base_wall, baseline_what=base_what,
              ratio=ratio, wall_s=wall, baseline_wall_s=base_wall, record_s=duration, cpu_s=cpu,
              free_run_s=free_run, outside_s=wall - free_run, rt_factor_free_run=duration / free_run,
              pass1_s=prof["pass1"], pass2_s=prof["pass2"], trmm_s=prof["trmm"], trmm_gflops=prof["trmm_gflops"],
@@ -331,7 +366,14 @@ def main():
              width_ratio_max=max(w["width_ratio_lin"] for w in ws), width_dev=width_dev,
              cov_mc=ws[0]["cov_mc"], cov_lin=ws[0]["cov_lin"], few_paths=ws[0]["few_paths"],
              few_mc_rt_simulate_only=few_rt, few_width_ratio_min=min(w["width_ratio_few"] for w in ws),
-             load=C.load(), blas_threads=C.blas_threads(), **fidelity)
+             load=C.load(), blas_threads=C.blas_threads(), compiled=int(_compiled()), **extra, **fidelity)
+
+
+def _compiled() -> bool:
+    """Whether the product's linearised run takes the compiled pass 1 here (numba importable, not turned off)."""
+    from gpnarx.model.freerun.linear_compiled import enabled
+
+    return enabled()
 
 
 if __name__ == "__main__":
