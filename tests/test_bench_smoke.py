@@ -19,7 +19,7 @@ SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.
            "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
            "bench_sparse_accuracy.py", "bench_sparse_variance.py", "bench_mc_speed.py", "bench_realtime.py",
            "bench_gpu.py", "bench_gpu_steps.py", "bench_wire.py", "bench_stream.py", "bench_local_check.py",
-           "bench_estimator_blas.py"]
+           "bench_estimator_blas.py", "bench_update.py"]
 # fields of some RESULT lines that must be finite positive numbers (besides ratio and baseline)
 FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_extrapolated", "user_ratio"),
           "bench_predict_e2e.py": ("wall_s", "baseline_wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s",
@@ -33,7 +33,8 @@ FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_e
           "bench_wire.py": ("json_bytes", "gzip_bytes", "npz_bytes", "json_ms", "gzip_ms", "npz_ms"),
           "bench_stream.py": ("linear_token_bytes", "mc_token_bytes", "mc_token_ms", "ratio"),
           "bench_local_check.py": ("max_err_all", "baseline"),
-          "bench_estimator_blas.py": ("product_s", "baseline")}
+          "bench_estimator_blas.py": ("product_s", "baseline"),
+          "bench_update.py": ("update_s", "baseline", "rank_update_s", "rows_added")}
 # the baselines' numerics agree with the product's (same model on both sides of ratio=)
 MATCH = {"bench_freerun.py": "max_mean_diff", "bench_modes.py": "max_mean_diff",
          "bench_bert_scale.py": "ref_max_mean_diff", "bench_predict_e2e.py": "ref_max_mean_diff"}

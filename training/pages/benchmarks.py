@@ -42,6 +42,8 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
             "follows in real time (bench_streams.py)", None),
            ("bench/estimator_blas.txt", "The Python API's free run with and without its own BLAS limit "
             "(bench_estimator_blas.py)", None),
+           ("bench/update.txt", "An update from one new record against a retrain: gpnarx update bert-real with one 16 s "
+            "record against gpnarx train bert-real, same run (bench_update.py)", None),
            ("accelerator/bench_gpu.txt", "GPU run, H100 (results: [results-accelerator.md](results-accelerator.md))",
             "bench/bench_gpu.py (commands: docs/runs/accelerator/run.json)"),
            ("accelerator/h200/bench_gpu.txt", "GPU run, H200",
@@ -176,6 +178,11 @@ METHOD_ROWS = (
      '1 s chunks with state tokens (p99 under the chunk time, no 503, error or lag)',
      'one stream alone: the bound floor(workers x chunk / its median chunk latency) if chunks shared the workers '
      'perfectly'),
+    ('`bench_update.py`',
+     '`gpnarx update` with one new record (the rank update of the exact posterior and the noise, band and novelty '
+     'recalibrations of its config)',
+     '`gpnarx train` of the same model in the same run; ratio = update / train wall time (lower is better; target '
+     '0.1)'),
     ('`bench_first_start.py`',
      '`gpnarx serve` on an empty registry',
      'the previous start path (build, then serve)'),
