@@ -8,7 +8,9 @@ service's ``POST /v1/records/parse``):
 
 - ``.csv``: a header line names the columns (case-insensitive, in any order): ``u`` (required),
   ``y`` (optional) and ``time`` (or ``t``) [s]. A unit may follow a column name in brackets or
-  parentheses (``u [N]``, ``y (m/s)``). With a ``time`` column the sampling frequency is derived
+  parentheses (``u [N]``, ``y (m/s)``). Several channels: one column per channel named ``u:NAME`` or
+  ``y:NAME`` (``y:Acc1:+X [m/s^2]``; the name keeps its case; not mixed with a plain ``u`` / ``y``
+  column of the same side). With a ``time`` column the sampling frequency is derived
   from the time step, which must be uniform (every step within 1 % of the mean step); without one,
   ``fs`` must be given. Lines starting with ``#`` and blank lines are skipped.
 - ``.npz``: arrays ``u`` (required) and ``y`` (optional), scalar ``fs`` [Hz] (or the ``fs``
@@ -55,7 +57,8 @@ Writing
 -------
 ``write_record(path, record)`` writes ``.npz`` (``u``, ``y`` float64 1-D, scalar ``fs``, ``units_u``,
 ``units_y``, ``name``; a record with several channels or named channels: ``u`` (n, n_inputs), ``y``
-(n, n_outputs), ``channels_u``, ``channels_y`` and ``units_u``, ``units_y`` one string per channel), ``.csv`` (header ``time,u,y``, 17 significant digits) or ``.mat``
+(n, n_outputs), ``channels_u``, ``channels_y`` and ``units_u``, ``units_y`` one string per channel),
+``.csv`` with several channels as ``time,u:NAME [unit],...,y:NAME [unit],...``, ``.csv`` (header ``time,u,y``, 17 significant digits) or ``.mat``
 (``u``, ``y``, ``fs``, ``units_u``, ``units_y``). Writes are atomic: the data goes to a temporary
 file in the destination folder which is then renamed over the destination with ``os.replace``;
 on any error the temporary file is removed and an existing destination is left untouched.
@@ -191,8 +194,9 @@ def write_record(path, record: Record) -> Path:
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise RecordFileError(p, f"folder {parent} does not exist")
-    if ext != ".npz" and (record.u.ndim == 2 or (record.y is not None and record.y.ndim == 2)):
-        raise RecordFileError(p, "a record with several channels is written as .npz (channels_u, channels_y)")
+    if ext == ".mat" and (record.u.ndim == 2 or (record.y is not None and record.y.ndim == 2)):
+        raise RecordFileError(p, "a record with several channels is written as .npz (channels_u, channels_y) or "
+                                 ".csv (u:NAME [unit], y:NAME [unit] columns)")
     u = np.ascontiguousarray(record.u, dtype=np.float64)
     y = None if record.y is None else np.ascontiguousarray(record.y, dtype=np.float64)
     units = {k: normalize_unit(record.units.get(k, ""), p) for k in ("u", "y")}
@@ -214,6 +218,21 @@ def write_record(path, record: Record) -> Path:
                 if y is not None:
                     arrays["y"] = y
                 np.savez(fh, **arrays)
+            elif ext == ".csv" and (record.channels is not None or u.ndim == 2 or (y is not None and y.ndim == 2)):
+                buf = io.StringIO()
+                head = ["time"] + [f"u:{c.name} [{c.unit}]" if c.unit else f"u:{c.name}" for c in record.input_channels()]
+                cols = [np.arange(u.shape[0]) / record.fs, record.inputs_2d()]
+                if y is not None:
+                    head += [f"y:{c.name} [{c.unit}]" if c.unit else f"y:{c.name}" for c in record.output_channels()]
+                    cols.append(record.outputs_2d())
+                for c in record.input_channels() + (record.output_channels() if y is not None else []):
+                    if any(ch in c.name for ch in ',;"[]()\n') or c.name != c.name.strip():
+                        raise RecordFileError(p, f"channel name {c.name!r} cannot be a CSV column name; write .npz")
+                buf.write(",".join(head) + "\n")
+                table = np.column_stack(cols)
+                for row in table:
+                    buf.write(",".join("%.17g" % v for v in row) + "\n")
+                fh.write(buf.getvalue().encode("utf-8"))
             elif ext == ".csv":
                 buf = io.StringIO()
                 t = np.arange(u.size) / record.fs

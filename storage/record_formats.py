@@ -805,8 +805,16 @@ def _read_csv(p, fh, fs, name, fs_default) -> Record:
         raise RecordFileError(p, f"line {hline_no}: bad header ({exc})") from None
     cols: dict[str, int] = {}
     units: dict[str, str] = {}
+    chan_cols: dict[str, list] = {"u": [], "y": []}  # several channels: columns 'u:NAME [unit]', 'y:NAME [unit]'
     for j, cell in enumerate(cells):
         key, unit = _parse_header_cell(cell)
+        named = _CSV_CHANNEL.match(cell.strip().strip('"').strip("'").strip())
+        if named:
+            side, cname = named.group(1).lower(), named.group(2).strip()
+            if cname in [c for c, _, _ in chan_cols[side]]:
+                raise RecordFileError(p, f"column {side}:{cname} appears twice in the header")
+            chan_cols[side].append((cname, j, unit))
+            continue
         if key in _CSV_COLS:
             canon = _CSV_COLS[key]
             if canon in cols:
@@ -814,7 +822,13 @@ def _read_csv(p, fh, fs, name, fs_default) -> Record:
             cols[canon] = j
             if unit:
                 units[canon] = unit
-    if "u" not in cols:
+    for side in ("u", "y"):
+        if chan_cols[side] and side in cols:
+            raise RecordFileError(p, f"the header has both a column {side!r} and named {side} channels "
+                                     f"({side}:NAME); use one or the other")
+        if len(chan_cols[side]) > MAX_CHANNELS:
+            raise RecordFileError(p, f"{len(chan_cols[side])} {side} channels; at most {MAX_CHANNELS} are read")
+    if "u" not in cols and not chan_cols["u"]:
         raise RecordFileError(
             p, f"missing column 'u' (header names {', '.join(repr(c.strip()) for c in cells)}; expected time,u,y)"
         )
@@ -822,6 +836,8 @@ def _read_csv(p, fh, fs, name, fs_default) -> Record:
     data = np.empty((len(lines) - 1, ncol))
     # a gap (model.gaps; where the reader takes them): 'nan' or an empty cell in a column other than time
     gap_cols = {j for k, j in cols.items() if k != "time"} if gaps_allowed() else set()
+    if gaps_allowed():
+        gap_cols |= {j for side in chan_cols.values() for _, j, _ in side}
     for r, (line_no, ln) in enumerate(lines[1:]):
         try:
             row = next(csv.reader([ln], delimiter=delim))
@@ -859,9 +875,34 @@ def _read_csv(p, fh, fs, name, fs_default) -> Record:
             )
         file_fs = float(f"{1.0 / mean_dt:.10g}")
     fs = _reconcile_fs(p, file_fs, fs, fs_default)
+    if chan_cols["u"] or chan_cols["y"]:
+        return _csv_channels(p, data, cols, units, chan_cols, fs, name)
     u = data[:, cols["u"]]
     y = data[:, cols["y"]] if "y" in cols else None
     return _make(p, u, y, fs, {"u": units.get("u", ""), "y": units.get("y", "")}, name)
+
+
+#: a CSV header cell naming one channel: ``u:NAME`` or ``y:NAME``, optionally followed by ``[unit]`` / ``(unit)``
+_CSV_CHANNEL = re.compile(r"^([uUyY])\s*:\s*([^\[\]()]*?[^\s\[\]()])\s*(?:[\[(][^\])]*[\])])?$")
+
+
+def _csv_channels(p, data, cols, units, chan_cols, fs, name) -> Record:
+    """A CSV record whose header names channels (``u:NAME [unit]``, ``y:NAME [unit]``; a plain ``u`` or ``y``
+    column is that side's one channel)."""
+    sig, chans = {}, {}
+    for side in ("u", "y"):
+        entries = chan_cols[side] or ([(side, cols[side], units.get(side, ""))] if side in cols else [])
+        if not entries:
+            continue
+        chans[side] = [Channel(c, normalize_unit(unit, p)) for c, _, unit in entries]
+        block = data[:, [j for _, j, _ in entries]]
+        sig[side] = block[:, 0] if block.shape[1] == 1 else block
+    common = {k: (v[0].unit if len({c.unit for c in v}) == 1 else "") for k, v in chans.items()}
+    common.setdefault("y", "")
+    try:
+        return Record(sig["u"], sig.get("y"), fs, common, name, {"source": str(p)}, chans)
+    except RecordError as exc:
+        raise RecordFileError(p, _strip_name(str(exc))) from None
 
 
 # ---------------------------------------------------------------------------- NPZ / NPY

@@ -114,5 +114,23 @@ def test_npz_named_channels_round_trip(tmp_path):
     np.savez(buf, u=np.zeros((5, 2)), fs=10.0, channels_u=np.array(["a"]))
     with pytest.raises(RecordFileError, match="names 1 channels but the signal has 2"):
         parse_record(buf.getvalue(), "x.npz")
+
+
+def test_csv_named_channels_round_trip(tmp_path):
+    n = 30
+    rng = np.random.default_rng(2)
+    rec = Record(rng.normal(size=n), rng.normal(size=(n, 2)), 1024.0, {"u": "V", "y": ""}, "rig",
+                 channels={"u": [("Shaker:-X", "V")], "y": [("Laser:+X", "m/s"), ("Acc1:+X", "m/s^2")]})
+    p = write_record(tmp_path / "rig.csv", rec)
+    assert p.read_text().splitlines()[0] == "time,u:Shaker:-X [V],y:Laser:+X [m/s],y:Acc1:+X [m/s^2]"
+    back = read_record(p)
+    assert back.fs == pytest.approx(1024.0) and np.array_equal(back.y, rec.y) and np.array_equal(back.u, rec.u)
+    assert back.output_channels() == rec.output_channels() and back.input_channels() == rec.input_channels()
+    acc = read_record(p, outputs=["Acc1:+X"])
+    assert acc.y.ndim == 1 and acc.units["y"] == "m/s^2"
+    with pytest.raises(RecordFileError, match="both a column 'y' and named y channels"):
+        parse_record(b"time,u,y,y:a\n0,1,2,3\n0.1,1,2,3\n", "x.csv")
+    with pytest.raises(RecordFileError, match="appears twice"):
+        parse_record(b"time,u,y:a,y:a\n0,1,2,3\n0.1,1,2,3\n", "x.csv")
     with pytest.raises(RecordFileError, match="written as .npz"):
-        write_record(tmp_path / "chain.csv", rec)
+        write_record(tmp_path / "rig.mat", rec)
