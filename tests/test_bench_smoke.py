@@ -16,12 +16,13 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ["bench_freerun.py", "bench_fit.py", "bench_modes.py", "bench_scaling.py", "bench_memory.py",
-           "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
+           "bench_kstep.py", "bench_bert_scale.py", "bench_predict_e2e.py", "bench_linear_band.py",
            "bench_sparse_accuracy.py", "bench_sparse_variance.py", "bench_mc_speed.py", "bench_realtime.py",
            "bench_gpu.py", "bench_gpu_steps.py", "bench_wire.py", "bench_stream.py", "bench_local_check.py",
            "bench_estimator_blas.py", "bench_update.py"]
 # fields of some RESULT lines that must be finite positive numbers (besides ratio and baseline)
 FINITE = {"bench_bert_scale.py": ("wall_s", "path_steps_per_s", "user_record_s_extrapolated", "user_ratio"),
+          "bench_kstep.py": ("kstep_s", "fit_k64", "mc_kstep_s", "mc_ratio"),
           "bench_predict_e2e.py": ("wall_s", "baseline_wall_s", "path_steps_per_s", "simulate_s", "untuned_wall_s",
                                    "user_ratio"),
           "bench_modes.py": ("ratio_exact", "ratio_sparse32", "ratio_sparse64", "linear_vs_mc", "user_ratio"),

@@ -34,6 +34,8 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/sparse_vs_exact_2core.txt", "The exact and the sparse bert-real side by side on the 2-core "
             "machine (bench_realtime.py, bench_mc_speed.py --whole --seconds 2; posterior= and heldout_fit_min= "
             "say what each keeps of the fidelity)", None),
+           ("bench/kstep.txt", "k-step-ahead prediction at k = 64 against the free run on the same record and model "
+            "(bench_kstep.py)", None),
            ("bench/local_check.txt", "Does the Monte Carlo local model's check bound the error at every path? "
             "(bench_local_check.py)", None),
            ("bench/wire.txt", "One 64 s predict answer as JSON, gzip JSON and NPZ (bench_wire.py)", None),
@@ -170,6 +172,11 @@ METHOD_ROWS = (
     ('`bench_realtime.py`',
      'the whole `gpnarx predict --method linear` process: real-time factor',
      'the same process with the reference linearised loop, alternating'),
+    ('`bench_kstep.py`',
+     'the k-step-ahead prediction at k = 64 (`predict` with `horizon`: restarts from the measured outputs every 64 '
+     'samples; linearised, the segments as one batch), and by Monte Carlo (`mc_ratio`)',
+     'the free run from the measured start on the same record, model and process; ratio = k-step / free-run wall '
+     'time (lower is faster)'),
     ('`bench_stream.py`',
      'a record predicted in chunks with state tokens',
      'the same record whole'),
