@@ -13,7 +13,7 @@ import json
 import re
 from pathlib import Path
 
-from gpnarx.training.pages.markdown import pct, result_lines, row, rule, sig, table
+from gpnarx.training.pages.markdown import load_json, pct, result_lines, row, rule, sig, table
 
 _STEP = re.compile(r"(?P<tag>.*?) P (?P<paths>\d+): .*?(?P<us>[0-9.]+) us/step")
 
@@ -75,6 +75,24 @@ def _latest(run_dir: Path) -> list[str]:
     return out
 
 
+def _exact(run_dir: Path) -> list[str]:
+    """The exact bert-real at 4096 paths (``bench/gpu_exact_mc.sh``): its RESULT line where it ran, else what is
+    prepared and why it did not run (``pending.json``)."""
+    pending = load_json(run_dir, "pending.json")
+    if (run_dir / "bench_gpu.txt").is_file():
+        device = (run_dir / "device.txt").read_text().strip() if (run_dir / "device.txt").is_file() else "?"
+        out = ["## The exact bert-real at 4096 paths (`bench/gpu_exact_mc.sh`)\n",
+               f"Device: {device}; commands and notes in `exact/`.\n"]
+        return out + _bench_table(result_lines((run_dir / "bench_gpu.txt").read_text())) + [""]
+    if not pending:
+        return []
+    return ["## The exact bert-real at 4096 paths: prepared, not run\n",
+            f"{pending['what']}: **{pending['status']}**, {pending['reason']}. The run is one prepared script, "
+            f"`{pending['script']}`: `{pending['command']}` on the GPU machine, from the repository root; offline: "
+            f"{pending['offline']}. It writes {pending['writes']}; this page then renders its table here.\n",
+            f"What to expect: {pending['expected']}.\n"]
+
+
 def render(run_dir) -> str:
     run_dir = Path(run_dir)
     meta = json.loads((run_dir / "run.json").read_text())
@@ -86,6 +104,7 @@ def render(run_dir) -> str:
            "Rendered by `python -m studies.accelerator_page docs/runs/accelerator docs/results-accelerator.md` "
            "from the stored run in `docs/runs/accelerator/` (its `run.json` holds the commands). How to install and "
            "select the backend: [accelerator.md](accelerator.md).\n"]
+    out += _exact(run_dir / "exact")
     if (run_dir / "h200").is_dir():
         out += _latest(run_dir / "h200")
     out += ["## The first run: Monte Carlo at the paper's scale (`bench/bench_gpu.py`)\n",
