@@ -4,8 +4,9 @@
 the config's ``[model]`` settings) on the ``train`` records, runs the free run of every ``lags``, ``verify``,
 ``validate``, ``healthy`` and ``damaged`` record (the config's ``[predict]`` method, paths and confidence; a
 record whose ``meta.initial`` is "measured" starts from its first ny measured outputs) and scores it per output
-channel (fit % eq. 14, RMSE, 99 % coverage, band width), and beside it a linear ARX per output channel (the same
-regressors of every channel's lags, least squares, free-run: ``LinearARX``'s rule for several channels). It
+channel (fit % eq. 14, RMSE, 99 % coverage, band width), and beside it two linear ARX baselines of the same lags
+and training records: "linear ARX", one over every channel's lags (``MIMOLinearARX``, every output fed back), and,
+with one input, "linear ARX per channel", each output's own ``baselines.LinearARX`` on u and that output's lags. It
 writes a bundle whose manifest records the channels (names, units, their order: ``channels``), each output's
 GP, and ``training.records[NAME].channels[CHANNEL]`` the metrics; with ``report``, one figure per scored record
 (every channel, measured and predicted with the band) in the bundle's ``report/`` folder.
@@ -28,6 +29,7 @@ from gpnarx.model.record import Record
 from gpnarx.model.regressors import stack_mimo_regressors
 from gpnarx.storage.bundle import save_bundle
 from gpnarx.storage.jsonsafe import to_json_safe
+from gpnarx.training.baselines import LinearARX
 from gpnarx.training.config import ConfigError, DatasetConfig, load_config
 from gpnarx.training.prepare import shorten
 
@@ -129,6 +131,11 @@ def train_mimo(config, registry, name: str | None = None, version: str | None = 
         f"{train_recs[0].n_outputs} output(s), on {len(train_recs)} record(s)")
     model.fit(train_recs, progress=log)
     arx = MIMOLinearARX(model.ny, model.nu).fit(train_recs)
+    # with one input, also each output channel's own linear ARX (u and that channel's lags: baselines.LinearARX)
+    own = None
+    if train_recs[0].n_inputs == 1:
+        own = [LinearARX(model.ny, model.nu).fit([Record(r.u, r.outputs_2d()[:, o], r.fs) for r in train_recs])
+               for o in range(train_recs[0].n_outputs)]
     chans = model.output_channels_
     scored, evals = {}, []
     for k, (role, rec) in enumerate((role, rec) for role in EVAL_ROLES for rec in records(role)):
@@ -138,6 +145,9 @@ def train_mimo(config, registry, name: str | None = None, version: str | None = 
         if rec.y is not None:
             entry["channels"] = _score(rec, run.mean, run.lower, run.upper, chans)
             entry["baselines"] = {"linear ARX": _score(rec, arx.simulate(rec.u, y0), None, None, chans)}
+            if own is not None:
+                sims = np.column_stack([a.simulate(rec.u, None if y0 is None else y0[:, o]) for o, a in enumerate(own)])
+                entry["baselines"]["linear ARX per channel"] = _score(rec, sims, None, None, chans)
             log(f"  {role:8s} {rec.name}: " + "; ".join(
                 f"{c} fit {m['fit']:.1f} % (ARX {entry['baselines']['linear ARX'][c]['fit']:.1f} %) "
                 f"cov {m['coverage']:.1f} %" for c, m in entry["channels"].items()))
