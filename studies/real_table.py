@@ -190,6 +190,134 @@ def add_residual_rows(model, table: dict, data_dir, lags: int = 25, log=None) ->
     return table
 
 
+#: prediction horizons k [samples] of the k-step fit table (``add_kstep_rows``), besides the free run
+KSTEP_HORIZONS = (1, 8, 64, 512)
+
+
+def add_kstep_rows(model, table: dict, data_dir, horizons=KSTEP_HORIZONS, log=None) -> dict:
+    """Add each record's k-step-ahead fits to ``table`` as ``row["k_step"]``: the whole record linearised,
+    ``GPNARX.simulate(u, y=y, horizon=k)`` (the run restarted from the measured outputs every k samples,
+    ``model.freerun.horizon``) for each k of ``horizons`` [samples], and the free run from the measured start
+    (``y0`` = the first ny samples: the k-step prediction whose k is the record's length); fit % (eq. 14) and
+    coverage % of the 99 % band (eqs. 8-9 propagated over at most k steps; the free run's adds the discrepancy
+    term), each scored on every sample. ``table["kstep_horizons"]`` names the horizons."""
+    folders = {p.name: p for p in find_records(data_dir)}
+    for name, row in table["records"].items():
+        rec = read_record(folders[name])
+        if table.get("max_seconds"):
+            rec = rec.window(0.0, min(table["max_seconds"], rec.n / rec.fs))
+        t0 = time.perf_counter()
+        out = {}
+        with np.errstate(all="ignore"):
+            for k in horizons:
+                run = model.simulate(rec.u, y=rec.y, horizon=int(k), method="linear")
+                out[str(k)] = {"fit": _finite(fit_percent(rec.y, run.mean)),
+                               "coverage": coverage(rec.y, run.lower, run.upper)}
+            run = model.simulate(rec.u, y0=rec.y[: model.ny], method="linear")
+            out["free_run"] = {"fit": _finite(fit_percent(rec.y, run.mean)),
+                               "coverage": coverage(rec.y, run.lower, run.upper)}
+        out["seconds"] = time.perf_counter() - t0
+        row["k_step"] = out
+        if log:
+            log(f"  {name}: k-step fit " + ", ".join(f"k={k} {_fmt(out[str(k)]['fit'])} %" for k in horizons)
+                + f", free run {_fmt(out['free_run']['fit'])} % ({out['seconds']:.0f} s)")
+    table["kstep_horizons"] = [int(k) for k in horizons]
+    return table
+
+
+def _finite(v) -> float | None:
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def kstep_markdown(table: dict) -> str:
+    """The k-step fits of ``add_kstep_rows`` as Markdown, by class: fit % (coverage %) by horizon."""
+    ks = [str(k) for k in table.get("kstep_horizons", KSTEP_HORIZONS)]
+    order = {c: i for i, c in enumerate(CLASSES)}
+    lines = ["| record | class | role | " + " | ".join(f"k = {k}" for k in ks) + " | free run (measured start) |",
+             "|" + "---|" * (4 + len(ks))]
+    for name, r in sorted(table["records"].items(), key=lambda kv: (order.get(kv[1]["class"], 9), kv[0])):
+        o = r.get("k_step")
+        if not o:
+            continue
+        cells = [f"{_fmt(o[k]['fit'])} ({o[k]['coverage']:.1f})" for k in [*ks, "free_run"]]
+        lines.append(f"| {name} | {r['class']} | {r['role']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+#: the gap cut out of the gap record (``gap_record``) [s], from its middle
+GAP_SECONDS = 0.5
+
+
+def gap_record(model, data_dir, out_dir, name: str = "Sine_20Hz", seconds: float | None = 16.0,
+               gap: float = GAP_SECONDS) -> dict:
+    """A real record with ``gap`` s cut out of its middle (u and y set to NaN there: a dropout), predicted
+    (``GPNARX.simulate(u, y=y)``, linearised: the answer NaN through the gap, the run restarted from the measured
+    outputs after it) against the same record whole, both from rest; fit % and coverage % skip the gap
+    (``metrics.summary``), and also on the samples after the gap alone. ``seconds``: the record's first seconds
+    (None: whole). A figure (``gap_record.png`` in ``out_dir``) shows the measured output, both means and the
+    band around the gap. Returns the figures (``figure``: the PNG's file name)."""
+    from gpnarx.model.gaps import find_gaps
+    from gpnarx.model.metrics import summary
+
+    folders = {p.name: p for p in find_records(data_dir)}
+    rec = read_record(folders[name])
+    if seconds:
+        rec = rec.window(0.0, min(seconds, rec.n / rec.fs))
+    n, fs = rec.n, rec.fs
+    a = n // 2 - int(round(gap * fs)) // 2
+    b = a + int(round(gap * fs))
+    u, y = rec.u.copy(), rec.y.copy()
+    u[a:b] = np.nan
+    y[a:b] = np.nan
+    whole = model.simulate(rec.u, method="linear")
+    cut = model.simulate(u, y=y, method="linear")
+    after = slice(b, n)
+    out = {"record": name, "seconds": n / fs, "fs": fs, "gaps": [[g0, g1] for g0, g1 in find_gaps(u, y)],
+           "gap_seconds": (b - a) / fs, "gap_start_s": a / fs, "gap_end_s": b / fs,
+           "nan_through_gap": bool(np.all(np.isnan(cut.mean[a:b]))),
+           "cut": summary(rec.y, cut.mean, cut.lower, cut.upper),
+           "whole": summary(rec.y, np.where(np.isnan(cut.mean), np.nan, whole.mean), whole.lower, whole.upper),
+           "cut_after": summary(rec.y[after], cut.mean[after], cut.lower[after], cut.upper[after]),
+           "whole_after": summary(rec.y[after], whole.mean[after], whole.lower[after], whole.upper[after]),
+           "figure": "gap_record.png"}
+    _gap_figure(Path(out_dir) / out["figure"], rec, whole, cut, a, b)
+    return out
+
+
+def _gap_figure(path: Path, rec: Record, whole, cut, a: int, b: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fs = rec.fs
+    lo, hi = max(0, a - int(0.5 * fs)), min(rec.n, b + int(1.0 * fs))
+    t = np.arange(lo, hi) / fs
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    ax.plot(t, rec.y[lo:hi], color="k", lw=0.8, label="measured y (the gap cut out of u and y)")
+    ax.plot(t, whole.mean[lo:hi], color="tab:blue", lw=0.8, alpha=0.7, label="record whole: free run from rest")
+    ax.fill_between(t, cut.lower[lo:hi], cut.upper[lo:hi], color="tab:orange", alpha=0.3, lw=0)
+    ax.plot(t, cut.mean[lo:hi], color="tab:orange", lw=1.0, label="record with the gap: 99 % band and mean")
+    ax.axvspan(a / fs, b / fs, color="0.85", zorder=0, label=f"gap ({(b - a) / fs:.2f} s)")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(f"y [{rec.units.get('y') or 'm/s'}]")
+    ax.set_title(f"{rec.name}: {(b - a) / fs:.1f} s cut out of its middle, predicted (linearised)")
+    ax.legend(loc="upper right", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def gap_markdown(g: dict) -> str:
+    """The gap record of ``gap_record`` as Markdown (a table and its figure)."""
+    rows = [("record with the gap", g["cut"], g["cut_after"]), ("record whole", g["whole"], g["whole_after"])]
+    lines = ["| prediction | fit % | coverage % | fit % after the gap | coverage % after the gap |", "|---|---|---|---|---|"]
+    for label, s, t in rows:
+        lines.append(f"| {label} | {_fmt(s['fit'])} | {s['coverage']:.1f} | {_fmt(t['fit'])} | {t['coverage']:.1f} |")
+    return ("\n".join(lines) + f"\n\n![{g['record']} with a gap](runs/bert-real/{g['figure']})\n")
+
+
 def residual_markdown(table: dict) -> str:
     """The residual tests of ``add_residual_rows`` as Markdown, by class."""
     order = {c: i for i, c in enumerate(CLASSES)}

@@ -98,3 +98,40 @@ def test_table_checks_apply_every_target_to_held_out_records():
     assert rt.table_checks({"records": rows, "mc_paths": 0})["methods"]["whole_linear"]["max_noise_sharpness"] == 1.6
     rows["t1"] = _row("train", "sweep", 20.0, 10.0, 90.0, 90.0, peak=4.0)
     assert rt.table_checks({"records": rows, "mc_paths": 0})["diverged"] == ["t1"]
+
+
+@pytest.fixture(scope="module")
+def small_real():
+    """A small GP-NARX (ny = nu = 4, 300 rows) fitted on the first 4 s of the real 0.25 V noise run, and the lab
+    data folder (skipped without it)."""
+    from conftest import BERT_DATA
+
+    from gpnarx.model.estimator import GPNARX
+    from gpnarx.storage.record_files import read_record
+
+    folders = {p.name: p for p in rt.find_records(BERT_DATA)} if BERT_DATA.is_dir() else {}
+    if "Rand0p25" not in folders or "Sine_20Hz" not in folders:
+        pytest.skip("the lab records are not here")
+    rec = read_record(folders["Rand0p25"]).window(0.0, 4.0)
+    return GPNARX(ny=4, nu=4, max_train_points=300, n_restarts=0).fit([rec]), BERT_DATA
+
+
+def test_kstep_rows_and_the_gap_record(small_real, tmp_path):
+    model, data = small_real
+    table = {"records": {"Sine_20Hz": {"class": "sine near resonance", "role": "validate"},
+                         "Rand0p10": {"class": "noise", "role": "validate"}}, "max_seconds": 3.0}
+    rt.add_kstep_rows(model, table, data, horizons=(1, 8, 64))
+    assert table["kstep_horizons"] == [1, 8, 64]
+    for name, row in table["records"].items():
+        f = {k: v["fit"] for k, v in row["k_step"].items() if k != "seconds"}
+        assert f["1"] > f["8"] > f["64"] > f["free_run"] - 1.0, (name, f)  # farther ahead, worse
+        assert all(0.0 <= v["coverage"] <= 100.0 for k, v in row["k_step"].items() if k != "seconds")
+    text = rt.kstep_markdown(table)
+    assert "| k = 1 | k = 8 | k = 64 | free run (measured start) |" in text and "| Rand0p10 | noise |" in text
+    g = rt.gap_record(model, data, tmp_path, seconds=3.0)
+    assert g["nan_through_gap"] and g["gap_seconds"] == pytest.approx(0.5, abs=1e-3)
+    assert g["gaps"] == [[int(round(1.25 * 1024)), int(round(1.75 * 1024))]]
+    assert (tmp_path / g["figure"]).stat().st_size > 10_000
+    # after the gap the run restarts from the measured outputs: no worse than the whole record's free run there
+    assert g["cut_after"]["fit"] >= g["whole_after"]["fit"] - 1.0
+    assert "![Sine_20Hz with a gap](runs/bert-real/gap_record.png)" in rt.gap_markdown(g)

@@ -151,7 +151,8 @@ def reproduce(system: str, out_dir, *, quick: bool = False, jobs: int = -1, sche
             f"linearised and {n_paths if table_mc is None else table_mc}-path Monte Carlo (0: linearised only), next "
             f"to an ARX chosen by the same lag search and an ARX fitted on each record's class")
         table_paths = n_paths if table_mc is None else int(table_mc)
-        table = every_record_table(res["model"], cfg, quick=quick, mc_paths=table_paths, jobs=jobs, log=log)
+        table = every_record_table(res["model"], cfg, quick=quick, mc_paths=table_paths, jobs=jobs, log=log,
+                                   out_dir=out)
         summary["real_table"] = table
         c = table["checks"]
         for key, m in c["methods"].items():
@@ -256,6 +257,24 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
                  "means input-driven dynamics the model has not captured there; a coloured but u-independent "
                  "residual is also what sensor noise in the fed-back output lags gives.\n\n"
                  + load_study("real_table").residual_markdown(table))
+    if any("k_step" in r for r in table["records"].values()):
+        page += ("\n## Fit by prediction horizon (k-step-ahead)\n\nEach record whole, linearised: every k samples "
+                 "the free run restarts from the measured outputs (`predict` with `horizon` k, `gpnarx predict "
+                 "--horizon K`; MATLAB `compare(data, sys, k)`), so a sample is predicted at most k steps ahead of "
+                 "the last measured output it uses (k = 1: the one-step prediction of eqs. 8-9). Fit % (eq. 14) with "
+                 "the coverage % of the 99 % band in brackets; that band is eqs. 8-9 propagated over at most k "
+                 "steps, without the free run's discrepancy term. Free run: from the record's first ny measured "
+                 "outputs to its end (k = the record's length), with the bundle's band. At 1024 Hz, k = 8, 64 "
+                 "and 512 are 7.8 ms, 62.5 ms and 0.5 s ahead.\n\n" + load_study("real_table").kstep_markdown(table))
+    if table.get("gap_record"):
+        g = table["gap_record"]
+        page += (f"\n## A record with a gap\n\n{g['record']} ({g['seconds']:.0f} s) with "
+                 f"{g['gap_seconds']:.2f} s cut out of its middle ({g['gap_start_s']:.2f}-{g['gap_end_s']:.2f} s: u and "
+                 "y set to NaN, as an acquisition that dropped samples sends it), predicted linearised from rest "
+                 "with its measured y: the answer is NaN through the gap, and after it the run restarts from the "
+                 "measured outputs (the first ny samples after the gap); fit and coverage skip the gap "
+                 "(`model/gaps.py`). Against it, the same record whole, free-run from rest, scored on the same "
+                 "samples.\n\n" + load_study("real_table").gap_markdown(g))
     if table.get("noise_lolo"):
         page += ("\n## Leave one noise level out\n\nA plant sends noise levels the model never saw. For each noise run "
                  "of the data folder, the config is refitted (its lags, its `[model]`, ML-II, the noise and band "
@@ -301,10 +320,12 @@ def _surface_settings_words(settings: dict) -> str:
 
 
 def every_record_table(model, cfg, *, quick: bool, mc_paths: int, jobs: int = -1, log=None,
-                       lolo_mc: int | None = None) -> dict:
+                       lolo_mc: int | None = None, out_dir=None) -> dict:
     """bert-real's every-record table (``studies.real_table``) with its checks: the ARX baseline searched on the
     protocol's own lag grid by its own rule, records cut to their first seconds in quick mode. The run and
-    ``--table-only`` both score through here, so the re-scored table is the run's with other paths."""
+    ``--table-only`` both score through here, so the re-scored table is the run's with other paths. With
+    ``out_dir`` (the run folder), also the record with a gap (``studies.real_table.gap_record``, its figure
+    written there)."""
     rt = load_study("real_table")
     table = rt.real_table(model, cfg, bert_data_dir(), mc_paths=int(mc_paths),
                           max_seconds=QUICK["max_seconds"] if quick else None, jobs=jobs, log=log,
@@ -312,8 +333,21 @@ def every_record_table(model, cfg, *, quick: bool, mc_paths: int, jobs: int = -1
                           lag_criterion=LAG_CRITERION["bert-real"])
     table["checks"] = rt.table_checks(table)
     rt.add_residual_rows(model, table, bert_data_dir(), log=log)
+    add_kstep(model, table, out_dir, log=log)
     table["noise_lolo"] = noise_lolo_table(model, cfg, quick=quick, mc_paths=mc_paths if lolo_mc is None else lolo_mc,
                                            log=log)
+    return table
+
+
+def add_kstep(model, table: dict, out_dir=None, log=None) -> dict:
+    """The real-rig page's k-step fit table (``studies.real_table.add_kstep_rows``: fit by horizon k = 1, 8, 64,
+    512 and the free run from the measured start, on every record) and, with ``out_dir``, the record with
+    0.5 s cut out of its middle, predicted (``gap_record``: ``table["gap_record"]``, the figure in ``out_dir``;
+    the record's first ``max_seconds`` in quick mode). Computable from any bundle's model and a table."""
+    rt = load_study("real_table")
+    rt.add_kstep_rows(model, table, bert_data_dir(), log=log)
+    if out_dir is not None:
+        table["gap_record"] = rt.gap_record(model, bert_data_dir(), out_dir, seconds=table.get("max_seconds"))
     return table
 
 
@@ -351,12 +385,13 @@ def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=No
     cfg = load_config(shipped_config("bert-real"))
     quick = bool(summary.get("quick"))
     if mc_class is None:
-        table = every_record_table(model, cfg, quick=quick, mc_paths=int(table_mc), jobs=jobs, log=log)
+        table = every_record_table(model, cfg, quick=quick, mc_paths=int(table_mc), jobs=jobs, log=log, out_dir=out)
     else:
         rt = load_study("real_table")
         if mc_class not in rt.CLASSES:
             raise ValueError(f"mc_class must be one of {rt.CLASSES}, got {mc_class!r}")
-        table = every_record_table(model, cfg, quick=quick, mc_paths=0, jobs=jobs, log=log, lolo_mc=int(table_mc))
+        table = every_record_table(model, cfg, quick=quick, mc_paths=0, jobs=jobs, log=log, lolo_mc=int(table_mc),
+                                   out_dir=out)
         names = [n for n, r in table["records"].items() if r["class"] == mc_class]
         rt.add_mc_rows(model, table, bert_data_dir(), names, int(table_mc), log=log)
         table["mc_note"] = (f"Monte Carlo ({int(table_mc)} paths) on the {mc_class} records only (`gpnarx reproduce "

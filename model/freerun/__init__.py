@@ -14,6 +14,8 @@ A run reads a ``Predictor``, the fitted model (posterior, scalers, lags, diverge
 Both on numpy, or on JAX as compiled programs (``jax_backend``). Every run returns a ``FreeRun`` (``results``):
 mean, std, the predictive band for the measured output y (sigma_y^2 included) and the latent band for the
 noise-free output f, in output units, and the ``FreeRunState`` the next chunk of the record continues from.
+``horizon.run_horizon``: the k-step-ahead prediction, the run restarted from the measured outputs every k samples
+(``GPNARX.simulate(u, y=y, horizon=k)``; imported by the estimator, not a runner of ``RUNNERS``).
 ``simulate_mc`` and ``simulate_linear`` take a posterior, its scalers and lags instead of the predictor, and the
 spec's fields as keywords. ``reference`` holds the Monte Carlo loop with eq. 8-9 at every path: the tests' and
 benchmarks' baseline.
