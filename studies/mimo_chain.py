@@ -63,10 +63,10 @@ def run(quick: bool = True, out: Path | None = None, log=print) -> dict:
     t0 = time.perf_counter()
     train, check = records(quick)
     t_sim = time.perf_counter() - t0
-    model = MIMOGPNARX(ny=8, nu=6, max_train_points=400 if quick else 1000, n_restarts=0, seed=0)
+    model = MIMOGPNARX(ny=8, nu=6, max_train_points=400 if quick else 800, n_restarts=0, seed=0)
     model.fit(train)
     log(f"fitted {model.n_outputs_} outputs on {model.n_rows_} rows in {model.fit_seconds_:.1f} s")
-    methods = {"linear": {}, "mc": {"n_paths": 128 if quick else 512, "seed": 0}}
+    methods = {"linear": {}, "mc": {"n_paths": 128 if quick else 256, "seed": 0}}
     results = {"quick": quick, "fs": FS, "noise_share": NOISE_SHARE, "ny": model.ny, "nu": model.nu,
                "train": [r.name for r in train], "simulate_seconds": t_sim, "fit_seconds": model.fit_seconds_,
                "channels": list(CHANNELS), "hyperparameters": [g.theta_.tolist() for g in model.outputs_],
