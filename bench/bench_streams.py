@@ -19,6 +19,12 @@ chunks shared the workers perfectly. RESULT line: ``streams=`` (the largest N su
 bound), ``ratio=``, ``p99_ms_at_max=``, ``limit=`` (``found``, or a lower bound when every count tried was
 sustained), the load average before and after (``load_before``, ``load_after``).
 
+``--replicas R`` (default 1): R ``gpnarx serve`` processes behind one address, as docs/deploy.md runs them (Compose's
+service name, a Kubernetes Service): a round-robin TCP proxy in this process hands each new client connection to
+the next replica, every replica with the same ``GPNARX_STREAM_KEY``, so a stream's chunks may land on any replica
+and continue there from the state token. The bound is then R x W x chunk / t1 and ``replicas=`` is on the line.
+All replicas, the proxy and the clients share this machine's cores.
+
 Units: seconds of signal per chunk [s], latencies [ms].
 """
 from __future__ import annotations
@@ -100,6 +106,59 @@ def summarise(results, chunk_s: float) -> dict:
     return out
 
 
+class RoundRobinProxy:
+    """One loopback address in front of several: each accepted connection is piped, both ways, to the next
+    backend port in turn (per connection, as a Kubernetes Service or Compose's DNS name spreads clients). Runs
+    its own event loop on a daemon thread; ``connections`` counts the connections handed to each backend."""
+
+    def __init__(self, backends: list[int]):
+        import threading
+
+        self.backends, self.port = list(backends), C.free_port()
+        self.connections = [0] * len(self.backends)
+        self._next = 0
+        self._loop = asyncio.new_event_loop()
+        self._ready = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True, name="bench-streams-proxy")
+        self._thread.start()
+        if not self._ready.wait(10.0):
+            raise SystemExit("the round-robin proxy did not start")
+
+    async def _pipe(self, reader, writer):
+        try:
+            while data := await reader.read(65536):
+                writer.write(data)
+                await writer.drain()
+        except (ConnectionError, asyncio.CancelledError):
+            pass
+        finally:
+            writer.close()
+
+    async def _handle(self, reader, writer):
+        k = self._next
+        self._next = (k + 1) % len(self.backends)
+        self.connections[k] += 1
+        try:
+            br, bw = await asyncio.open_connection("127.0.0.1", self.backends[k])
+        except OSError:
+            writer.close()
+            return
+        await asyncio.gather(self._pipe(reader, bw), self._pipe(br, writer))
+
+    def _serve(self):
+        asyncio.set_event_loop(self._loop)
+        server = self._loop.run_until_complete(asyncio.start_server(self._handle, "127.0.0.1", self.port))
+        self._ready.set()
+        try:
+            self._loop.run_forever()
+        finally:
+            server.close()
+
+    def close(self):
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(5.0)
+
+
 def quick_registry(tmp: Path) -> tuple[str, Path]:
     """A small Bouc-Wen bundle (bench_load's) and a 12 s multisine record of it, for --quick."""
     import bench_load as L
@@ -123,6 +182,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=None, help="seconds of each stream (default: the record)")
     ap.add_argument("--streams", default=None, help="stream counts to try, ascending (default 4,8,12,16,20,24)")
     ap.add_argument("--workers", type=int, default=2, help="server worker threads (default 2)")
+    ap.add_argument("--replicas", type=int, default=1,
+                    help="gpnarx serve processes behind one round-robin address (default 1)")
     args = ap.parse_args(argv)
     from gpnarx.storage.record_files import read_record
 
@@ -142,40 +203,59 @@ def main(argv=None) -> int:
     parts = chunks_of(rec.u, rec.y, rec.fs, args.chunk, seconds)
     if len(parts) < 2:
         raise SystemExit(f"the record gives {len(parts)} chunk(s) of {args.chunk} s; need at least 2")
+    if args.replicas < 1:
+        raise SystemExit("--replicas must be at least 1")
     path = f"/v1/models/{model}/{args.operation}"
-    port = C.free_port()
-    url = f"http://127.0.0.1:{port}"
+    ports = [C.free_port() for _ in range(args.replicas)]
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("GPNARX_API_KEY", None)
-    log_path = Path(tmp.name) / "serve.log"
+    if args.replicas > 1:  # one key on every replica: a stream's token is good on any of them
+        env["GPNARX_STREAM_KEY"] = os.urandom(16).hex()
     load_before = C.load()
-    with open(log_path, "w") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "gpnarx", "serve", "--registry", str(registry), "--port",
-                                 str(port), "--workers", str(args.workers), "--queue", str(4 * max(counts)),
-                                 "--log-level", "warning"], cwd=str(ROOT), env=env, stdout=log, stderr=log)
-        try:
-            C.wait_ready(url, proc, 300.0, log_path)
-            one = summarise(asyncio.run(run_streams(url, path, parts, rec.fs, args.chunk, 1, args.operation,
-                                                    args.method)), args.chunk)
-            bound = int(args.workers * args.chunk * 1e3 // one["p50_ms"]) if one["p50_ms"] > 0 else 0
-            print(f"one stream: p50 {one['p50_ms']:.1f} ms, p99 {one['p99_ms']:.1f} ms over {one['chunks']} chunks "
-                  f"-> at most {bound} streams on {args.workers} workers", file=sys.stderr)
-            best, at_best, rows = 0, None, []
-            for n in counts:
-                s = summarise(asyncio.run(run_streams(url, path, parts, rec.fs, args.chunk, n, args.operation,
-                                                      args.method)), args.chunk)
-                rows.append((n, s))
-                print(f"{n:3d} streams: p50 {s['p50_ms']:.0f} ms, p99 {s['p99_ms']:.0f} ms, max {s['max_ms']:.0f} ms, "
-                      f"503 {s['shed_503']}, errors {s['errors']}, lag {s['max_lag_s']:.2f} s -> "
-                      f"{'sustained' if s['sustained'] else 'NOT sustained'}", file=sys.stderr)
-                if not s["sustained"]:
-                    break
-                best, at_best = n, s
-        finally:
+    procs, logs, proxy = [], [], None
+    try:
+        for k, port in enumerate(ports):
+            log_path = Path(tmp.name) / f"serve-{k}.log"
+            logs.append((open(log_path, "w"), log_path))
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "gpnarx", "serve", "--registry", str(registry), "--port", str(port),
+                 "--workers", str(args.workers), "--queue", str(4 * max(counts)), "--log-level", "warning"],
+                cwd=str(ROOT), env=env, stdout=logs[-1][0], stderr=logs[-1][0]))
+        for proc, port, (_, log_path) in zip(procs, ports, logs):
+            C.wait_ready(f"http://127.0.0.1:{port}", proc, 300.0, log_path)
+        if args.replicas > 1:
+            proxy = RoundRobinProxy(ports)
+            url = f"http://127.0.0.1:{proxy.port}"
+        else:
+            url = f"http://127.0.0.1:{ports[0]}"
+        one = summarise(asyncio.run(run_streams(url, path, parts, rec.fs, args.chunk, 1, args.operation,
+                                                args.method)), args.chunk)
+        slots = args.replicas * args.workers
+        bound = int(slots * args.chunk * 1e3 // one["p50_ms"]) if one["p50_ms"] > 0 else 0
+        print(f"one stream: p50 {one['p50_ms']:.1f} ms, p99 {one['p99_ms']:.1f} ms over {one['chunks']} chunks "
+              f"-> at most {bound} streams on {args.replicas} x {args.workers} workers", file=sys.stderr)
+        best, at_best, rows = 0, None, []
+        for n in counts:
+            s = summarise(asyncio.run(run_streams(url, path, parts, rec.fs, args.chunk, n, args.operation,
+                                                  args.method)), args.chunk)
+            rows.append((n, s))
+            print(f"{n:3d} streams: p50 {s['p50_ms']:.0f} ms, p99 {s['p99_ms']:.0f} ms, max {s['max_ms']:.0f} ms, "
+                  f"503 {s['shed_503']}, errors {s['errors']}, lag {s['max_lag_s']:.2f} s -> "
+                  f"{'sustained' if s['sustained'] else 'NOT sustained'}", file=sys.stderr)
+            if not s["sustained"]:
+                break
+            best, at_best = n, s
+    finally:
+        if proxy is not None:
+            proxy.close()
+        for proc in procs:
             C.stop_server(proc)
+        for f, _ in logs:
+            f.close()
+    extra = {"replicas": args.replicas, "connections": "/".join(map(str, proxy.connections))} if proxy else {}
     C.result(bench="streams", model=model, operation=args.operation, method=args.method, chunk_s=args.chunk,
-             stream_s=len(parts) * args.chunk, workers=args.workers, streams=best, baseline=bound,
-             baseline_what="workers-x-chunk/one-stream-p50",
+             stream_s=len(parts) * args.chunk, workers=args.workers, **extra, streams=best, baseline=bound,
+             baseline_what=("replicas-x-" if args.replicas > 1 else "") + "workers-x-chunk/one-stream-p50",
              ratio=round(best / bound, 3) if bound else None, single_p50_ms=round(one["p50_ms"], 1),
              p99_ms_at_max=round(at_best["p99_ms"], 1) if at_best else None,
              tried=",".join(str(n) for n, _ in rows),
