@@ -5,8 +5,8 @@ x_i = [y_{i-1..i-ny} of every output, u_{i..i-nu+1} of every input], standardise
 GP gives its mean (eq. 8) and latent variance (eq. 9) at the same regressor; the outputs' GPs are independent
 given x, so the step's own noise is diagonal across outputs.
 
-* ``linear`` (``run_mimo_linear``): first-order propagation of the joint mean and covariance of every output's
-  lags. The state s = [y_{i-1} (every output), ..., y_{i-ny} (every output)] (output units) has mean m and
+* ``linear`` (``run_mimo_linear``, in three passes as ``freerun.linear``): first-order propagation of the joint
+  mean and covariance of every output's lags. The state s = [y_{i-1} (every output), ..., y_{i-ny} (every output)] (output units) has mean m and
   covariance S (n_outputs ny square). With J (n_outputs x n_outputs ny) the gradient of each output's GP mean
   w.r.t. the lagged outputs at the mean regressor (``mean_grad``, chain rule through the standardisation):
   cov(y_i) = diag(sigma_f^2 + sigma_y^2) + J S J^T (the outputs' joint covariance at step i), cov(y_i, s) = J S,
@@ -112,7 +112,13 @@ def _refuse_unbuilt(spec: RunSpec) -> None:
 
 
 def run_mimo_linear(predictor: MIMOPredictor, u, spec: RunSpec) -> FreeRun:
-    """The linearised free run of input u (n, n_inputs) [input units]; see the module docstring."""
+    """The linearised free run of input u (n, n_inputs) [input units]; see the module docstring.
+
+    Three passes, as the single-output run's (``freerun.linear``): 1. the mean recursion alone (eq. 8 of every
+    output at the mean regressor, each fed back; it does not depend on the variances), 2. sigma_f^2 (eq. 9) and
+    the mean's gradient of every output at every mean regressor in row blocks (``mean_var_grad``, BLAS-3), 3. the
+    joint covariance recursion. Pass 2 and 3 go chunk by chunk (``_CHUNK`` rows), so memory stays bounded.
+    """
     _refuse_unbuilt(spec)
     t_start = time.perf_counter()
     confidence = check_confidence(spec.confidence)
@@ -126,58 +132,70 @@ def run_mimo_linear(predictor: MIMOPredictor, u, spec: RunSpec) -> FreeRun:
     ym, ys = np.asarray(predictor.y_mean, float), np.asarray(predictor.y_scale, float)
     Ulag = predictor.input_lags(U)
     noise = predictor.noise(spec)
+    posts = predictor.posteriors
     caps = VAR_CAP * ys * ys  # variance caps in output units
-    # state order (lag-major) from the regressor's (output-major): state a = (j - 1) no + o <- column o ny + j - 1
-    perm = np.array([o * ny + j for j in range(ny) for o in range(no)])
-    to_reg = np.argsort(perm)  # regressor order from the state's
     xs_y = xs[:A]
-    mean = np.zeros((n, no))
+    rows = max(n - i0, 0)
+    # pass 1: hist[ny + i] = the mean outputs at step i (output units); the mean regressor of every step in X
+    hist = np.zeros((n + ny, no))
+    if i0:
+        hist[ny: 2 * ny] = y0v
+    X = np.empty((rows, xm.size))
+    weights = [np.asarray(p.mean_weights, float) for p in posts]
+    shifts = [float(p.mean_shift) for p in posts]
+    mu = np.empty(no)
+    for i in range(i0, n):
+        x = X[i - i0]
+        x[:A] = hist[i: i + ny][::-1].T.ravel()  # [y_{i-1..i-ny} of output 0, ..., of the last output]
+        x[:A] -= xm[:A]
+        x[:A] /= xs_y
+        np.clip(x[:A], -LAG_CLIP, LAG_CLIP, out=x[:A])  # a diverging mean stays finite
+        x[A:] = Ulag[i]
+        for o, post in enumerate(posts):  # eq. 8 as ``mean_grad`` computes it
+            mu[o] = float(post.cross(x[None, :])[0] @ weights[o]) + shifts[o]
+        hist[ny + i] = mu * ys + ym
+        if spec.progress is not None and (i % 1024 == 0):
+            spec.progress(i + 1, 2 * n)
+    mean = hist[ny:].copy()
     var = np.zeros((n, no))
     lvar = np.zeros((n, no))
-    if i0:
-        mean[:i0] = y0v
-    m = np.zeros(A)  # state mean, lag-major: m[(j - 1) no + o] = y_{i-j} of output o
-    if i0:
-        m[:] = y0v[::-1].ravel()
+    # state order (lag-major) from the regressor's (output-major): state a = (j - 1) no + o <- column o ny + j - 1
+    perm = np.array([o * ny + j for j in range(ny) for o in range(no)])
     S = np.zeros((A, A))
-    x = np.empty(xm.size)
-    mu = np.empty(no)
-    vf = np.empty(no)
-    Jreg = np.empty((no, A))
-    posts = predictor.posteriors
-    for i in range(i0, n):
-        x[:A] = np.clip((m[to_reg] - xm[:A]) / xs_y, -LAG_CLIP, LAG_CLIP)
-        x[A:] = Ulag[i]
+    smax = float(np.max(caps))
+    dg = np.diag_indices(no)
+    for c0 in range(0, rows, _CHUNK):
+        c1 = min(rows, c0 + _CHUNK)
+        # pass 2: sigma_f^2 and d mu / d state of every output at the chunk's mean regressors
+        vf = np.empty((c1 - c0, no))
+        J = np.empty((c1 - c0, no, A))
         for o, post in enumerate(posts):
-            mu[o], vf[o], g = post.mean_grad(x)
-            Jreg[o] = g[:A] / xs_y * ys[o]
-        J = Jreg[:, perm]  # d mu_out / d state (output units)
-        SJ = S @ J.T  # (A, no)
-        if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
-            cap = float(np.max(caps))
-            SJ = np.nan_to_num(SJ, nan=cap, posinf=cap, neginf=-cap)
-        np.clip(SJ, -caps[None, :].max(), caps[None, :].max(), out=SJ)
-        prop = J @ SJ  # J S J^T (no, no)
-        V = prop.copy()
+            _, vf[:, o], grad = post.mean_var_grad(X[c0:c1])
+            J[:, o, :] = (grad[:, :A] / xs_y * ys[o])[:, perm]
         q = (vf + noise) * ys * ys
-        V[np.diag_indices(no)] += q
-        d = np.diag(V).copy()
-        d = np.where(np.isfinite(d), np.minimum(d, caps), caps)
-        V[np.diag_indices(no)] = d
-        y_mean = mu * ys + ym
-        mean[i] = y_mean
-        var[i] = d
-        lat = vf * ys * ys + np.diag(prop)
-        lvar[i] = np.where(np.isfinite(lat), np.minimum(lat, d), d)
-        # shift the state: the new first block is y_i
-        S[no:, no:] = S[:-no, :-no]
-        S[:no, no:] = SJ[:-no].T
-        S[no:, :no] = SJ[:-no]
-        S[:no, :no] = V
-        m[no:] = m[:-no]
-        m[:no] = y_mean
-        if spec.progress is not None and (i % 256 == 0 or i == n - 1):
-            spec.progress(i + 1, n)
+        # pass 3: the joint covariance of every output's lags, step by step
+        for k in range(c1 - c0):
+            Jk = J[k]
+            SJ = S @ Jk.T  # (A, no): cov(state, y_i)
+            if not np.all(np.isfinite(SJ)):  # a diverging run keeps a finite state covariance
+                SJ = np.nan_to_num(SJ, nan=smax, posinf=smax, neginf=-smax)
+            np.clip(SJ, -smax, smax, out=SJ)
+            prop = Jk @ SJ  # J S J^T (no, no)
+            V = prop.copy()
+            V[dg] += q[k]
+            d = V[dg]
+            d = np.where(np.isfinite(d), np.minimum(d, caps), caps)
+            V[dg] = d
+            i = i0 + c0 + k
+            var[i] = d
+            lat = vf[k] * ys * ys + np.diag(prop)
+            lvar[i] = np.where(np.isfinite(lat), np.minimum(lat, d), d)
+            S[no:, no:] = S[:-no, :-no]  # shift: the new first block is y_i
+            S[:no, no:] = SJ[:-no].T
+            S[no:, :no] = SJ[:-no]
+            S[:no, :no] = V
+        if spec.progress is not None:
+            spec.progress(n + i0 + c1, 2 * n)
     std = np.sqrt(np.maximum(var, 0.0))
     lstd = np.sqrt(np.maximum(lvar, 0.0))
     diverged = 0
@@ -186,6 +204,9 @@ def run_mimo_linear(predictor: MIMOPredictor, u, spec: RunSpec) -> FreeRun:
     return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
                    time.perf_counter() - t_start, n - i0, diverged_paths=diverged,
                    latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)
+
+
+_CHUNK = 4096  # rows of pass 2 and 3 at a time (a multiple of mean_var_grad's block)
 
 
 def run_mimo_mc(predictor: MIMOPredictor, u, spec: RunSpec) -> FreeRun:
