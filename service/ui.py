@@ -158,7 +158,12 @@ def parse_uploads(uploads: list[tuple[str, str, bytes]], fs: float | None, max_s
                         shaker_source=LMS_INPUT[0], time_source=LMS_OUTPUT[0], **bounds)
         return rec, "lms-testlab"
     name, _, data = uploads[0]
-    return parse_record(data, name, fs=fs, **bounds), PurePath(name).suffix.lower().lstrip(".")
+    rec = parse_record(data, name, fs=fs, **bounds)
+    if rec.u.ndim != 1 or (rec.y is not None and rec.y.ndim != 1):
+        chans = [c.name for c in rec.input_channels() + rec.output_channels()]
+        raise ProblemError(422, f"{name} holds several channels ({', '.join(chans)}); the service answers "
+                                "single-channel records (answers per channel are not built yet)", "files")
+    return rec, PurePath(name).suffix.lower().lstrip(".")
 
 
 # ------------------------------------------------------------------------------------------ page

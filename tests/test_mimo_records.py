@@ -134,3 +134,17 @@ def test_csv_named_channels_round_trip(tmp_path):
         parse_record(b"time,u,y:a,y:a\n0,1,2,3\n0.1,1,2,3\n", "x.csv")
     with pytest.raises(RecordFileError, match="written as .npz"):
         write_record(tmp_path / "rig.mat", rec)
+
+
+def test_service_parse_refuses_several_channels_on_files(tmp_path):
+    from gpnarx.service.problems import ProblemError
+    from gpnarx.service.ui import parse_uploads
+
+    rec = Record(np.arange(20.0), np.ones((20, 2)), 100.0, channels={"y": [("a", "m"), ("b", "m")]})
+    data = write_record(tmp_path / "two.npz", rec).read_bytes()
+    with pytest.raises(ProblemError) as err:
+        parse_uploads([("two.npz", "", data)], None)
+    assert err.value.status == 422 and err.value.field == "files" and "a, b" in err.value.detail
+    one = write_record(tmp_path / "one.npz", Record(np.arange(20.0), np.ones(20), 100.0)).read_bytes()
+    got, fmt = parse_uploads([("one.npz", "", one)], None)
+    assert fmt == "npz" and got.y.shape == (20,)
