@@ -135,3 +135,16 @@ def test_two_outputs_free_run_joint_covariance_and_mc(two):
         m.simulate(np.ones((10, 2)))
     with pytest.raises(ValueError, match="y0 must hold"):
         m.simulate(u, y0=np.zeros((2, 1)))
+
+
+def test_one_output_sparse_reduces_to_gpnarx():
+    u, y = _sdof(500, seed=3)
+    kw = dict(ny=2, nu=2, mode="sparse", n_inducing=40, max_train_points=200, n_restarts=0, seed=1)
+    single, mimo = GPNARX(**kw).fit([(u, y)]), MIMOGPNARX(**kw).fit([(u, y)])
+    assert mimo.outputs_[0].posterior_.kind == "sparse"
+    assert np.allclose(mimo.outputs_[0].theta_, single.theta_, rtol=1e-10)
+    ut = _sdof(200, seed=4)[0]
+    a, b = single.simulate(ut, method="linear"), mimo.simulate(ut, method="linear")
+    scale = np.max(np.abs(a.mean))
+    assert np.max(np.abs(b.mean[:, 0] - a.mean)) < 1e-9 * scale
+    assert np.allclose(b.std[:, 0], a.std, rtol=1e-7, atol=1e-12 * scale)
