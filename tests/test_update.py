@@ -390,3 +390,19 @@ def test_a_sparse_model_is_refused_with_a_retrain(tmp_path, capsys):
     rec = write_npz(tmp_path / "r.npz", record(1, 200))
     assert main(["update", "sp", str(rec), "--registry", str(tmp_path)]) == 1
     assert "needs a retrain (gpnarx train)" in capsys.readouterr().err
+
+
+def test_docs_updates_page_is_the_render_of_its_stored_run():
+    """docs/updates.md's real-rig block is the render of docs/runs/update/bert-real-hold-19Hz.json, by code."""
+    from gpnarx.training.pages.update import BEGIN, END, block, render_into
+
+    root = Path(__file__).resolve().parents[1]
+    rel = "docs/runs/update/bert-real-hold-19Hz.json"
+    run = json.loads((root / rel).read_text())
+    page = (root / "docs" / "updates.md").read_text()
+    assert render_into(page, run, rel) == page, "docs/updates.md differs from the render of its stored run"
+    rendered = block(run, rel)
+    assert rendered.startswith(BEGIN) and rendered.endswith(END)
+    for name in run["before"]:  # every validate record, before and after
+        assert f"`{name}`" in rendered
+    assert set(run["before"]) == set(run["after"]) and len(run["before"]) == 7

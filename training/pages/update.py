@@ -50,6 +50,9 @@ def block(run: dict, run_path: str) -> str:
            "",
            f"Scored on the config's `validate` records (no choice saw them), {run['propagation']['method']} free run "
            f"from each record's start rule: fit % (eq. 14) and 99 % coverage.",
+           *([""] + [f"`{ref['bundle']}`: a model trained on every training record, the held-back sine included "
+                     f"(ML-II chose its hyperparameters with it; {ref['n_train']} rows), scored the same way."]
+             if ref else []),
            "", *table(head, rows), "",
            f"Worst fit {pct(worst['before'], 2)} before, {pct(worst['after'], 2)} after; lowest coverage "
            f"{pct(cov['before'], 2)} before, {pct(cov['after'], 2)} after.", "", END]
