@@ -127,10 +127,15 @@ def read_cli_record(path, fs=None):
 
     check_fs_option(fs)
     try:
-        return read_record(path, fs=fs)
+        rec = read_record(path, fs=fs)
     except NoSamplingFrequency:
         raise UsageError(f"{path}: the file holds no sampling frequency (no time column / fs variable); "
                          f"pass --fs HZ") from None
+    if rec.u.ndim != 1 or (rec.y is not None and rec.y.ndim != 1):
+        chans = [c.name for c in rec.input_channels() + rec.output_channels()]
+        raise CLIError(f"{path}: holds several channels ({', '.join(chans)}); the commands answer single-channel "
+                       "records (answers per channel are not built yet)")
+    return rec
 
 
 def load(args, operation: str = "predict"):

@@ -148,3 +148,15 @@ def test_service_parse_refuses_several_channels_on_files(tmp_path):
     one = write_record(tmp_path / "one.npz", Record(np.arange(20.0), np.ones(20), 100.0)).read_bytes()
     got, fmt = parse_uploads([("one.npz", "", one)], None)
     assert fmt == "npz" and got.y.shape == (20,)
+
+
+def test_cli_refuses_a_record_with_several_channels(tmp_path):
+    from gpnarx.cli.cmd_predict import read_cli_record
+    from gpnarx.cli.errors import CLIError
+
+    p = write_record(tmp_path / "two.npz", Record(np.arange(20.0), np.ones((20, 2)), 100.0,
+                                                  channels={"y": [("a", "m"), ("b", "m")]}))
+    with pytest.raises(CLIError, match=r"several channels \(u, a, b\)"):
+        read_cli_record(p)
+    one = write_record(tmp_path / "one.npz", Record(np.arange(20.0), np.ones(20), 100.0))
+    assert read_cli_record(one).y.shape == (20,)
