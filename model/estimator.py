@@ -463,7 +463,7 @@ class GPNARX(ParamsMixin):
             kept = select_rows(targets(post), np.zeros(post.n_points, dtype=int), keep, self.selection, self.seed)
             post = keep_rows(post, kept)
         self.posterior_ = append_rows(post, self.x_scaler_.transform(X[sel]), Ys[sel])
-        self.envelope_ = extend_envelope(getattr(self, "envelope_", None), pairs)
+        self.envelope_ = extend_envelope(getattr(self, "envelope_", None), _gap_free(pairs, need))
         self.n_train_ = int(self.posterior_.n_points)
         self.n_rows_ = None if not n_rows else int(n_rows) + n_new
         self.update_ = {"rule": f"selection:{self.selection}", "new_regressor_rows": n_new,

@@ -406,3 +406,16 @@ def test_docs_updates_page_is_the_render_of_its_stored_run():
     for name in run["before"]:  # every validate record, before and after
         assert f"`{name}`" in rendered
     assert set(run["before"]) == set(run["after"]) and len(run["before"]) == 7
+
+
+def test_partial_fit_takes_a_record_with_a_gap_as_fit_does():
+    """A NaN run is a record break (model.gaps): no new row's window crosses it, and the envelope is finite."""
+    m = fitted()
+    r = record(1, 300)
+    y = r.y.copy()
+    y[100:110] = np.nan
+    before = m.envelope_["n_records"]
+    m.partial_fit([(r.u, y)])
+    assert np.all(np.isfinite(m.posterior_.X_train)) and np.all(np.isfinite(targets(m.posterior_)))
+    assert m.update_["new_regressor_rows"] == 300 - 2 - 12  # the 10 missing samples and the 2 rows after them
+    assert np.isfinite(m.envelope_["y_peak"]) and m.envelope_["n_records"] == before + 2  # the two gap-free pieces
