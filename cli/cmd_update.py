@@ -52,7 +52,6 @@ def _config_for(arg: str | None, model_name: str):
 
 def run(args):
     from gpnarx.cli.cmd_predict import check_fs, open_model, parse_window, read_cli_record, resolve_registry
-    from gpnarx.runtime import tune_for_free_run
     from gpnarx.storage.bundle import BundleError
     from gpnarx.storage.registry import parse_model_ref
     from gpnarx.training.config import ConfigError, load_config
@@ -66,7 +65,8 @@ def run(args):
         except BundleError as exc:
             raise UsageError(f"--version: {exc}") from None
     window = parse_window(args.window) if args.window else None
-    tune_for_free_run(None)
+    # BLAS as gpnarx train leaves it (the library's threads for the held-out noise calibration's products; the
+    # estimator limits BLAS itself around each free run, runtime.free_run_blas), not calibrate's one thread
     try:
         name, version = parse_model_ref(args.model)
     except BundleError as exc:
