@@ -61,6 +61,28 @@ def test_k1_is_the_one_step_prediction(model, record, method):
     assert model.include_noise and np.all(run.latent_upper[i0:] < run.upper[i0:])  # sigma_y^2 in the band only
 
 
+def test_k_step_band_leaves_out_the_discrepancy_term_and_follows_include_noise(model, record):
+    """The band of a k-step answer is eqs. 8-9's: a calibrated discrepancy term (which widens the free run's band)
+    is not added, and without include_noise its sigma_y^2 is left out as predict_one_step leaves it out."""
+    import copy
+
+    u, y = record
+    m = copy.deepcopy(model)
+    m.band_discrepancy_ = {"scale": 0.2, "window": 32}
+    i0 = max(NY, NU - 1)
+    mean, std = model.predict_one_step([(u, y)])
+    run = m.simulate(u, y=y, horizon=1, method="linear")
+    _close(run.std[i0:], std)
+    free, free_disc = model.simulate(u, y0=y[:NY], method="linear"), m.simulate(u, y0=y[:NY], method="linear")
+    assert np.all(free_disc.std[NY:] > free.std[NY:])  # the term widens the free run ...
+    k_n = m.simulate(u, y=y, horizon=u.size, method="linear")
+    assert np.array_equal(k_n.std, free.std)  # ... and not the k-step answer, even at k = n
+    m.include_noise = False
+    quiet = m.simulate(u, y=y, horizon=1, method="linear")
+    _close(quiet.std[i0:], m.predict_one_step([(u, y)])[1])
+    assert np.all(quiet.std[i0:] < std)
+
+
 @pytest.mark.parametrize("method", ["linear", "mc"])
 def test_k_n_is_the_free_run_from_the_measured_start(model, record, method):
     u, y = record
