@@ -353,8 +353,10 @@ class GPNARX(ParamsMixin):
         self.noise_var_ = float(np.exp(self.theta_[-1]))
         if self.mode == "exact":
             def build(nv):
-                return ExactPosterior.fit(self.kernel_, nv, Xt, Yt, var_kernel=self._posterior_kernel(),
+                post = ExactPosterior.fit(self.kernel_, nv, Xt, Yt, var_kernel=self._posterior_kernel(),
                                           backend=self.fit_backend)
+                post.y_train = Yt  # its targets, which an update or a refinement refactors on (not in bundles)
+                return post
         else:
             all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed, weights=weights)
             Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
@@ -741,6 +743,7 @@ class GPNARX(ParamsMixin):
             "noise_var": self.noise_var_,
             "noise_calibration": getattr(self, "noise_calibration_", None),
             "band_discrepancy": getattr(self, "band_discrepancy_", None),
+            "hyper_refinement": getattr(self, "hyper_refinement_", None),
             "training_envelope": getattr(self, "envelope_", None),
             "nlml": None if not np.isfinite(self.nlml_) else self.nlml_,
             "n_train": self.n_train_,
@@ -774,6 +777,8 @@ class GPNARX(ParamsMixin):
         model.noise_calibration_ = description["noise_calibration"]  # None: no held-out calibration
         # None: no model-discrepancy term in the band (model.discrepancy); absent in older bundles
         model.band_discrepancy_ = check_discrepancy(description.get("band_discrepancy"))
+        # None: ML-II's hyperparameters as they are (training.hyper_refine); absent in older bundles
+        model.hyper_refinement_ = description.get("hyper_refinement")
         model.noise_var_ml2_ = float(model.noise_calibration_["noise_var_ml2"]) if model.noise_calibration_ \
             else model.noise_var_
         model.nlml_ = float("nan") if description["nlml"] is None else float(description["nlml"])

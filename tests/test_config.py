@@ -197,6 +197,13 @@ def test_unit_mismatch(tmp_path):
          "path='x'\n", "model.band_calibration: must be one of 'none', 'lags', got 'all'"),
         ("name='x'\n[system]\nfs=750.0\n[model]\nband_calibration='lags'\n[[records]]\nname='a'\nroles=['train']\n"
          "path='x'\n", "model.band_calibration: 'lags' needs at least one record with role 'lags'"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nlengthscale_refine='ml2'\n[[records]]\nname='a'\n"
+         "roles=['train']\npath='x'\n", "model.lengthscale_refine: must be one of 'none', 'lags', got 'ml2'"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nlengthscale_refine='lags'\n[[records]]\nname='a'\n"
+         "roles=['train']\npath='x'\n", "model.lengthscale_refine: 'lags' needs at least one record with role 'lags'"),
+        ("name='x'\n[system]\nfs=750.0\n[model]\nlengthscale_refine_tolerance=-1\n[[records]]\nname='a'\n"
+         "roles=['train']\npath='x'\n", "model.lengthscale_refine_tolerance: must be a number of points of fit in "
+         "[0, 100], got -1"),
         ("name='x'\n[system]\nfs=750.0\n[model]\nband_window=0\n[[records]]\nname='a'\nroles=['train']\n"
          "path='x'\n", "model.band_window: must be a number of seconds in (0, 10], got 0"),
         ("name='x'\n[system]\nfs=750.0\n[novelty]\nmethod='max'\n[[records]]\nname='a'\nroles=['train']\npath='x'\n",

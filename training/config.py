@@ -43,6 +43,9 @@ key name below is a contract)::
                                       # response the band keeps a decaying share of its size
     band_gp_scale = "fixed"           # "fixed" | "calibrated": multiply the propagated band by a factor
                                       # calibrated with the scale on the 'lags' records (model.discrepancy)
+    lengthscale_refine = "none"       # "none" (ML-II's, the paper) | "lags": the lengthscales moved by one
+                                      # factor, kept by free-run fit on the 'lags' records (training.hyper_refine)
+    lengthscale_refine_tolerance = 1.0  # [points of fit] a 'lags' record may lose against ML-II's lengthscales
     hyper = "subset"                  # sparse mode: "subset" (exact ML-II on the capped rows) | "vfe"
     fit_backend = "numpy"             # "numpy" | "jax": ML-II and the exact posterior's solves on the JAX
                                       # device (a GPU: exact mode at 10-20 thousand rows; docs/accelerator.md)

@@ -12,7 +12,9 @@ One model per TOML table::
       ModelTable              ny, nu >= 1 (optional), kernel, mode, inducing >= 1, max_train_points >= 1,
                               selection, restarts >= 0, seed >= 0, noise_calibration, band_calibration,
                               band_window [s] in (0, 10], band_window_kind "centred" | "trailing",
-                              band_hold [s] in [0, 60], band_gp_scale "fixed" | "calibrated"
+                              band_hold [s] in [0, 60], band_gp_scale "fixed" | "calibrated",
+                              lengthscale_refine "none" | "lags", lengthscale_refine_tolerance [points] in
+                              [0, 100]
       lags                    any key: a lag range LO:HI[:STEP] (parse_range)
       PredictTable            mc_paths >= 1, confidence in (0, 1), method "mc" | "linear"
       NoveltyTable            false_alarm_rate in (0, 1), method (gpnarx.model.novelty.METHODS)
@@ -63,6 +65,7 @@ from gpnarx.model.novelty import METHODS as NOVELTY_METHODS
 from gpnarx.model.record import MAX_CHANNELS, RecordError
 from gpnarx.storage.record_files import normalize_unit
 from gpnarx.training import simulation_specs as specs
+from gpnarx.training.hyper_refine import RULES as REFINE_RULES
 
 ROLES = ("train", "lags", "verify", "validate", "healthy", "damaged")
 KERNELS = ("rbf", "matern32", "rbf+cubic", "matern32+cubic")
@@ -72,6 +75,7 @@ OUTPUTS = ("displacement", "velocity")
 NOISE_CALIBRATIONS = ("none", "lags")
 BAND_CALIBRATIONS = ("none", "lags")
 BAND_GP_SCALES = ("fixed", "calibrated")
+LENGTHSCALE_REFINES = REFINE_RULES
 PREDICT_METHODS = ("mc", "linear")
 SIM_SYSTEMS = specs.SYSTEMS
 SIM_EXCITATIONS = specs.EXCITATIONS
@@ -316,6 +320,11 @@ class ModelTable(_Closed):
     band_gp_scale: _choice(BAND_GP_SCALES) = Field(
         "fixed", description="the propagated band (eqs. 8-9) as it is (fixed), or multiplied by a factor "
                              "calibrated with the discrepancy scale on the 'lags' records (calibrated)")
+    lengthscale_refine: _choice(LENGTHSCALE_REFINES) = Field(
+        "none", description="ML-II's lengthscales as they are (none), or refined by free-run fit on the 'lags' "
+                            "records (lags: training.hyper_refine)")
+    lengthscale_refine_tolerance: _number("a number of points of fit in [0, 100]", ge=0, le=100) = Field(
+        1.0, description="points of free-run fit a 'lags' record may lose against ML-II's lengthscales")
     ny: Count | None = Field(None, description="output lags (omit when chosen by the lag surface)")
     nu: Count | None = Field(None, description="input lags")
     hyper: _choice(("subset", "vfe")) = Field(
@@ -442,7 +451,7 @@ class DatasetDoc(_Table):
                 raise _problem(f"no record named {r.noise.reference!r}", f"records.{r.name}.noise.reference")
         if not any("train" in r.roles for r in self.records):
             raise _problem("no record has role 'train'", "records")
-        for key in ("noise_calibration", "band_calibration"):
+        for key in ("noise_calibration", "band_calibration", "lengthscale_refine"):
             if getattr(self.model, key) != "lags":
                 continue
             held = [r for r in self.records if "lags" in r.roles]

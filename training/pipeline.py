@@ -36,6 +36,7 @@ from gpnarx.storage.jsonsafe import to_json_safe
 from gpnarx.training.baselines import fit_baselines, score_baselines
 from gpnarx.training.config import DatasetConfig, load_config
 from gpnarx.training.distributed import TaskRunner
+from gpnarx.training.hyper_refine import DEFAULT_TOLERANCE as REFINE_TOLERANCE, refine_lengthscales
 from gpnarx.training.mimo_pipeline import train_mimo
 from gpnarx.training.prepare import model_from_config, shorten
 
@@ -244,6 +245,12 @@ def fit(cfg: DatasetConfig, train_recs: list[Record], records, *, ny: int | None
         nc = model.noise_calibration_
         log(f"noise calibrated on {nc['n_records']} held-out 'lags' record(s), {nc['n_residuals']} one-step "
             f"residuals: sigma_y^2 {nc['noise_var_ml2']:.3g} (ML-II) -> {nc['noise_var']:.3g} (standardised)")
+    if cfg.model.get("lengthscale_refine", "none") == "lags":
+        refine_lengthscales(model, records("lags"), log=log,
+                            tolerance=float(cfg.model.get("lengthscale_refine_tolerance", REFINE_TOLERANCE)))
+        if model.noise_calibration_ is not None and model.hyper_refinement_.get("factor", 1.0) != 1.0:
+            nc = model.recalibrate_noise(records("lags"))  # the held-out rule again, at the lengthscales kept
+            log(f"noise recalibrated at the refined lengthscales: sigma_y^2 {nc['noise_var']:.3g} (standardised)")
     if cfg.model.get("band_calibration", "none") == "lags":
         calibrate_band_from_config(model, cfg, records("lags"), log)
     return model
