@@ -42,6 +42,9 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/stream.txt", "A real 64 s record in 1 s chunks against the record whole (bench_stream.py)", None),
            ("bench/streams.txt", "Streams per replica: sensor streams one 2-core replica of the exact bert-real "
             "follows in real time (bench_streams.py)", None),
+           ("bench/exact_2core_compiled.txt", "The exact bert-real with the compiled pass 1 against the code "
+            "before it, on the shared 2-core machine (bench_realtime.py --baseline-ref, bench_mc_speed.py --whole "
+            "--seconds 2)", None),
            ("bench/estimator_blas.txt", "The Python API's free run with and without its own BLAS limit "
             "(bench_estimator_blas.py)", None),
            ("bench/update.txt", "An update from one new record against a retrain: gpnarx update bert-real with one 16 s "
@@ -171,7 +174,8 @@ METHOD_ROWS = (
      'any path / that (1: the farthest paths held the worst error)'),
     ('`bench_realtime.py`',
      'the whole `gpnarx predict --method linear` process: real-time factor',
-     'the same process with the reference linearised loop, alternating'),
+     'the same process with the reference linearised loop, alternating; with `--baseline-ref REF`, the same '
+     'process run by the whole package of git commit REF'),
     ('`bench_kstep.py`',
      'the k-step-ahead prediction at k = 64 (`predict` with `horizon`: restarts from the measured outputs every 64 '
      'samples; linearised, the segments as one batch), and by Monte Carlo (`mc_ratio`)',
@@ -184,7 +188,7 @@ METHOD_ROWS = (
      'streams per replica: the most clients one `gpnarx serve` follows in real time, each streaming a record in '
      '1 s chunks with state tokens (p99 under the chunk time, no 503, error or lag)',
      'one stream alone: the bound floor(workers x chunk / its median chunk latency) if chunks shared the workers '
-     'perfectly'),
+     'perfectly (`--replicas R`: R replicas behind one round-robin address, R x workers)'),
     ('`bench_update.py`',
      '`gpnarx update` with one new record (the rank update of the exact posterior and the noise, band and novelty '
      'recalibrations of its config)',
