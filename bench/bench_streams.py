@@ -16,7 +16,8 @@ For each N of ``--streams`` (ascending; it stops after the first N that is not s
 latency percentiles, 503s, errors and the largest lag behind schedule. Baseline, same run: one stream alone, its
 median chunk latency t1; a replica with W workers could at most follow floor(W x chunk / t1) such streams if
 chunks shared the workers perfectly. RESULT line: ``streams=`` (the largest N sustained), ``baseline=`` (that
-bound), ``ratio=``, ``p99_ms_at_max=``, ``limit=`` (``found``, or a lower bound when every count tried was
+bound), ``ratio=``, ``p99_ms_at_max=`` (``none`` when no count was sustained), ``p99_ms_past_max=`` (the first count
+not sustained), ``limit=`` (``found``, or a lower bound when every count tried was
 sustained), the load average before and after (``load_before``, ``load_after``).
 
 ``--replicas R`` (default 1): R ``gpnarx serve`` processes behind one address, as docs/deploy.md runs them (Compose's
@@ -257,7 +258,8 @@ def main(argv=None) -> int:
              stream_s=len(parts) * args.chunk, workers=args.workers, **extra, streams=best, baseline=bound,
              baseline_what=("replicas-x-" if args.replicas > 1 else "") + "workers-x-chunk/one-stream-p50",
              ratio=round(best / bound, 3) if bound else None, single_p50_ms=round(one["p50_ms"], 1),
-             p99_ms_at_max=round(at_best["p99_ms"], 1) if at_best else None,
+             p99_ms_at_max=round(at_best["p99_ms"], 1) if at_best else "none",
+             p99_ms_past_max=round(rows[-1][1]["p99_ms"], 1) if rows and not rows[-1][1]["sustained"] else "none",
              tried=",".join(str(n) for n, _ in rows),
              limit="lower-bound" if rows and rows[-1][1]["sustained"] else "found",
              load_before=round(load_before, 2), load_after=round(C.load(), 2))
