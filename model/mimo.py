@@ -3,8 +3,11 @@
 ``MIMOGPNARX`` is composed of the single-output pieces: the regressors of every input's and every output's lags
 (``regressors.mimo_regressors``), one ``Standardizer`` of the shared regressor and one per output, and per output
 the row selection, ML-II (eq. 13, ``ml2.fit_ml2``) and the posterior (eqs. 8-9, ``gp.ExactPosterior`` or
-``gp.SparsePosterior``) that ``GPNARX.fit`` runs, with each output's own hyperparameters. The outputs' GPs are
-fitted in parallel (joblib threads, ``n_jobs``; BLAS limited to one thread each meanwhile). The free run feeds
+``gp.SparsePosterior``) that ``GPNARX.fit`` runs, with each output's own hyperparameters. With several outputs each GP is
+fitted with BLAS at one thread, on ``n_jobs`` joblib threads at once: on the shared 2-core machine at load 7 the
+three ML-IIs of studies/mimo_chain.py's quick model took 38-42 s with OpenBLAS's own two threads, 1.6 s in turn
+at one thread and 1.8 s on two joblib threads (the limit, not the parallelism, is the gain there; on idle cores
+the threads run two outputs at once). The free run feeds
 every output back together (``freerun.mimo``: linearised with the joint covariance across outputs and lags, or
 Monte Carlo drawing all outputs at each step). With one input and one output every number is ``GPNARX``'s.
 
@@ -173,14 +176,18 @@ class MIMOGPNARX(ParamsMixin):
             return self._fit_output(Xs, Y[:, o], rec_idx, weights, None if theta is None else theta[o], peaks[o])
 
         jobs = self._jobs(no)
-        if jobs > 1:
-            from joblib import Parallel, delayed
+        if no > 1:  # one BLAS thread per output's fit, in turn or on joblib threads
             from threadpoolctl import threadpool_limits
 
             with threadpool_limits(limits=1, user_api="blas"):
-                self.outputs_ = Parallel(n_jobs=jobs, prefer="threads")(delayed(one)(o) for o in range(no))
-        else:
-            self.outputs_ = [one(o) for o in range(no)]
+                if jobs > 1:
+                    from joblib import Parallel, delayed
+
+                    self.outputs_ = Parallel(n_jobs=jobs, prefer="threads")(delayed(one)(o) for o in range(no))
+                else:
+                    self.outputs_ = [one(o) for o in range(no)]
+        else:  # one output: GPNARX.fit's calls as it makes them
+            self.outputs_ = [one(0)]
         for o, g in enumerate(self.outputs_):
             say(f"output {o} ({cout[o].name}): NLML {g.nlml_:.6g}, sigma_y^2 {g.noise_var_:.3g} (standardised)")
         self.n_rows_ = int(X.shape[0])
