@@ -3,13 +3,13 @@
 ``MIMOGPNARX`` is composed of the single-output pieces: the regressors of every input's and every output's lags
 (``regressors.mimo_regressors``), one ``Standardizer`` of the shared regressor and one per output, and per output
 the row selection, ML-II (eq. 13, ``ml2.fit_ml2``) and the posterior (eqs. 8-9, ``gp.ExactPosterior`` or
-``gp.SparsePosterior``) that ``GPNARX.fit`` runs, with each output's own hyperparameters. With several outputs each GP is
-fitted with BLAS at one thread, on ``n_jobs`` joblib threads at once: on the shared 2-core machine at load 7 the
-three ML-IIs of studies/mimo_chain.py's quick model took 38-42 s with OpenBLAS's own two threads, 1.6 s in turn
-at one thread and 1.8 s on two joblib threads (the limit, not the parallelism, is the gain there; on idle cores
-the threads run two outputs at once). The free run feeds
-every output back together (``freerun.mimo``: linearised with the joint covariance across outputs and lags, or
-Monte Carlo drawing all outputs at each step). With one input and one output every number is ``GPNARX``'s.
+``gp.SparsePosterior``) that ``GPNARX.fit`` runs, with each output's own hyperparameters. With several outputs each
+GP is fitted with BLAS at one thread, on ``n_jobs`` joblib threads at once: on the shared 2-core machine at load 7
+the three ML-IIs of studies/mimo_chain.py's quick model took 38-42 s with OpenBLAS's own two threads, 1.6 s in turn
+at one thread and 1.8 s on two joblib threads (the limit, not the parallelism, is the gain there; on idle cores the
+threads run two outputs at once). The free run feeds every output back together (``freerun.mimo``: linearised with
+the joint covariance across outputs and lags, or Monte Carlo drawing all outputs at each step). With one input and
+one output every number is ``GPNARX``'s.
 
 Not built yet for several outputs: the held-out noise and band calibrations, streams, the JAX backend, the lag
 surface per channel group, and the front ends' answers per channel (HTTP, CLI, batch).
@@ -205,7 +205,10 @@ class MIMOGPNARX(ParamsMixin):
         Ys = (y - y_scaler.mean_[0]) / y_scaler.scale_[0]
         rows = select_rows(Ys, rec_idx, self.max_train_points, self.selection, self.seed, weights=weights)
         Xt, Yt = Xs[rows], Ys[rows]
-        kernel = make_kernel(self.kernel) if isinstance(self.kernel, str) else copy.deepcopy(self.kernel).for_posterior(None)
+        if isinstance(self.kernel, str):
+            kernel = make_kernel(self.kernel)
+        else:
+            kernel = copy.deepcopy(self.kernel).for_posterior(None)
         if theta is None:
             sub = default_warm_start_subset(Xt.shape[0])
             res = fit_ml2(kernel, Xt, Yt, n_restarts=int(self.n_restarts), seed=int(self.seed),
@@ -272,7 +275,8 @@ class MIMOGPNARX(ParamsMixin):
         self._check_fitted()
         gs = self.outputs_
         return MIMOPredictor(tuple(g.posterior_ for g in gs), self.x_scaler_.mean_, self.x_scaler_.scale_,
-                             np.array([g.y_scaler_.mean_[0] for g in gs]), np.array([g.y_scaler_.scale_[0] for g in gs]),
+                             np.array([g.y_scaler_.mean_[0] for g in gs]),
+                             np.array([g.y_scaler_.scale_[0] for g in gs]),
                              self.ny, self.nu, self.n_inputs_,
                              np.array([DIVERGENCE_FACTOR * g.y_peak_ for g in gs]))
 

@@ -58,7 +58,8 @@ Writing
 ``write_record(path, record)`` writes ``.npz`` (``u``, ``y`` float64 1-D, scalar ``fs``, ``units_u``,
 ``units_y``, ``name``; a record with several channels or named channels: ``u`` (n, n_inputs), ``y``
 (n, n_outputs), ``channels_u``, ``channels_y`` and ``units_u``, ``units_y`` one string per channel),
-``.csv`` with several channels as ``time,u:NAME [unit],...,y:NAME [unit],...``, ``.csv`` (header ``time,u,y``, 17 significant digits) or ``.mat``
+``.csv`` (header ``time,u,y``, 17 significant digits; with several channels ``time,u:NAME [unit],...,y:NAME
+[unit],...``) or ``.mat``
 (``u``, ``y``, ``fs``, ``units_u``, ``units_y``). Writes are atomic: the data goes to a temporary
 file in the destination folder which is then renamed over the destination with ``os.replace``;
 on any error the temporary file is removed and an existing destination is left untouched.
@@ -220,7 +221,8 @@ def write_record(path, record: Record) -> Path:
                 np.savez(fh, **arrays)
             elif ext == ".csv" and (record.channels is not None or u.ndim == 2 or (y is not None and y.ndim == 2)):
                 buf = io.StringIO()
-                head = ["time"] + [f"u:{c.name} [{c.unit}]" if c.unit else f"u:{c.name}" for c in record.input_channels()]
+                head = ["time"] + [f"u:{c.name} [{c.unit}]" if c.unit else f"u:{c.name}"
+                                   for c in record.input_channels()]
                 cols = [np.arange(u.shape[0]) / record.fs, record.inputs_2d()]
                 if y is not None:
                     head += [f"y:{c.name} [{c.unit}]" if c.unit else f"y:{c.name}" for c in record.output_channels()]

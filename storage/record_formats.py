@@ -378,7 +378,8 @@ def parse_lms_channels(shaker, time, *, fs=None, name=None, source="LMS export",
     def stack(sel):
         return sel[0]["values"] if len(sel) == 1 else np.column_stack([c["values"] for c in sel])
 
-    chans = {"u": [Channel(c["name"], c["unit"]) for c in sel_in], "y": [Channel(c["name"], c["unit"]) for c in sel_out]}
+    chans = {"u": [Channel(c["name"], c["unit"]) for c in sel_in],
+             "y": [Channel(c["name"], c["unit"]) for c in sel_out]}
     units = {k: (v[0].unit if len({c.unit for c in v}) == 1 else "") for k, v in chans.items()}
     meta = {"source": str(source), "format": "lms-testlab", "input_channel": sel_in[0]["name"],
             "output_channel": sel_out[0]["name"], "input_channels": [c.name for c in chans["u"]],

@@ -22,7 +22,6 @@ from pathlib import Path
 from gpnarx.configs import shipped_config
 from gpnarx.training.pipeline import train
 
-
 #: the figures stored: one record of each validation class (near resonance, a sweep, broadband noise)
 FIGURES = ("heldout-20Hz", "heldout-sweep-0p10V", "heldout-noise-0p10V")
 
@@ -53,11 +52,12 @@ def summarise(m: dict, seconds: float | None, out: Path) -> dict:
     for name, r in m["records"].items():
         if "channels" not in r:
             continue
+        own = r["baselines"].get("linear ARX per channel", {})
         summary["records"][name] = {
             "role": r["role"],
             "channels": {ch: {"fit": v["fit"], "coverage": v["coverage"],
                               "arx_fit": r["baselines"]["linear ARX"][ch]["fit"],
-                              "arx_channel_fit": r["baselines"].get("linear ARX per channel", {}).get(ch, {}).get("fit")}
+                              "arx_channel_fit": own.get(ch, {}).get("fit")}
                          for ch, v in r["channels"].items()}}
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary

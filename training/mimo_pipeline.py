@@ -138,7 +138,8 @@ def train_mimo(config, registry, name: str | None = None, version: str | None = 
                for o in range(train_recs[0].n_outputs)]
     chans = model.output_channels_
     scored, evals = {}, []
-    for k, (role, rec) in enumerate((role, rec) for role in EVAL_ROLES for rec in records(role)):
+    todo = [(role, rec) for role in EVAL_ROLES for rec in records(role)]
+    for k, (role, rec) in enumerate(todo):
         y0 = _start(rec, model.ny)
         run = model.simulate(rec.u, method=method, n_paths=n_paths, seed=k, confidence=confidence, y0=y0)
         entry = {"role": role, "method": run.method, "seconds": run.seconds, "diverged_paths": run.diverged_paths}

@@ -6,9 +6,10 @@ GP gives its mean (eq. 8) and latent variance (eq. 9) at the same regressor; the
 given x, so the step's own noise is diagonal across outputs.
 
 * ``linear`` (``run_mimo_linear``, in three passes as ``freerun.linear``): first-order propagation of the joint
-  mean and covariance of every output's lags. The state s = [y_{i-1} (every output), ..., y_{i-ny} (every output)] (output units) has mean m and
-  covariance S (n_outputs ny square). With J (n_outputs x n_outputs ny) the gradient of each output's GP mean
-  w.r.t. the lagged outputs at the mean regressor (``mean_grad``, chain rule through the standardisation):
+  mean and covariance of every output's lags. The state s = [y_{i-1} (every output), ..., y_{i-ny} (every
+  output)] (output units) has mean m and covariance S (n_outputs ny square). With J (n_outputs x n_outputs ny)
+  the gradient of each output's GP mean w.r.t. the lagged outputs at the mean regressor (``mean_var_grad``,
+  chain rule through the standardisation):
   cov(y_i) = diag(sigma_f^2 + sigma_y^2) + J S J^T (the outputs' joint covariance at step i), cov(y_i, s) = J S,
   and the state shifts by one lag. One output: ``linear_stepwise``'s numbers (the three-pass run's to round-off).
 * ``mc`` (``run_mimo_mc``): P paths advance together; at each step every path draws all outputs at once,
