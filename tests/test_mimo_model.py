@@ -148,3 +148,31 @@ def test_one_output_sparse_reduces_to_gpnarx():
     scale = np.max(np.abs(a.mean))
     assert np.max(np.abs(b.mean[:, 0] - a.mean)) < 1e-9 * scale
     assert np.allclose(b.std[:, 0], a.std, rtol=1e-7, atol=1e-12 * scale)
+
+
+def test_two_inputs_two_outputs():
+    """Each output driven by its own input and the other output: the model must use both inputs' lags."""
+
+    def system(n, seed):
+        r = np.random.default_rng(seed)
+        U = r.normal(size=(n, 2))
+        Y = np.zeros((n, 2))
+        for i in range(1, n):
+            Y[i, 0] = 0.6 * Y[i - 1, 0] + 0.5 * U[i, 0] + 0.2 * Y[i - 1, 1]
+            Y[i, 1] = 0.5 * Y[i - 1, 1] + 0.4 * U[i - 1, 1] - 0.1 * Y[i - 1, 0] ** 2
+        return U, Y + 0.01 * r.normal(size=(n, 2))
+
+    U, Y = system(600, 1)
+    m = MIMOGPNARX(ny=1, nu=2, max_train_points=300, n_restarts=0).fit([(U, Y)])
+    assert m.n_inputs_ == 2 and m.n_features_ == 2 * 1 + 2 * 2
+    Ut, Yt = system(300, 2)
+    run = m.simulate(Ut, method="linear")
+    fit = 100 * (1 - np.linalg.norm(Yt - run.mean, axis=0) / np.linalg.norm(Yt - Yt.mean(axis=0), axis=0))
+    assert np.all(fit > 90), fit
+    # a model that sees only the first input cannot follow the second output, driven by the second input
+    one = MIMOGPNARX(ny=1, nu=2, max_train_points=300, n_restarts=0).fit([(U[:, 0], Y)])
+    r1 = one.simulate(Ut[:, 0], method="linear")
+    fit1 = 100 * (1 - np.linalg.norm(Yt[:, 1] - r1.mean[:, 1]) / np.linalg.norm(Yt[:, 1] - Yt[:, 1].mean()))
+    assert fit1 < fit[1] - 30, (fit1, fit)
+    with pytest.raises(ValueError, match=r"u must be \(n, 2\)"):
+        m.simulate(Ut[:, 0])
