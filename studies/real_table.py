@@ -242,6 +242,19 @@ def kstep_markdown(table: dict) -> str:
             continue
         cells = [f"{_fmt(o[k]['fit'])} ({o[k]['coverage']:.1f})" for k in [*ks, "free_run"]]
         lines.append(f"| {name} | {r['class']} | {r['role']} | " + " | ".join(cells) + " |")
+    rows = {n: r for n, r in table["records"].items() if r.get("k_step")}
+    held = {n: r for n, r in rows.items() if r["role"] in ("validate", "unseen")}
+    if held:
+        med = ", ".join(f"{'k = ' + k if k != 'free_run' else 'free run'} "
+                        f"{_fmt(float(np.median([r['k_step'][k]['fit'] for r in held.values()])))} %"
+                        for k in [*ks, "free_run"])
+        low = []
+        for k in [*ks, "free_run"]:
+            name = min(rows, key=lambda n: rows[n]["k_step"][k]["coverage"])
+            low.append(f"{'k = ' + k if k != 'free_run' else 'free run'} {rows[name]['k_step'][k]['coverage']:.1f} % "
+                       f"({name})")
+        lines += ["", f"Median fit over the {len(held)} held-out records (validate, unseen): {med}. Lowest coverage "
+                      f"by horizon over every record: {'; '.join(low)}."]
     return "\n".join(lines) + "\n"
 
 
@@ -295,7 +308,7 @@ def _gap_figure(path: Path, rec: Record, whole, cut, a: int, b: int) -> None:
     lo, hi = max(0, a - int(0.5 * fs)), min(rec.n, b + int(1.0 * fs))
     t = np.arange(lo, hi) / fs
     fig, ax = plt.subplots(figsize=(9, 3.6))
-    ax.plot(t, rec.y[lo:hi], color="k", lw=0.8, label="measured y (the gap cut out of u and y)")
+    ax.plot(t, rec.y[lo:hi], color="k", lw=0.8, label="measured y (in the gap: what was cut out of u and y)")
     ax.plot(t, whole.mean[lo:hi], color="tab:blue", lw=0.8, alpha=0.7, label="record whole: free run from rest")
     ax.fill_between(t, cut.lower[lo:hi], cut.upper[lo:hi], color="tab:orange", alpha=0.3, lw=0)
     ax.plot(t, cut.mean[lo:hi], color="tab:orange", lw=1.0, label="record with the gap: 99 % band and mean")

@@ -52,6 +52,13 @@ def test_reproduce_bert_real_quick(tmp_path, capsys):
     # the results page is rendered from the run's JSON: re-rendering from the run folder gives the same page
     page = (tmp_path / "results-bert-real.md").read_text()
     assert "| Sine_20Hz | sine near resonance | validate |" in page and "## Lag surface" in page
+    # the k-step fit table on every record, and the record with 0.5 s cut out of its middle, with its figure
+    ks = table["records"]["Rand0p10"]["k_step"]
+    assert table["kstep_horizons"] == [1, 8, 64, 512] and ks["1"]["fit"] > ks["free_run"]["fit"]
+    gap = table["gap_record"]
+    assert gap["record"] == "Sine_20Hz" and gap["nan_through_gap"] and gap["gap_seconds"] == pytest.approx(0.5)
+    assert (tmp_path / gap["figure"]).is_file()
+    assert "## Fit by prediction horizon (k-step-ahead)" in page and "## A record with a gap" in page
     assert main(["reproduce", "bert-real", "--out", str(tmp_path), "--from-run", "--docs",
                  str(tmp_path / "again.md")]) == 0
     assert (tmp_path / "again.md").read_text() == page
