@@ -43,9 +43,9 @@ def narx_regressors(u: np.ndarray, y: np.ndarray, ny: int, nu: int) -> tuple[np.
 
     Row r is x_i for i = i0 + r, i0 = max(ny, nu - 1). A record with gaps (NaN in u or y, ``model.gaps``) is
     cut at them: a row is kept when no sample of u or y in [i - i0, i] is missing, so no lag window crosses a gap
-    and the rows are those of the gap-free pieces, each stacked as a record of its own. Raises ValueError (naming the argument and the
-    limit) for invalid lags, u/y that are not 1-D sequences of numbers of one length, or a record
-    with no complete lag window.
+    and the rows are those of the gap-free pieces, each stacked as a record of its own. Raises ValueError
+    (naming the argument and the limit) for invalid lags, u/y that are not 1-D sequences of numbers of one
+    length, or a record with no complete lag window.
     """
     ny, nu = check_lags(ny, nu)
     u, y = _series("u", u), _series("y", y)

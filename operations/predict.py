@@ -6,9 +6,8 @@ y) is answered with NaN (JSON null) through each gap and the run restarted after
 and its fit and coverage skip them."""
 from __future__ import annotations
 
-from gpnarx.model.metrics import summary
-
 from gpnarx.model.gaps import gap_list
+from gpnarx.model.metrics import summary
 
 from .base import Operation, finite_or_none, head
 

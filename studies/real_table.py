@@ -325,7 +325,8 @@ def _gap_figure(path: Path, rec: Record, whole, cut, a: int, b: int) -> None:
 def gap_markdown(g: dict) -> str:
     """The gap record of ``gap_record`` as Markdown (a table and its figure)."""
     rows = [("record with the gap", g["cut"], g["cut_after"]), ("record whole", g["whole"], g["whole_after"])]
-    lines = ["| prediction | fit % | coverage % | fit % after the gap | coverage % after the gap |", "|---|---|---|---|---|"]
+    lines = ["| prediction | fit % | coverage % | fit % after the gap | coverage % after the gap |",
+             "|---|---|---|---|---|"]
     for label, s, t in rows:
         lines.append(f"| {label} | {_fmt(s['fit'])} | {s['coverage']:.1f} | {_fmt(t['fit'])} | {t['coverage']:.1f} |")
     return ("\n".join(lines) + f"\n\n![{g['record']} with a gap](runs/bert-real/{g['figure']})\n")

@@ -269,8 +269,8 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
     if table.get("gap_record"):
         g = table["gap_record"]
         page += (f"\n## A record with a gap\n\n{g['record']} ({g['seconds']:.0f} s) with "
-                 f"{g['gap_seconds']:.2f} s cut out of its middle ({g['gap_start_s']:.2f}-{g['gap_end_s']:.2f} s: u and "
-                 "y set to NaN, as an acquisition that dropped samples sends it), predicted linearised from rest "
+                 f"{g['gap_seconds']:.2f} s cut out of its middle ({g['gap_start_s']:.2f}-{g['gap_end_s']:.2f} s: "
+                 "u and y set to NaN, as an acquisition that dropped samples sends it), predicted linearised from rest "
                  "with its measured y: the answer is NaN through the gap, and after it the run restarts from the "
                  "measured outputs (the first ny samples after the gap); fit and coverage skip the gap "
                  "(`model/gaps.py`). Against it, the same record whole, free-run from rest, scored on the same "
