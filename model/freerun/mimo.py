@@ -182,6 +182,8 @@ def run_mimo_linear(predictor: MIMOPredictor, u, spec: RunSpec) -> FreeRun:
                 SJ = np.nan_to_num(SJ, nan=smax, posinf=smax, neginf=-smax)
             np.clip(SJ, -smax, smax, out=SJ)
             prop = Jk @ SJ  # J S J^T (no, no)
+            prop += prop.T  # exactly symmetric: the product's round-off is not, and the recursion
+            prop *= 0.5  # grows an asymmetric part of S (its off-diagonal blocks are one product's transposes)
             V = prop.copy()
             V[dg] += q[k]
             d = V[dg]
