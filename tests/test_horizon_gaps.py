@@ -123,6 +123,21 @@ def test_linear_batch_is_each_segment_restarted(model, record, k):
         _close(run.std[s:e], ref.std, 1e-9)
 
 
+def test_linear_batch_in_groups_gives_the_same_numbers(model, record, monkeypatch):
+    """Segments run in groups (bounded memory: ``_GROUP_ROWS``, ``_GROUP_FLOATS``): the numbers of one batch, and
+    the progress callback reaches the record's length."""
+    import gpnarx.model.freerun.horizon as hz
+
+    u, y = record
+    whole = model.simulate(u, y=y, horizon=8, method="linear")
+    seen = []
+    monkeypatch.setattr(hz, "_GROUP_ROWS", 7)
+    grouped = model.simulate(u, y=y, horizon=8, method="linear", progress=lambda done, total: seen.append(done))
+    _close(grouped.mean, whole.mean, 1e-9)  # BLAS rounds a row by the block it is in
+    _close(grouped.std, whole.std, 1e-9)  # eq. 9 is a difference of near numbers: its round-off is larger
+    assert len(seen) == -(-(u.size - NY) // (8 * 7)) and seen[-1] == u.size
+
+
 @pytest.mark.parametrize("method", ["linear", "mc"])
 def test_band_grows_within_a_segment_and_resets(model, record, method):
     u, y = record

@@ -113,26 +113,49 @@ def _one_step(predictor: Predictor, u, y, spec: RunSpec) -> FreeRun:
                    time.perf_counter() - t0, rows, latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)
 
 
+#: floats of one group's lag covariances (segments x ny x ny) in ``_linear_batch``: 4 Mi (32 MiB)
+_GROUP_FLOATS = 1 << 22
+#: most segments of one group in ``_linear_batch`` (rows of one ``mean_var_grad`` call a step)
+_GROUP_ROWS = 4096
+
+
 def _linear_batch(predictor: Predictor, u, y, spec: RunSpec, k: int) -> FreeRun:
-    """1 < k, linearised: every segment one row of a batch, k steps of ``mean_var_grad`` on S rows; per
-    segment the stepwise propagation (``linear_stepwise``), the lags' mean and covariance reset at its start."""
+    """1 < k, linearised: every segment one row of a batch, k steps of ``mean_var_grad`` on the segments' rows;
+    per segment the stepwise propagation (``linear_stepwise``), the lags' mean and covariance reset at its start.
+    The segments run in groups of at most ``_GROUP_ROWS``, and of at most ``_GROUP_FLOATS`` floats of lag
+    covariance (segments are independent: the same numbers as one batch, bounded memory)."""
     t0 = time.perf_counter()
     confidence = check_confidence(spec.confidence)
     z = band_z(confidence)
-    posterior = predictor.posterior
     n, ny, nu = u.size, predictor.ny, predictor.nu
-    xm, xs, ym, ys = predictor.x_mean, predictor.x_scale, predictor.y_mean, predictor.y_scale
+    xm, xs = predictor.x_mean, predictor.x_scale
     starts = np.arange(ny, n, k)
-    S = starts.size
     # standardised input lags, padded past the record's end (the last segment's extra steps are dropped)
     Ulag = (lagged_inputs(np.concatenate([u, np.zeros(k)]), nu) - xm[ny:]) / xs[ny:]
+    out = np.zeros((3, starts.size, k))  # mean, variance, latent variance of every segment's steps
+    group = max(1, min(_GROUP_ROWS, _GROUP_FLOATS // (ny * ny)))
+    for g0 in range(0, starts.size, group):
+        _linear_group(predictor, y, starts[g0: g0 + group], Ulag, spec, k, out[:, g0: g0 + group])
+        if spec.progress is not None:
+            spec.progress(min(n, ny + (g0 + group) * k), n)
+    mean, std, lstd = y.copy(), np.zeros(n), np.zeros(n)
+    mean[ny:] = out[0].ravel()[: n - ny]
+    std[ny:] = np.sqrt(np.maximum(out[1].ravel()[: n - ny], 0.0))
+    lstd[ny:] = np.sqrt(np.maximum(out[2].ravel()[: n - ny], 0.0))
+    return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
+                   time.perf_counter() - t0, n - ny, latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)
+
+
+def _linear_group(predictor: Predictor, y, starts, Ulag, spec: RunSpec, k: int, out) -> None:
+    """The k steps of the segments starting at ``starts`` into ``out`` (3, segments, k): mean [output units],
+    variance and latent variance [output units^2]."""
+    posterior, ny, nu = predictor.posterior, predictor.ny, predictor.nu
+    xm, xs, ym, ys = predictor.x_mean, predictor.x_scale, predictor.y_mean, predictor.y_scale
+    S = starts.size
     m = np.stack([y[s - ny: s][::-1] for s in starts])  # (S, ny) lag means, newest first, output units
     C = np.zeros((S, ny, ny))  # covariance of the lags (output units^2)
     noise = predictor.noise(spec)
     cap = VAR_CAP * ys * ys
-    out_m = np.zeros((S, k))
-    out_v = np.zeros((S, k))
-    out_l = np.zeros((S, k))
     X = np.empty((S, ny + nu))
     scale = ys / xs[:ny]
     for t in range(k):
@@ -150,21 +173,15 @@ def _linear_batch(predictor: Predictor, u, y, spec: RunSpec, k: int) -> FreeRun:
         v = (var_f + noise) * (ys * ys) + prop
         v = np.where(np.isfinite(v), np.minimum(v, cap), cap)
         ymean = mu * ys + ym
-        out_m[:, t], out_v[:, t] = ymean, v
+        out[0, :, t], out[1, :, t] = ymean, v
         lat = var_f * (ys * ys) + prop
-        out_l[:, t] = np.where(np.isfinite(lat), np.minimum(lat, v), v)
+        out[2, :, t] = np.where(np.isfinite(lat), np.minimum(lat, v), v)
         m[:, 1:] = m[:, :-1].copy()
         m[:, 0] = ymean
         C[:, 1:, 1:] = C[:, :-1, :-1].copy()
         C[:, 0, 0] = v
         C[:, 0, 1:] = SJ[:, :-1]
         C[:, 1:, 0] = SJ[:, :-1]
-    mean, std, lstd = y.copy(), np.zeros(n), np.zeros(n)
-    mean[ny:] = out_m.ravel()[: n - ny]
-    std[ny:] = np.sqrt(np.maximum(out_v.ravel()[: n - ny], 0.0))
-    lstd[ny:] = np.sqrt(np.maximum(out_l.ravel()[: n - ny], 0.0))
-    return FreeRun(mean, std, mean - z * std, mean + z * std, confidence, 0, "linear",
-                   time.perf_counter() - t0, n - ny, latent_lower=mean - z * lstd, latent_upper=mean + z * lstd)
 
 
 def join_runs(n: int, parts: list[tuple[int, FreeRun]]) -> FreeRun:
