@@ -179,6 +179,14 @@ def test_cli_predict_horizon_and_gaps(registry, model, rec, tmp_path, capsys):
     g = json.loads(capsys.readouterr().out)
     assert g["gaps"][0]["start"] == 50 and g["gaps"][0]["end"] == 60 and g["mean"][55] is None
     assert np.isnan(np.load(tmp_path / "out.npz")["mean"][50:60]).all()
+    # a gap past the limit: exit code 1, one line naming the field and the limit
+    long_u = np.tile(u, 5)
+    long_u[10:10 + int(2 * FS) + 1] = np.nan
+    lpath = tmp_path / "long-gap.npz"
+    np.savez(lpath, u=long_u, y=np.tile(y, 5), fs=FS)
+    assert main([*base, str(lpath)]) == 1
+    err = capsys.readouterr().err
+    assert "u has a gap of 1501 samples" in err and "the limit is 2 s" in err and len(err.strip().splitlines()) == 1
     # loops reads the same file and refuses it, as before
     assert main(["loops", "--registry", str(registry), "--model", "boucwen", str(gpath)]) == 1
     assert "NaN" in capsys.readouterr().err
