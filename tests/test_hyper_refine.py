@@ -108,3 +108,17 @@ def test_errors(small):
         refine_lengthscales(copy.deepcopy(base), [])
     with pytest.raises(ValueError, match="tolerance"):
         refine_lengthscales(copy.deepcopy(base), lags, tolerance=-1.0)
+
+
+def test_markdown_renders_every_candidate(small):
+    from gpnarx.training.hyper_refine import markdown
+
+    base, lags = small
+    model = copy.deepcopy(base)
+    out = refine_lengthscales(model, lags, tolerance=1.0)
+    page = markdown(out)
+    rows = [line for line in page.splitlines() if line.startswith("| ") and not line.startswith("| lengthscale")]
+    assert len(rows) == len(out["candidates"])
+    assert f"| **{out['factor']:.2f}** |" in page
+    assert all(f"{r.name} fit %" in page for r in lags)
+    assert "ML-II" in markdown({"skipped": "the posterior is sparse"})

@@ -126,3 +126,25 @@ def refine_lengthscales(model, records, *, tolerance: float = DEFAULT_TOLERANCE,
     log(f"lengthscales x {best['factor']:.2f} (worst 'lags' fit {cands[0]['worst']:.2f} % -> {best['worst']:.2f} %, "
         f"{len(cands)} candidates, {model.hyper_refinement_['seconds']:.0f} s)")
     return model.hyper_refinement_
+
+
+def markdown(refinement: dict) -> str:
+    """What ``refine_lengthscales`` did (a bundle's ``hyper_refinement``) as Markdown: the rule's one line and
+    every candidate's free-run fits on the 'lags' records."""
+    cands = sorted(refinement.get("candidates") or [], key=lambda c: c["factor"])
+    if not cands:
+        return f"Lengthscales as ML-II fitted them ({refinement.get('skipped', 'no refinement')}).\n"
+    names = list(refinement["records"])
+    lines = [f"ML-II (eq. 13) fits the hyperparameters one step ahead; the product predicts by free run. The kernel's "
+             f"lengthscales were moved by one factor and the factor kept by free-run fit on the `lags` records "
+             f"(`[model] lengthscale_refine = \"lags\"`, `training/hyper_refine.py`): the best worst-record fit among "
+             f"factors at which no `lags` record loses more than {refinement['tolerance']:g} points against ML-II's. "
+             f"Kept: **x {refinement['factor']:.2f}**, worst `lags` fit {refinement['worst_fit_ml2']:.2f} % -> "
+             f"{refinement['worst_fit']:.2f} % ({refinement.get('seconds', float('nan')):.0f} s of training).", "",
+             "| lengthscale factor | " + " | ".join(f"{n} fit %" for n in names) + " | worst | admissible |",
+             "|" + "---|" * (len(names) + 3)]
+    for c in cands:
+        mark = "**" if c["factor"] == refinement["factor"] else ""
+        lines.append(f"| {mark}{c['factor']:.2f}{mark} | " + " | ".join(f"{c['fits'][n]:.2f}" for n in names)
+                     + f" | {c['worst']:.2f} | {'yes' if c['admissible'] else 'no'} |")
+    return "\n".join(lines) + "\n"

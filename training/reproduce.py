@@ -35,6 +35,7 @@ from gpnarx.storage.bundle import load_bundle
 from gpnarx.storage.jsonsafe import to_json_safe
 from gpnarx.training.checkout import load_study
 from gpnarx.training.config import bert_data_dir, load_config, simulate_record
+from gpnarx.training import hyper_refine
 from gpnarx.training.defaults import shipped_config
 from gpnarx.training.lags import edge_message, lag_surface, write_surface
 from gpnarx.training.pages.markdown import pct
@@ -246,6 +247,9 @@ def real_page(summary: dict, surface: dict | None = None) -> str:
         "fitted on the same training records. ARX class: a linear ARX fitted on the other records of the same "
         "class in the data folder (never on the record it scores). Targets on held-out records, per class: fit "
         "at least the better ARX's and coverage at least 90 %.\n\n" + markdown(table, table["checks"]))
+    if (summary.get("hyper_refinement") or {}).get("candidates"):
+        page += ("\n## Lengthscales refined by free-run fit\n\n" + hyper_refine.markdown(
+            summary["hyper_refinement"]))
     if any("one_step" in r for r in table["records"].values()):
         page += ("\n## Residual tests\n\nWhat the model has not learnt, by the standard checks of system "
                  "identification (as MATLAB `resid`): on each whole record, the one-step-ahead residuals "
@@ -382,6 +386,9 @@ def rescore_table(out_dir, table_mc: int, jobs: int = -1, docs_page=None, log=No
     if bundle is not None:
         summary["bundle"] = str(bundle)
     model = load_bundle(summary["bundle"]).model
+    if bundle is not None:  # the run's figures that belong to the model: the band and the lengthscale refinement
+        summary["band_discrepancy"] = to_json_safe(getattr(model, "band_discrepancy_", None))
+        summary["hyper_refinement"] = to_json_safe(getattr(model, "hyper_refinement_", None))
     cfg = load_config(shipped_config("bert-real"))
     quick = bool(summary.get("quick"))
     if mc_class is None:
