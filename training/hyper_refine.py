@@ -9,8 +9,8 @@ parts, by one common factor; every other hyperparameter, the rows and the noise 
 factor by the rule below, scored by the free run the product makes.
 
 Rule: the free-run fit (eq. 14) of every 'lags' record, linearised, from its start rule (``meta.initial``),
-at ML-II's lengthscales (factor 1) and at factors stepping away from 1 in each direction (``STEP`` apart, at
-most ``MAX_STEPS`` each way). A factor is admissible when no 'lags' record loses more than ``tolerance``
+at ML-II's lengthscales (factor 1) and at factors exp(+-k ``STEP``) stepping away from 1 in each direction (at
+most ``MAX_STEPS`` each way: factors 0.37 to 2.7). A factor is admissible when no 'lags' record loses more than ``tolerance``
 points of fit against factor 1 (default ``DEFAULT_TOLERANCE``): the refinement may trade a little on one class
 for more on another, never a class for another. Among admissible factors the one with the best worst-record
 fit is kept (ties: the one nearer 1). A direction stops at its first inadmissible factor, or when the worst
@@ -29,8 +29,8 @@ import numpy as np
 from gpnarx.model.metrics import fit_percent
 
 RULES = ("none", "lags")
-STEP = 0.05  # factors 1 +/- k STEP
-MAX_STEPS = 10
+STEP = 0.05  # factors exp(+/- k STEP)
+MAX_STEPS = 20
 DEFAULT_TOLERANCE = 1.0  # points of fit (eq. 14) a 'lags' record may lose against ML-II's lengthscales
 
 
@@ -96,9 +96,7 @@ def refine_lengthscales(model, records, *, tolerance: float = DEFAULT_TOLERANCE,
     for sign in (+1, -1):
         best_here, stale = cands[0]["worst"], 0
         for k in range(1, MAX_STEPS + 1):
-            factor = 1.0 + sign * k * STEP
-            if factor <= 0:
-                break
+            factor = float(np.exp(sign * k * STEP))
             _with_factor(model, theta0, idx, factor, rows)
             fits = _fits(model, records)
             ok = all(fits[n] >= base[n] - tolerance for n in base)
