@@ -120,6 +120,9 @@ def _figure(path: Path, rec: Record, lin, mc) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    from PIL import Image  # a palette PNG, a quarter of the size
+
+    Image.open(path).convert("RGB").quantize(colors=32).save(path, optimize=True)
 
 
 def main(argv=None) -> int:
