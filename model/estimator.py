@@ -653,6 +653,8 @@ class GPNARX(ParamsMixin):
                 raise ValueError(f"y has {y.size} samples but u has {u.size}; they must have the same length")
         if horizon is not None:
             horizon = check_horizon(horizon, y, u.size)
+            if y0 is not None and np.asarray(y0).size:
+                raise ValueError("horizon: a k-step prediction starts from y's first ny samples; y0 does not apply")
             if u.size <= self.ny:
                 raise ValueError(f"u must be longer than ny={self.ny} samples for a k-step prediction, got {u.size}")
             if backend != "numpy":

@@ -180,6 +180,8 @@ def test_horizon_refusals(model, record):
         model.simulate(u, y=y, horizon=8, method="linear", state=run.state)
     with pytest.raises(ValueError, match="longer than ny"):
         model.simulate(u[:NY], y=y[:NY], horizon=2)
+    with pytest.raises(ValueError, match="^horizon: .*y0 does not apply"):
+        model.simulate(u, y=y, horizon=8, y0=y[:NY])
 
 
 # ------------------------------------------------------------------------------------------ gaps: training
