@@ -255,15 +255,17 @@ class MIMOGPNARX(ParamsMixin):
     def predict_one_step(self, records, return_std: bool = True):
         """One-step-ahead mean and std (eqs. 8-9) of every output from measured lags, (rows, n_outputs) [output
         units], rows aligned with samples max(ny, nu - 1) onwards of each record; std with sigma_y^2 when
-        ``include_noise``."""
+        ``include_noise``. Predicted in row blocks (``estimator._predict_rows``), so memory stays bounded."""
         self._check_fitted()
         pairs, _, _ = _as_channel_pairs(records)
         X, _, _ = stack_mimo_regressors(pairs, self.ny, self.nu)
         Xs = self.x_scaler_.transform(X)
         mean = np.empty((X.shape[0], self.n_outputs_))
         std = np.empty_like(mean)
+        from .estimator import _predict_rows  # row blocks of bounded memory, as GPNARX.predict_one_step
+
         for o, g in enumerate(self.outputs_):
-            mu, var = g.posterior_.predict(Xs, return_var=return_std)
+            mu, var = _predict_rows(g.posterior_, Xs, return_var=return_std)
             ys, ym = g.y_scaler_.scale_[0], g.y_scaler_.mean_[0]
             mean[:, o] = mu * ys + ym
             if return_std:
