@@ -157,3 +157,20 @@ def test_train_bundle_records_channels_and_reloads(tmp_path, data):
     with pytest.raises(OperationError) as err:
         plan("predict", None, b, Limits())
     assert err.value.field == "model" and "several channels" in err.value.detail
+
+
+def test_lag_surface_scores_each_record_by_its_worst_channel(tmp_path, data):
+    from gpnarx.training.lags import lag_surface
+
+    text = CONFIG.format(folder=data, outputs='["x1", "x2", "x3"]', tag="lags").replace(
+        'roles = ["validate"]', 'roles = ["lags"]')
+    p = tmp_path / "lags.toml"
+    p.write_text(text)
+    surface = lag_surface(p, [2, 6], [4], jobs=1, cache_dir=tmp_path / "cache", settings={"max_train_points": 150})
+    cells = {(c["ny"], c["nu"]): c for c in surface["cells"]}
+    assert set(cells) == {(2, 4), (6, 4)}
+    for c in cells.values():
+        per = c["channel_fits"]["sweep5"]
+        assert set(per) == {"x1", "x2", "x3"}
+        assert c["fits"]["sweep5"] == min(per.values()) and c["fit"] == c["fits"]["sweep5"]
+    assert surface["chosen"]["ny"] in (2, 6) and np.isfinite(surface["chosen"]["fit"])

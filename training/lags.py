@@ -1,9 +1,11 @@
 """Lag surface of section 2.2 (step 2): free-run fit % (eq. 14) for each (ny, nu).
 
 For every cell the GP-NARX is trained (ML-II) on the config's ``train`` records and its free-run
-mean on the ``lags`` records is scored with eq. (14). Cells run in parallel with joblib on local
-cores, or on an existing Dask cluster (``scheduler``: an address or a ``distributed.Client``), where the
-config and the record arrays are sent to the workers (:func:`lag_cell_data`), not read from a path.
+mean on the ``lags`` records is scored with eq. (14) (a config with several channels: each record by its
+worst output channel, ``mimo_pipeline.mimo_lag_cell``, the channels' fits in the cell's ``channel_fits``).
+Cells run in parallel with joblib on local cores, or on an existing Dask cluster (``scheduler``: an address or a
+``distributed.Client``), where the config and the record arrays are sent to the workers (:func:`lag_cell_data`),
+not read from a path.
 Finished cells are cached on disk (one JSON file per cell, keyed by the config content and the
 settings), so an interrupted surface resumes where it stopped.
 
@@ -28,6 +30,7 @@ from gpnarx.model.metrics import fit_percent
 from gpnarx.storage.atomicio import write_atomic
 from gpnarx.training.config import load_config
 from gpnarx.training.lagchoice import DEFAULT_TOLERANCE, choose_lags, edge_message, grid_edge
+from gpnarx.training.mimo_pipeline import mimo_lag_cell
 from gpnarx.training.prepare import model_from_config, shorten
 
 __all__ = ["DEFAULT_TOLERANCE", "cell_data", "choose_lags", "edge_message", "grid_edge", "lag_cell", "lag_cell_data",
@@ -65,6 +68,8 @@ def lag_cell_data(data: tuple, ny: int, nu: int, settings: dict) -> dict:
     """:func:`lag_cell` on data already in memory (``cell_data``): the task a Dask worker runs, with the
     config and the record arrays sent to it rather than read from a path."""
     cfg, train, lag_recs = data
+    if cfg.several_channels:  # a model with several channels: each record scored by its worst channel
+        return mimo_lag_cell(cfg, train, lag_recs, ny, nu, settings)
     t0 = time.perf_counter()
     try:
         model = model_from_config(cfg, ny, nu, **settings).fit(train)

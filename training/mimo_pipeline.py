@@ -78,9 +78,11 @@ class MIMOLinearARX:
         return y[ny:]
 
 
-def mimo_from_config(cfg: DatasetConfig, ny: int | None = None, nu: int | None = None) -> MIMOGPNARX:
-    """An unfitted MIMOGPNARX with the config's [model] settings (lags overridable)."""
-    m = cfg.model
+def mimo_from_config(cfg: DatasetConfig, ny: int | None = None, nu: int | None = None, **overrides) -> MIMOGPNARX:
+    """An unfitted MIMOGPNARX with the config's [model] settings (lags overridable; ``overrides``: [model] keys
+    such as ``mode`` or ``max_train_points``, None values and other keys ignored, as ``model_from_config``)."""
+    m = dict(cfg.model)
+    m.update({k: v for k, v in overrides.items() if v is not None})
     ny = ny if ny is not None else m.get("ny")
     nu = nu if nu is not None else m.get("nu")
     if ny is None or nu is None:
@@ -92,6 +94,34 @@ def mimo_from_config(cfg: DatasetConfig, ny: int | None = None, nu: int | None =
                       n_inducing=int(m.get("inducing", 256)), max_train_points=m.get("max_train_points", 2000),
                       selection=m.get("selection", "stride"), n_restarts=int(m.get("restarts", 2)),
                       seed=int(m.get("seed", 0)), hyper=m.get("hyper", "subset"))
+
+
+def mimo_lag_cell(cfg: DatasetConfig, train: list, lag_recs: list, ny: int, nu: int, settings: dict) -> dict:
+    """One cell of the lag surface for a config with several channels (``training.lags.lag_cell_data`` hands it
+    over): the MIMOGPNARX at (ny, nu) fitted on ``train``, the linearised free-run mean of every ``lags`` record
+    scored per output channel (eq. 14); a record's fit is its worst channel's (``fits``), each channel's in
+    ``channel_fits``; the cell's ``fit`` is their mean over the records, the single-output rule."""
+    import time
+
+    from gpnarx.model.metrics import fit_percent
+
+    t0 = time.perf_counter()
+    try:
+        model = mimo_from_config(cfg, ny, nu, **settings).fit(train)
+        fits, per = {}, {}
+        for rec in lag_recs:
+            run = model.simulate(rec.u, method="linear", y0=_start(rec, ny))
+            ref = rec.meta.get("clean_y", rec.y) if settings.get("score_clean") else rec.y
+            ref = ref[:, None] if np.ndim(ref) == 1 else ref
+            f = [fit_percent(ref[:, o], run.mean[:, o]) for o in range(ref.shape[1])]
+            per[rec.name] = {c.name: (float(v) if np.isfinite(v) else -1e3)
+                             for c, v in zip(model.output_channels_, f)}
+            fits[rec.name] = min(per[rec.name].values())
+        fit, err = float(np.mean(list(fits.values()))), None
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        fit, fits, per, err = float("nan"), {}, {}, str(exc)
+    return {"ny": int(ny), "nu": int(nu), "fit": fit, "fits": fits, "channel_fits": per,
+            "seconds": time.perf_counter() - t0, "error": err}
 
 
 def _start(rec: Record, ny: int):
