@@ -110,13 +110,14 @@ from __future__ import annotations
 import math
 import os
 import tomllib
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from pydantic import ValidationError
 
-from gpnarx.model.record import Record, RecordError
+from gpnarx.model.record import Record, RecordError, allowing_gaps
 from gpnarx.storage.record_files import RecordFileError, read_record
 from gpnarx.training import config_schema as schema
 from gpnarx.training import simulation_specs as specs
@@ -232,12 +233,16 @@ class DatasetConfig:
         return [self.record(s.name) for s in self.records if role in s.roles]
 
     def record(self, name: str) -> Record:
-        """One record by name (materialised and cached)."""
+        """One record by name (materialised and cached). A record file whose only role is ``train`` and that adds
+        no noise may hold gaps (NaN samples, ``model.gaps``): no lag window of the fit crosses them; every other
+        record must be gap-free (what the report scores is predicted whole)."""
         if name not in self._cache:
             spec = self.spec(name)
-            rec = self._clean_record(spec)
-            if spec.noise:
-                rec = self._add_noise(spec, rec)
+            gaps = set(spec.roles) <= {"train"} and spec.simulate is None and not spec.noise
+            with allowing_gaps() if gaps else nullcontext():
+                rec = self._clean_record(spec)
+                if spec.noise:
+                    rec = self._add_noise(spec, rec)
             self._cache[name] = rec
         return self._cache[name]
 

@@ -3,7 +3,7 @@ model with the config's ``[model]`` settings, and records cut short for quick ru
 from __future__ import annotations
 
 from gpnarx.model.estimator import GPNARX
-from gpnarx.model.record import Record
+from gpnarx.model.record import Record, allowing_gaps
 from gpnarx.training.config import ConfigError, DatasetConfig
 
 
@@ -30,4 +30,5 @@ def shorten(rec: Record, seconds: float) -> Record:
     meta = dict(rec.meta)
     if meta.get("clean_y") is not None:
         meta["clean_y"] = meta["clean_y"][:n]
-    return Record(rec.u[:n], None if rec.y is None else rec.y[:n], rec.fs, dict(rec.units), rec.name, meta)
+    with allowing_gaps():  # a part of a record already read: its NaN are the gaps the config allowed it
+        return Record(rec.u[:n], None if rec.y is None else rec.y[:n], rec.fs, dict(rec.units), rec.name, meta)
