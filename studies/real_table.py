@@ -255,6 +255,13 @@ def kstep_markdown(table: dict) -> str:
                        f"({name})")
         lines += ["", f"Median fit over the {len(held)} held-out records (validate, unseen): {med}. Lowest coverage "
                       f"by horizon over every record: {'; '.join(low)}."]
+        if len(ks) > 1:
+            a, b = ks[0], ks[1]
+            better = sorted(n for n, r in rows.items() if r["k_step"][b]["fit"] > r["k_step"][a]["fit"])
+            if better:
+                lines += ["", f"Records where k = {b} fits better than k = {a}: {', '.join(better)}. A likely "
+                              f"cause: there the measured outputs fed in as lags carry more error (sensor noise on a "
+                              f"small response) than the model's own prediction of them a few steps on."]
     return "\n".join(lines) + "\n"
 
 
