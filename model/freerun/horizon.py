@@ -37,8 +37,9 @@ from .mc import run_mc
 from .results import FreeRun
 from .spec import LAG_CLIP, VAR_CAP, Predictor, RunSpec, check_confidence, lagged_inputs
 
-#: row block of the closed-form one-step evaluation (rows of K(X, points) at a time)
-_ONE_STEP_ROWS = 4096
+#: floats of K(X_block, points) in one block of the closed-form one-step evaluation: 4 Mi (32 MiB), as the
+#: estimator's row blocks (``estimator.ROW_BLOCK_FLOATS``); a block holds a multiple of 256 rows
+_ONE_STEP_FLOATS = 1 << 22
 
 
 def check_horizon(horizon, y, n: int) -> int:
@@ -101,8 +102,9 @@ def _one_step(predictor: Predictor, u, y, spec: RunSpec) -> FreeRun:
     X[:, :ny] /= xs[:ny]
     X[:, ny:] = predictor.input_lags(u)[ny:]
     mu, var = np.empty(rows), np.empty(rows)
-    for r0 in range(0, rows, _ONE_STEP_ROWS):
-        r1 = min(rows, r0 + _ONE_STEP_ROWS)
+    block = max(256, _ONE_STEP_FLOATS // max(1, int(predictor.posterior.n_points)) // 256 * 256)
+    for r0 in range(0, rows, block):
+        r1 = min(rows, r0 + block)
         mu[r0:r1], var[r0:r1] = predictor.posterior.predict(X[r0:r1])
     noise = predictor.noise(spec)
     mean, std, lstd = y.copy(), np.zeros(n), np.zeros(n)
