@@ -478,7 +478,8 @@ def test_schema_defaults_are_the_documented_ones():
     assert config.MODEL_DEFAULTS == {
         "kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000, "selection": "stride",
         "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none", "band_window": 0.25,
-        "band_window_kind": "centred", "band_hold": 0.0, "band_gp_scale": "fixed", "hyper": "subset"}
+        "band_window_kind": "centred", "band_hold": 0.0, "band_gp_scale": "fixed", "lengthscale_refine": "none",
+        "lengthscale_refine_tolerance": 1.0, "hyper": "subset"}
     assert config.PREDICT_DEFAULTS == {"mc_paths": 1024, "confidence": 0.99, "method": "mc"}
     assert config.NOVELTY_DEFAULTS == {"false_alarm_rate": 0.01, "method": "rms_standardised_residual"}
     assert config.PHYSICS_DEFAULTS == {"mass": None, "input_gain": 1.0}
@@ -534,7 +535,7 @@ def _shipped_expectation(doc: dict, base: Path) -> dict:
     model = {"kernel": "matern32+cubic", "mode": "exact", "inducing": 256, "max_train_points": 2000,
              "selection": "stride", "restarts": 3, "seed": 0, "noise_calibration": "none", "band_calibration": "none",
              "band_window": 0.25, "band_window_kind": "centred", "band_hold": 0.0, "band_gp_scale": "fixed",
-             "hyper": "subset",
+             "lengthscale_refine": "none", "lengthscale_refine_tolerance": 1.0, "hyper": "subset",
              **doc.get("model", {})}
     records = [(r["name"], list(r["roles"]), expand_path(r["path"], base) if "path" in r else None,
                 r.get("simulate"), r.get("noise"), tuple(r["window"]) if "window" in r else None, r.get("fs"),
