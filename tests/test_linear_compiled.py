@@ -168,3 +168,32 @@ def test_numerics_page_holds_the_render_of_the_stored_stride_run():
     assert BEGIN + page.split(BEGIN, 1)[1].split(END, 1)[0] + END == render(table)
     assert len(table["records"]) >= 19 and set(table["strides"]) == {2, 4, 8}
     assert min(worst(table, "gp").values()) > table["bound"]  # the page's verdict: no stride is within the bound
+
+
+@pytest.mark.parametrize("L", [4, 9])
+def test_compiled_covariance_recursion_matches_numpy_with_its_guards(L):
+    pytest.importorskip("numba")
+    from gpnarx.model.freerun.linear_kernels import cov_steps
+
+    rng = np.random.default_rng(3)
+    ny, steps = 4, 1300  # past two rebases of the 512-step buffer
+    q = rng.random(steps) * 1e-3
+    J = rng.normal(size=(steps, ny)) * 0.6
+    J[400] = 1e200  # the guards: a term past the cap, then non-finite ones
+    J[401, 0] = np.inf
+    J[402, 1] = np.nan
+    runs = []
+    for compiled in (None, cov_steps):
+        band = np.zeros((steps, L)) if L > ny else None
+        rec = linear._CovarianceRecursion(steps, ny, L, 2.0, band, 0)
+        rec.compiled = compiled
+        for k0 in range(0, steps, 256):
+            rec.advance(q[k0:k0 + 256], J[k0:k0 + 256])
+        runs.append((rec.out, rec.prop, rec.state(), band))
+    (a, pa, sa, ba), (b, pb, sb, bb) = runs
+    cap = float(np.nanmax(a))  # the variance cap the guards held the diverged steps at
+    assert np.array_equal(np.isfinite(pa), np.isfinite(pb)) and cap == float(np.nanmax(b))
+    close = {"rtol": 1e-12, "atol": 1e-12 * cap, "equal_nan": True}  # a sum's order: round-off of the cap's size
+    assert np.allclose(a, b, **close) and np.allclose(sa, sb, **close)
+    if ba is not None:
+        assert np.allclose(ba, bb, **close)

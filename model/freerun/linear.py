@@ -110,7 +110,6 @@ def run_linear(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
         else:
             _, var_f[k0:k1], grad[k0:k1] = posterior.mean_var_grad(Xb)
 
-    compiled = CompiledMean.build(fast, posterior)
     rows_of: dict = {}  # compiled pass 1: the kernel rows of each chunk (by its first step) until pass 2 takes them
 
     def want_rows(c0: int, c1: int):
@@ -135,6 +134,9 @@ def run_linear(predictor: Predictor, u: np.ndarray, spec: RunSpec) -> FreeRun:
     q = np.empty(rows)  # sigma_f^2 + sigma_y^2 in output units
     Jall = np.empty((rows, ny))  # d mu_out / d y_lag (output units)
     cov = _CovarianceRecursion(rows, ny, L, ys, band, i0, S_end)
+    compiled = CompiledMean.build(fast, posterior)
+    if compiled is not None:
+        cov.compiled = compiled.cov_steps
 
     def pass3(k0: int, k1: int) -> None:
         np.add(var_f[k0:k1], noise, out=q[k0:k1])
@@ -314,6 +316,7 @@ class _CovarianceRecursion:
     """
 
     block = 512
+    _NO_BAND = np.zeros((1, 1))
 
     def __init__(self, steps: int, ny: int, L: int, ys: float, band, i0: int, S0: np.ndarray | None = None):
         self.ny, self.L, self.band, self.i0 = ny, L, band, i0
@@ -326,9 +329,17 @@ class _CovarianceRecursion:
         if S0 is not None:
             self.B[self.o:self.o + L, self.o:self.o + L] = S0
 
+    compiled = None  # linear_kernels.cov_steps where the compiled pass runs: the same loop compiled
+
     def advance(self, q: np.ndarray, Jall: np.ndarray) -> None:
         """The next q.size steps: q = sigma_f^2 + sigma_y^2 and Jall (steps, ny) = d mu / d y_lag of each."""
         ny, L, band, i0, cap = self.ny, self.L, self.band, self.i0, self.cap
+        if self.compiled is not None:
+            self.o = self.compiled(self.B, self.o, self.block, L, ny, np.ascontiguousarray(q),
+                                   np.ascontiguousarray(Jall), self.k, self.out, self.prop, cap,
+                                   self._NO_BAND if band is None else band, i0, band is not None)
+            self.k += q.size
+            return
         B, o, block, out, prop = self.B, self.o, self.block, self.out, self.prop
         isfinite = math.isfinite
         dot = np.dot

@@ -94,6 +94,9 @@ class CompiledMean:
         self.mom = np.array(r.moments, dtype=float)
         self.kconst = float(kconst)
         self.steps = _compile()
+        from .linear_kernels import cov_steps
+
+        self.cov_steps = cov_steps  # pass 3's loop compiled too
 
     @classmethod
     def build(cls, recursion, posterior):

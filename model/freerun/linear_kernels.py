@@ -128,3 +128,55 @@ def steps(hist, GU, R0, c0, c1, ny, ZyT, w, xm_r, inv_r, lo, hi, clip, state, co
         if not (lo <= y and y <= hi):
             clip_until = i + ny
     state[0] = clip_until
+
+
+@numba.njit(cache=True, nogil=True)
+def cov_steps(B, o, block, L, ny, q, Jall, k0, out, prop, cap, band, i0, has_band):
+    """``linear._CovarianceRecursion.advance`` for q.size steps from step k0, S = B[o:o+L, o:o+L] moving down the
+    diagonal of the buffer B (rebased every ``block`` steps), with the reference loop's guards; returns the new o."""
+    safe = 0.25 * cap
+    SJ = np.empty(L)
+    for j in range(q.shape[0]):
+        k = k0 + j
+        if o == 0:  # rebase: S to the bottom-right corner
+            B[block:, block:] = B[:L, :L].copy()
+            o = block
+        for a in range(L):
+            s = 0.0
+            for c in range(ny):
+                s += B[o + a, o + c] * Jall[j, c]
+            SJ[a] = s
+        t = 0.0
+        for c in range(ny):
+            t += Jall[j, c] * SJ[c]
+        if not (np.isfinite(t) and -safe < t and t < safe):
+            for a in range(L):
+                x = SJ[a]
+                if np.isnan(x):
+                    x = cap
+                elif x > cap:
+                    x = cap
+                elif x < -cap:
+                    x = -cap
+                SJ[a] = x
+            t = 0.0
+            for c in range(ny):
+                t += Jall[j, c] * SJ[c]
+        prop[k] = t
+        v = q[j] + t
+        if np.isfinite(v):
+            if v > cap:
+                v = cap
+        else:
+            v = cap
+        out[k] = v
+        o -= 1
+        B[o, o] = v
+        for a in range(L - 1):
+            B[o, o + 1 + a] = SJ[a]
+            B[o + 1 + a, o] = SJ[a]
+        if has_band:
+            band[i0 + k, 0] = v
+            for a in range(L - 1):
+                band[i0 + k, 1 + a] = SJ[a]
+    return o
