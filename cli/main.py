@@ -155,6 +155,11 @@ def _human(value) -> str:
     if isinstance(value, (float, np.floating)):
         return f"{float(value):.{HUMAN_DIGITS}g}"
     if isinstance(value, np.ndarray):
+        if value.ndim == 1 and value.size > HUMAN_LIST and value.dtype.kind in "iuf":  # as below, in numpy
+            finite = value[np.isfinite(value)].astype(float)
+            span = (f"from {_human(float(finite.min()))} to {_human(float(finite.max()))}" if finite.size
+                    else "none finite")
+            return f"{value.size} values {span} (--json for all)"
         value = value.tolist()
     if isinstance(value, (list, tuple)):
         if len(value) <= HUMAN_LIST:
