@@ -2,11 +2,12 @@
 accelerometers out, one GP per output (``MIMOGPNARX``), scored per channel against a linear ARX per channel and
 one over every channel's lags, on every record of the config.
 
-    python studies/bert_real_sensors.py [--seconds 16] [--out docs/runs/bert-real-sensors]
+    python studies/bert_real_sensors.py [--seconds S] [--out docs/runs/bert-real-sensors]
 
 trains into a temporary registry (``training.pipeline.train``, which hands the config to
-``training.mimo_pipeline.train_mimo``), every record cut to its first ``--seconds`` (the free run of a model with
-five outputs is one Python step per sample: whole 64 s records are for later), and stores ``report.json`` (the
+``training.mimo_pipeline.train_mimo``), every record whole (``--seconds S``: cut to its first S seconds, a quicker
+look; 16 s took 261-396 s, whole records 575 s on the shared 2-core machine at load 7-9), and stores
+``report.json`` (the
 bundle's per-channel metrics), ``summary.json`` (fit and coverage per record and channel, and the ARX fits) and
 the figures of one record of each validation class (``FIGURES``).
 """
@@ -65,7 +66,7 @@ def summarise(m: dict, seconds: float | None, out: Path) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=16.0)
+    ap.add_argument("--seconds", type=float, default=0.0, help="cut every record to its first S seconds (0: whole)")
     ap.add_argument("--out", type=Path, default=Path("docs/runs/bert-real-sensors"))
     a = ap.parse_args(argv)
     m = run(a.seconds or None, a.out)
