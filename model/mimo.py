@@ -11,8 +11,9 @@ threads run two outputs at once). The free run feeds every output back together 
 the joint covariance across outputs and lags, or Monte Carlo drawing all outputs at each step). With one input and
 one output every number is ``GPNARX``'s.
 
-Not built yet for several outputs: the held-out noise and band calibrations, streams, the JAX backend, the lag
-surface per channel group, and the front ends' answers per channel (HTTP, CLI, batch).
+The held-out noise calibration (``fit(heldout=...)``) and the band's discrepancy term (``calibrate_band``) are
+``GPNARX``'s rules applied to each output channel. Not built yet for several outputs: streams, the JAX backend, lags
+per channel group, and the front ends' answers per channel (HTTP, CLI, batch).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ import numpy as np
 
 from gpnarx.checks import is_int
 
+from .discrepancy import check_discrepancy
 from .envelope import DIVERGENCE_FACTOR
 from .freerun import RunSpec
 from .freerun.mimo import MIMOPredictor, check_inputs, run_mimo
@@ -140,7 +142,7 @@ class MIMOGPNARX(ParamsMixin):
         check_constant_cap(self.constant_cap)
 
     # ------------------------------------------------------------------------------------------
-    def fit(self, records, theta=None, progress=None) -> "MIMOGPNARX":
+    def fit(self, records, theta=None, progress=None, heldout=None) -> "MIMOGPNARX":
         """Learn the standardisations and, per output, hyperparameters (ML-II, eq. 13) and the posterior.
 
         records: Record objects (u (n,) or (n, n_inputs), y (n,) or (n, n_outputs), the same channels in every
@@ -148,6 +150,10 @@ class MIMOGPNARX(ParamsMixin):
             ``meta["row_weight"]`` weighs its share of each output's ML-II rows, as ``GPNARX.fit``.
         theta: optional fixed log-hyperparameters, one array per output (kernel's, then log sigma_y^2).
         progress: optional callable taking one line of text.
+        heldout: optional records NOT in ``records`` (the same channels): each output's sigma_y^2 is raised to the
+            held-out maximum-likelihood value of its one-step residuals (``model.heldout_noise``, never below
+            ML-II's) and its posterior rebuilt, as ``GPNARX.fit(heldout=...)`` does for one output; each output's
+            ``noise_calibration_`` records it.
         """
         from .estimator import _row_weights  # the single-output estimator's rule, shared
 
@@ -163,6 +169,15 @@ class MIMOGPNARX(ParamsMixin):
                                  f"{need}")
         X, Y, rec_idx = stack_mimo_regressors(pairs, self.ny, self.nu)
         no = Y.shape[1]
+        held = None
+        if heldout is not None:  # checked before ML-II, so a bad held-out record fails fast
+            try:
+                hpairs, hin, hout = _as_channel_pairs(heldout)
+            except ValueError as exc:
+                raise ValueError(f"heldout: {exc}") from None
+            if [c.name for c in hin] != [c.name for c in cin] or [c.name for c in hout] != [c.name for c in cout]:
+                raise ValueError("heldout: the held-out records need the training records' channels")
+            held = stack_mimo_regressors(hpairs, self.ny, self.nu)[:2]
         if theta is not None and len(theta) != no:
             raise ValueError(f"theta must hold one array per output ({no}), got {len(theta)}")
         self.input_channels_, self.output_channels_ = list(cin), list(cout)
@@ -172,8 +187,11 @@ class MIMOGPNARX(ParamsMixin):
             f"(ny={self.ny}, nu={self.nu}, {X.shape[1]} columns)")
         peaks = [max(float(np.max(np.abs(y[:, o]))) for _, y in pairs) for o in range(no)]
 
+        Xh = None if held is None else self.x_scaler_.transform(held[0])
+
         def one(o: int) -> _OutputGP:
-            return self._fit_output(Xs, Y[:, o], rec_idx, weights, None if theta is None else theta[o], peaks[o])
+            return self._fit_output(Xs, Y[:, o], rec_idx, weights, None if theta is None else theta[o], peaks[o],
+                                    None if held is None else (Xh, held[1][:, o]))
 
         jobs = self._jobs(no)
         if no > 1:  # one BLAS thread per output's fit, in turn or on joblib threads
@@ -190,6 +208,7 @@ class MIMOGPNARX(ParamsMixin):
             self.outputs_ = [one(0)]
         for o, g in enumerate(self.outputs_):
             say(f"output {o} ({cout[o].name}): NLML {g.nlml_:.6g}, sigma_y^2 {g.noise_var_:.3g} (standardised)")
+        self.band_discrepancy_ = None  # set by calibrate_band (model.discrepancy), one per output
         self.n_rows_ = int(X.shape[0])
         self.fit_seconds_ = time.perf_counter() - t0
         return self
@@ -199,8 +218,9 @@ class MIMOGPNARX(ParamsMixin):
             return min(int(self.n_jobs), no)
         return min(2, no) if two_cpus() else 1
 
-    def _fit_output(self, Xs, y, rec_idx, weights, theta, y_peak) -> _OutputGP:
-        """``GPNARX.fit``'s steps for one output on the shared standardised regressor (same calls, same order)."""
+    def _fit_output(self, Xs, y, rec_idx, weights, theta, y_peak, held=None) -> _OutputGP:
+        """``GPNARX.fit``'s steps for one output on the shared standardised regressor (same calls, same order);
+        held: (standardised held-out regressors, that output's held-out targets) for the noise calibration."""
         y_scaler = Standardizer().fit(y[:, None])
         Ys = (y - y_scaler.mean_[0]) / y_scaler.scale_[0]
         rows = select_rows(Ys, rec_idx, self.max_train_points, self.selection, self.seed, weights=weights)
@@ -221,7 +241,8 @@ class MIMOGPNARX(ParamsMixin):
         noise_var = float(np.exp(th[-1]))
         var_kernel = kernel.for_posterior(None if self.constant_cap is None else float(self.constant_cap))
         if self.mode == "exact":
-            post = ExactPosterior.fit(kernel, noise_var, Xt, Yt, var_kernel=var_kernel)
+            def build(nv):
+                return ExactPosterior.fit(kernel, nv, Xt, Yt, var_kernel=var_kernel)
         else:
             all_rows = select_rows(Ys, rec_idx, self.sparse_max_rows, "stride", self.seed, weights=weights)
             Z = choose_inducing(Xs[all_rows], int(self.n_inducing), self.seed)
@@ -231,9 +252,29 @@ class MIMOGPNARX(ParamsMixin):
                 res = fit_vfe(kernel, Xs[all_rows], Ys[all_rows], Z, theta0=th)
                 th, nlml = res.theta, res.nlml
                 noise_var = float(np.exp(th[-1]))
-            post = SparsePosterior.fit(kernel, noise_var, Xs[all_rows], Ys[all_rows], Z, var_kernel=var_kernel)
-        return _OutputGP(kernel, np.asarray(th, dtype=float), float(nlml), noise_var, post, y_scaler,
-                         int(Xt.shape[0]), float(y_peak))
+
+            def build(nv):
+                return SparsePosterior.fit(kernel, nv, Xs[all_rows], Ys[all_rows], Z, var_kernel=var_kernel)
+        post = build(noise_var)
+        th = np.asarray(th, dtype=float)
+        calibration = None
+        if held is not None:  # GPNARX._calibrate_noise's rule for this output
+            from .estimator import _predict_rows
+            from .heldout_noise import heldout_noise_var
+
+            mu, var = _predict_rows(post, held[0])
+            resid = (held[1] - y_scaler.mean_[0]) / y_scaler.scale_[0] - mu
+            s2 = heldout_noise_var(resid, var, floor=noise_var)
+            calibration = {"method": "heldout_ml", "n_residuals": int(resid.size), "noise_var_ml2": noise_var,
+                           "noise_var": s2, "residual_var": float(np.mean(resid * resid)),
+                           "latent_var_mean": float(np.mean(var))}
+            if s2 > noise_var:
+                noise_var = s2
+                th = np.concatenate([th[:-1], [np.log(s2)]])
+                post = build(s2)
+        g = _OutputGP(kernel, th, float(nlml), noise_var, post, y_scaler, int(Xt.shape[0]), float(y_peak))
+        g.noise_calibration_ = calibration
+        return g
 
     # ------------------------------------------------------------------------------------------
     def _check_fitted(self) -> None:
@@ -288,7 +329,8 @@ class MIMOGPNARX(ParamsMixin):
         (``freerun.mimo``). method: 'linear' (joint covariance across outputs and lags) or 'mc' (``n_paths``
         paths, seeded, every output drawn at each step). y0: the first ny measured outputs, (ny, n_outputs).
         Returns a ``FreeRun`` with mean, std, lower, upper (and the latent band) of shape (n, n_outputs)
-        [output units]; ``channel_run`` takes one output's as a single-output ``FreeRun``."""
+        [output units]; ``channel_run`` takes one output's as a single-output ``FreeRun``. When the band was
+        calibrated (``calibrate_band``), each output's std and bands include its discrepancy term."""
         from gpnarx.runtime import free_run_blas
 
         self._check_fitted()
@@ -299,7 +341,55 @@ class MIMOGPNARX(ParamsMixin):
                        progress=progress)
         u = check_inputs(u, self.n_inputs_)
         with free_run_blas():
-            return run_mimo(self.predictor(), u, spec)
+            return self._widened(run_mimo(self.predictor(), u, spec))
+
+    def calibrate_band(self, records, window: int, method: str = "linear", n_paths: int = 256,
+                       confidence: float = 0.99, kind: str = "centred", hold: int = 0, gp_scales=(1.0,)) -> list:
+        """Each output's model-discrepancy term of the band (``model.discrepancy``), calibrated on held-out records:
+        ``GPNARX.calibrate_band``'s rule for every output channel, on that channel's share of one free run of each
+        record (every output fed back together). records: (name, u, y, start) with y (n, n_outputs) and start
+        'rest' or 'measured'; window [samples], kind, hold [samples], gp_scales: as ``GPNARX.calibrate_band``.
+        Sets and returns ``band_discrepancy_``, one ``calibrate_scale`` record per output (with its ``channel``)."""
+        from .discrepancy import calibrate_scale
+
+        self._check_fitted()
+        for name, _u, _y, start in records:
+            if start not in ("rest", "measured"):
+                raise ValueError(f"records[{name!r}].start must be 'rest' or 'measured', got {start!r}")
+        self.band_discrepancy_ = None  # the calibration runs are predicted without the term
+        runs = []
+        for name, u, y, start in records:
+            Y = np.asarray(y, dtype=float)
+            Y = Y[:, None] if Y.ndim == 1 else Y
+            y0 = Y[: self.ny] if start == "measured" else None
+            run = self.simulate(u, n_paths=n_paths, seed=0, y0=y0, confidence=confidence, method=method)
+            runs.append((name, Y, run, self.ny if start == "measured" else 0))
+        per = []
+        for o, ch in enumerate(self.output_channels_):
+            d = calibrate_scale([(name, Y[:, o], self.channel_run(run, o), skip) for name, Y, run, skip in runs],
+                                int(window), kind=kind, hold=int(hold), gp_scales=gp_scales)
+            per.append({**d, "calibration_method": method, "records": [name for name, *_ in records],
+                        "channel": ch.name})
+        self.band_discrepancy_ = per
+        return per
+
+    def _widened(self, run):
+        """``run`` with each output's band discrepancy term (``band_discrepancy_``), as ``GPNARX.simulate`` adds
+        its one (``discrepancy.widen_chunk`` on each channel's share)."""
+        from dataclasses import replace
+
+        from .discrepancy import widen_chunk
+
+        disc = getattr(self, "band_discrepancy_", None)
+        if not disc:
+            return run
+        cols = {k: np.array(getattr(run, k), copy=True) for k in ("std", "lower", "upper", "latent_lower",
+                                                                  "latent_upper") if getattr(run, k) is not None}
+        for o, d in enumerate(disc):
+            out, _, _ = widen_chunk(self.channel_run(run, o), d)
+            for k in cols:
+                cols[k][:, o] = getattr(out, k)
+        return replace(run, **cols)
 
     @staticmethod
     def channel_run(run, o: int):
@@ -336,7 +426,8 @@ class MIMOGPNARX(ParamsMixin):
         self._check_fitted()
         outs = [{"name": c.name, "unit": c.unit, "kernel": g.posterior_.kernel.to_dict(),
                  "hyperparameters": {**g.kernel_.params, "noise_var": g.noise_var_}, "noise_var": g.noise_var_,
-                 "nlml": None if not np.isfinite(g.nlml_) else g.nlml_, "n_train": g.n_train_, "y_peak": g.y_peak_}
+                 "nlml": None if not np.isfinite(g.nlml_) else g.nlml_, "n_train": g.n_train_, "y_peak": g.y_peak_,
+                 "noise_calibration": getattr(g, "noise_calibration_", None)}
                 for c, g in zip(self.output_channels_, self.outputs_)]
         return {
             "model_class": "mimo",
@@ -350,8 +441,8 @@ class MIMOGPNARX(ParamsMixin):
             "outputs": outs,
             "nlml": None,
             "n_train": int(sum(g.n_train_ for g in self.outputs_)),
-            "noise_calibration": None,
-            "band_discrepancy": None,
+            "noise_calibration": outs[0]["noise_calibration"],
+            "band_discrepancy": getattr(self, "band_discrepancy_", None),
             "training_envelope": None,
             "estimator": {"include_noise": bool(self.include_noise), "n_inducing": int(self.n_inducing),
                           "max_train_points": self.max_train_points, "selection": self.selection,
@@ -394,7 +485,15 @@ class MIMOGPNARX(ParamsMixin):
                                  float("nan") if d["nlml"] is None else float(d["nlml"]), noise_var, posterior,
                                  Standardizer.from_arrays(arrays[f"out{o}_y_mean"], arrays[f"out{o}_y_scale"]),
                                  int(d["n_train"]), float(d["y_peak"])))
+        for g, d in zip(gps, description["outputs"]):
+            g.noise_calibration_ = d.get("noise_calibration")
         model.outputs_ = gps
+        disc = description.get("band_discrepancy")
+        if disc is not None:
+            if not isinstance(disc, list) or len(disc) != len(gps):
+                raise ValueError("band_discrepancy must hold one term per output")
+            disc = [check_discrepancy(d) for d in disc]
+        model.band_discrepancy_ = disc
         D = model.n_features_
         if model.x_scaler_.mean_.shape != (D,) or any(g.posterior_.points.shape[1] != D for g in gps):
             raise ValueError(f"array shapes do not match lags ny={model.ny}, nu={model.nu} and "

@@ -237,3 +237,36 @@ def test_joint_covariance_stays_symmetric_on_a_stiff_pair():
     assert np.all(lin.std[5:] > 0) and np.all(np.isfinite(lin.std))
     ratio = np.median(lin.std[5:], axis=0) / np.median(mc.std[5:], axis=0)
     assert np.all((ratio > 0.7) & (ratio < 1.3)), ratio
+
+
+def test_one_output_noise_and_band_calibration_reduce_to_gpnarx():
+    u, y = _sdof(500, seed=11)
+    uh, yh = _sdof(300, seed=12)
+    uc, yc = _sdof(300, seed=13)
+    yh = yh + 0.05 * np.random.default_rng(1).normal(size=300)  # held-out records noisier than training
+    kw = dict(ny=3, nu=2, max_train_points=250, n_restarts=0, seed=0)
+    single = GPNARX(**kw).fit([(u, y)], heldout=[(uh, yh)])
+    mimo = MIMOGPNARX(**kw).fit([(u, y)], heldout=[(uh, yh)])
+    assert single.noise_var_ > single.noise_var_ml2_  # the calibration raised it
+    assert mimo.outputs_[0].noise_var_ == pytest.approx(single.noise_var_, rel=1e-10)
+    # a drive twice the training level: the model's form error, which the discrepancy term must cover
+    u2 = 2.0 * uc
+    y2 = np.zeros(300)
+    for i in range(2, 300):
+        y2[i] = 1.5 * y2[i - 1] - 0.7 * y2[i - 2] + 0.3 * u2[i] + 0.1 * u2[i - 1] - 0.05 * y2[i - 1] ** 3
+    recs = [("c", uc, yc, "rest"), ("h", uh, yh, "measured"), ("2x", u2, y2, "rest")]
+    from gpnarx.model.discrepancy import GP_SCALE_GRID
+
+    d1 = single.calibrate_band(recs, window=25, kind="trailing", hold=10, gp_scales=GP_SCALE_GRID)
+    d2 = mimo.calibrate_band(recs, window=25, kind="trailing", hold=10, gp_scales=GP_SCALE_GRID)[0]
+    assert d1["scale"] > 0 and d2["channel"] == "y"
+    assert (d2["scale"], d2["gp_scale"]) == (d1["scale"], d1["gp_scale"])
+    ut = _sdof(200, seed=14)[0]
+    a, b = single.simulate(ut, method="linear"), mimo.simulate(ut, method="linear")
+    scale = np.max(np.abs(a.mean))
+    for f in ("std", "lower", "upper", "latent_upper"):
+        assert np.allclose(getattr(b, f)[:, 0], getattr(a, f), rtol=1e-7, atol=1e-9 * scale), f
+    # the terms travel with the model's description
+    back = MIMOGPNARX.from_fitted(mimo.fitted_description(), mimo.fitted_arrays())
+    assert back.band_discrepancy_[0]["scale"] == d2["scale"]
+    assert np.array_equal(back.simulate(ut, method="linear").upper, b.upper)

@@ -174,3 +174,23 @@ def test_lag_surface_scores_each_record_by_its_worst_channel(tmp_path, data):
         assert set(per) == {"x1", "x2", "x3"}
         assert c["fits"]["sweep5"] == min(per.values()) and c["fit"] == c["fits"]["sweep5"]
     assert surface["chosen"]["ny"] in (2, 6) and np.isfinite(surface["chosen"]["fit"])
+
+
+def test_noise_and_band_calibration_per_channel(tmp_path, data):
+    text = CONFIG.format(folder=data, outputs='["x1", "x2", "x3"]', tag="cal").replace(
+        'roles = ["validate"]', 'roles = ["lags"]').replace(
+        "restarts = 0\n", 'restarts = 0\nnoise_calibration = "lags"\nband_calibration = "lags"\n'
+                          'band_window_kind = "trailing"\nband_gp_scale = "calibrated"\n')
+    p = tmp_path / "cal.toml"
+    p.write_text(text)
+    out = train(load_config(p), tmp_path / "reg", report=False)
+    m = load_bundle(out["path"]).manifest
+    disc = m["band_discrepancy"]
+    assert [d["channel"] for d in disc] == ["x1", "x2", "x3"]
+    for d in disc:  # each channel's term covers the lags record at the band's confidence
+        assert d["reached"] and d["coverage_after"]["sweep5"] >= 0.99 and d["window_kind"] == "trailing"
+    assert all(o["noise_calibration"]["noise_var"] >= o["noise_calibration"]["noise_var_ml2"] for o in m["outputs"])
+    assert all(ch["coverage"] >= 99.0 for ch in m["training"]["records"]["sweep5"]["channels"].values())
+    b = load_bundle(out["path"])
+    u = load_config(p).record("sweep5").u
+    assert np.array_equal(b.model.simulate(u, method="linear").upper, out["model"].simulate(u, method="linear").upper)

@@ -11,8 +11,10 @@ writes a bundle whose manifest records the channels (names, units, their order: 
 GP, and ``training.records[NAME].channels[CHANNEL]`` the metrics; with ``report``, one figure per scored record
 (every channel, measured and predicted with the band) in the bundle's ``report/`` folder.
 
-Not built yet for several channels: the noise and band calibrations on the 'lags' records, the novelty
-calibration, the lag surface, the HTML report and the Dask runner (the single-output ``pipeline.train`` has them).
+The config's ``noise_calibration = "lags"`` and ``band_calibration = "lags"`` apply each output channel its own
+held-out noise variance and band discrepancy term (``MIMOGPNARX.fit(heldout=)``, ``calibrate_band``). Not built yet
+for several channels: the novelty calibration, the HTML report and the Dask runner (the single-output
+``pipeline.train`` has them).
 """
 from __future__ import annotations
 
@@ -87,9 +89,6 @@ def mimo_from_config(cfg: DatasetConfig, ny: int | None = None, nu: int | None =
     nu = nu if nu is not None else m.get("nu")
     if ny is None or nu is None:
         raise ConfigError(f"{cfg.path}: [model] ny and nu are required for a model with several channels")
-    for key in ("noise_calibration", "band_calibration"):
-        if m.get(key, "none") != "none":
-            raise ConfigError(f"{cfg.path}: model.{key}: not built yet for several channels (use 'none')")
     return MIMOGPNARX(ny=int(ny), nu=int(nu), kernel=m.get("kernel", "matern32+cubic"), mode=m.get("mode", "exact"),
                       n_inducing=int(m.get("inducing", 256)), max_train_points=m.get("max_train_points", 2000),
                       selection=m.get("selection", "stride"), n_restarts=int(m.get("restarts", 2)),
@@ -122,6 +121,27 @@ def mimo_lag_cell(cfg: DatasetConfig, train: list, lag_recs: list, ny: int, nu: 
         fit, fits, per, err = float("nan"), {}, {}, str(exc)
     return {"ny": int(ny), "nu": int(nu), "fit": fit, "fits": fits, "channel_fits": per,
             "seconds": time.perf_counter() - t0, "error": err}
+
+
+def calibrate_band_from_config(model: MIMOGPNARX, cfg: DatasetConfig, held: list, log=None) -> list:
+    """Each output's band discrepancy term from the held-out 'lags' records with the config's band settings
+    (``band_window`` [s], ``band_window_kind``, ``band_hold`` [s], ``band_gp_scale``), each record started by its
+    own rule: ``pipeline.calibrate_band_from_config`` for several channels."""
+    from gpnarx.model.discrepancy import GP_SCALE_GRID
+
+    window = max(1, int(round(float(cfg.model.get("band_window", 0.25)) * cfg.fs)))
+    hold = max(0, int(round(float(cfg.model.get("band_hold", 0.0)) * cfg.fs)))
+    gp_scales = GP_SCALE_GRID if cfg.model.get("band_gp_scale", "fixed") == "calibrated" else (1.0,)
+    starts = [(r.name, r.u, r.outputs_2d(), "measured" if r.meta.get("initial") == "measured" else "rest")
+              for r in held]
+    per = model.calibrate_band(starts, window, confidence=float(cfg.predict.get("confidence", 0.99)),
+                               kind=str(cfg.model.get("band_window_kind", "centred")), hold=hold, gp_scales=gp_scales)
+    for d in per:
+        (log or (lambda m: None))(
+            f"  band of {d['channel']}: propagated x {d['gp_scale']:.3g}, discrepancy scale {d['scale']:.4g}; worst "
+            f"'lags' coverage {100 * min(d['coverage_before'].values()):.1f} % -> "
+            f"{100 * min(d['coverage_after'].values()):.1f} %" + ("" if d["reached"] else " (target not reached)"))
+    return per
 
 
 def _start(rec: Record, ny: int):
@@ -159,7 +179,15 @@ def train_mimo(config, registry, name: str | None = None, version: str | None = 
     model = mimo_from_config(cfg, ny, nu)
     log(f"training {cfg.name}: ny={model.ny} nu={model.nu}, {train_recs[0].n_inputs} input(s), "
         f"{train_recs[0].n_outputs} output(s), on {len(train_recs)} record(s)")
-    model.fit(train_recs, progress=log)
+    model.fit(train_recs, progress=log,
+              heldout=records("lags") if cfg.model.get("noise_calibration", "none") == "lags" else None)
+    for ch, g in zip(model.output_channels_, model.outputs_):
+        nc = getattr(g, "noise_calibration_", None)
+        if nc is not None:
+            log(f"  {ch.name}: sigma_y^2 {nc['noise_var_ml2']:.3g} (ML-II) -> {nc['noise_var']:.3g} (held-out, "
+                f"standardised)")
+    if cfg.model.get("band_calibration", "none") == "lags":
+        calibrate_band_from_config(model, cfg, records("lags"), log)
     arx = MIMOLinearARX(model.ny, model.nu).fit(train_recs)
     # with one input, also each output channel's own linear ARX (u and that channel's lags: baselines.LinearARX)
     own = None
