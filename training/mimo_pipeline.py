@@ -161,9 +161,11 @@ def _score(rec: Record, mean, lower, upper, channels) -> dict:
 
 def train_mimo(config, registry, name: str | None = None, version: str | None = None, *, mc_paths: int | None = None,
                ny: int | None = None, nu: int | None = None, report: bool = True, log=None,
-               max_seconds: float | None = None, report_method: str | None = None) -> dict:
+               max_seconds: float | None = None, report_method: str | None = None,
+               model_overrides: dict | None = None) -> dict:
     """Train a model with several channels from a dataset config and write its bundle (see the module
-    docstring). Returns name, version, path, the per-channel metrics and the fitted model."""
+    docstring). Returns name, version, path, the per-channel metrics and the fitted model. ``model_overrides``:
+    [model] settings to override (``gpnarx train --mode/--train-points``)."""
     cfg = config if isinstance(config, DatasetConfig) else load_config(config)
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
@@ -176,7 +178,7 @@ def train_mimo(config, registry, name: str | None = None, version: str | None = 
         return [shorten(r, max_seconds) for r in recs] if max_seconds else recs
 
     train_recs = records("train")
-    model = mimo_from_config(cfg, ny, nu)
+    model = mimo_from_config(cfg, ny, nu, **(model_overrides or {}))
     log(f"training {cfg.name}: ny={model.ny} nu={model.nu}, {train_recs[0].n_inputs} input(s), "
         f"{train_recs[0].n_outputs} output(s), on {len(train_recs)} record(s)")
     model.fit(train_recs, progress=log,

@@ -164,13 +164,13 @@ def train(config, registry, name: str | None = None, version: str | None = None,
     """
     cfg = as_config(config)
     if cfg.several_channels:
-        unbuilt = [k for k, v in (("lag_surface", lag_surface), ("baselines", baselines), ("paper", paper),
-                                  ("model_overrides", model_overrides), ("extra_evals", extra_evals),
-                                  ("scheduler", scheduler)) if v not in (None, "", {}, [])]
+        given = (("lag_surface", lag_surface), ("baselines", baselines), ("paper", paper),
+                 ("extra_evals", extra_evals), ("scheduler", scheduler))
+        unbuilt = [k for k, v in given if v not in (None, "", {}, [])]
         if unbuilt:
             raise ValueError(f"{', '.join(unbuilt)}: not built yet for a config with several channels")
         return train_mimo(cfg, registry, name, version, mc_paths=mc_paths, ny=ny, nu=nu, report=report, log=log,
-                          max_seconds=max_seconds, report_method=report_method)
+                          max_seconds=max_seconds, report_method=report_method, model_overrides=model_overrides)
     log = log or (lambda msg: None)
     t0 = time.perf_counter()
     with ExitStack() as stack:
