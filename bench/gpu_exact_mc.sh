@@ -8,9 +8,10 @@
 # BUNDLE_DIR: the exact bert-real bundle (REGISTRY/bert-real/VERSION); without one, bert-real is trained from its
 #   shipped config into a temporary registry (needs the lab records: ../shared/data/bert-t5nm or GPNARX_BERT_DATA).
 # RECORD: default the 20 Hz sine of the lab data (64 s, 65,536 samples).
-# GPNARX_WHEELS=DIR: install JAX's CUDA build from wheels in DIR, offline (a GPU machine that reaches no package
-#   index: fill DIR beforehand with `pip download 'jax[cuda12]' -d DIR` on a machine that does); without it, from
-#   the package index. GPNARX_JAX_EXTRA: the extra to install (default cuda12; cuda13 for a CUDA 13 driver).
+# GPNARX_WHEELS=DIR: install JAX's CUDA build and gpnarx's dependencies from wheels in DIR, offline (a GPU machine
+#   that reaches no package index: fill DIR beforehand, on a machine that does and for the GPU machine's Python and
+#   platform, with `pip download 'jax[cuda12]' -r requirements.lock -d DIR`); without it, from the package index.
+#   GPNARX_JAX_EXTRA: the extra to install (default cuda12; cuda13 for a CUDA 13 driver).
 # OUT=DIR: where the RESULT lines and the run's notes go (default docs/runs/accelerator/exact).
 #
 # Prints bench/bench_gpu.py's RESULT line (realtime= at 4096 paths, band_*_se= against numpy in Monte Carlo
@@ -28,11 +29,10 @@ mkdir -p "$OUT"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/device.txt"
 
 if [ -n "${GPNARX_WHEELS:-}" ]; then
-  python -m pip install --no-index --find-links "$GPNARX_WHEELS" "jax[$EXTRA]"
+  python -m pip install --no-index --find-links "$GPNARX_WHEELS" "jax[$EXTRA]" -e .
 else
-  python -m pip install -U "jax[$EXTRA]"
+  python -m pip install -U "jax[$EXTRA]" -e .
 fi
-python -m pip install -e . --no-deps --no-build-isolation >/dev/null 2>&1 || python -m pip install -e . --no-deps
 python - <<'PY'
 import jax
 devs = jax.devices()
