@@ -197,3 +197,23 @@ def test_compiled_covariance_recursion_matches_numpy_with_its_guards(L):
     assert np.allclose(a, b, **close) and np.allclose(sa, sb, **close)
     if ba is not None:
         assert np.allclose(ba, bb, **close)
+
+
+def test_compiled_strided_run_equals_the_numpy_strided_run(models, sdof_data, monkeypatch):
+    pytest.importorskip("numba")
+    m = models["matern32+cubic"]
+    P, u = m.predictor(), sdof_data["u2"][:2100]
+    runs = {}
+    for flag in ("0", "1"):
+        monkeypatch.setenv("GPNARX_COMPILED", flag)
+        runs[flag] = run(P, u, RunSpec(method="linear", variance_stride=4))
+    assert np.allclose(runs["1"].std, runs["0"].std, rtol=1e-8)
+    assert np.allclose(runs["1"].mean, runs["0"].mean, rtol=0, atol=1e-10 * np.abs(runs["0"].mean).max())
+
+
+def test_empty_record_runs_on_either_pass(models, monkeypatch):
+    m = models["matern32+cubic"]
+    for flag in ("0", "1"):
+        monkeypatch.setenv("GPNARX_COMPILED", flag)
+        r = run(m.predictor(), np.zeros(0), RunSpec(method="linear"))
+        assert r.mean.size == 0 and r.std.size == 0
