@@ -23,6 +23,7 @@ import numpy as np
 from .spec import LAG_CLIP
 
 _KERNEL = []  # the compiled step loop, built on first use
+_NUMBA: list = []  # [whether numba imports], filled on first use
 _CHECKED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # posterior -> whether its rows check out
 
 
@@ -30,11 +31,14 @@ def enabled() -> bool:
     """Whether the compiled pass may run: numba importable and ``GPNARX_COMPILED`` not 0."""
     if os.environ.get("GPNARX_COMPILED", "1").strip() in ("0", "false", "no", "off"):
         return False
-    try:
-        import numba  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    if not _NUMBA:  # looked up once: a failed import is not remembered by Python
+        try:
+            import numba  # noqa: F401
+
+            _NUMBA.append(True)
+        except ImportError:
+            _NUMBA.append(False)
+    return _NUMBA[0]
 
 
 def _compile():
