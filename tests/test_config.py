@@ -542,8 +542,9 @@ def _shipped_expectation(doc: dict, base: Path) -> dict:
                 r.get("meta", {})) for r in doc["records"]]
     return {
         "name": doc["name"], "description": doc.get("description", ""),
-        "system": {"fs": float(doc["system"]["fs"]), "units": doc["system"].get("units", {"u": "", "y": ""}),
-                   "output": doc["system"].get("output", "displacement")},
+        "system": {"fs": float(doc["system"]["fs"]), "units": {"u": "", "y": "", **doc["system"].get("units", {})},
+                   "output": doc["system"].get("output", "displacement"),
+                   **{k: doc["system"][k] for k in ("inputs", "outputs") if k in doc["system"]}},
         "physics": {"mass": None, "input_gain": 1.0, **doc.get("physics", {})},
         "model": model, "lags": doc.get("lags", {}),
         "predict": {"mc_paths": 1024, "confidence": 0.99, "method": "mc", **doc.get("predict", {})},
