@@ -157,6 +157,11 @@ def summary(out: dict, units: dict | None = None) -> str:
         lg = out["lags"]
         lines.append(f"lags chosen: ny={lg['ny']} nu={lg['nu']} (fit {_num(lg['fit'])} %, {lg['cells']} cells)")
     recs = m.get("records") or {}
+    if any(isinstance(r, dict) and isinstance(r.get("channels"), dict) for r in recs.values()):
+        # a model with several channels (training.mimo_pipeline): one row per record and output channel
+        recs = {f"{name} {ch}": {"role": r.get("role"), **mm}
+                for name, r in recs.items() if isinstance(r, dict)
+                for ch, mm in (r.get("channels") or {"-": {}}).items()}
     if recs:
         cols = [c for c in _COLUMNS if any(isinstance(r, dict) and r.get(c[0]) is not None for r in recs.values())]
         head = ["record"] + [f"{h} [{yu if u == 'y' else u}]" if u else h for _, h, u in cols]

@@ -194,3 +194,14 @@ def test_noise_and_band_calibration_per_channel(tmp_path, data):
     b = load_bundle(out["path"])
     u = load_config(p).record("sweep5").u
     assert np.array_equal(b.model.simulate(u, method="linear").upper, out["model"].simulate(u, method="linear").upper)
+
+
+def test_train_summary_has_a_row_per_record_and_channel():
+    from gpnarx.cli.cmd_train import summary
+
+    out = {"name": "m", "version": "1", "path": "/nowhere", "metrics": {"records": {
+        "s5": {"role": "validate", "channels": {"x1": {"fit": 91.5, "coverage": 99.0},
+                                                 "x3": {"fit": 88.25, "coverage": 97.5}}}}}}
+    text = summary(out, {"u": "N", "y": "m"})
+    rows = [ln for ln in text.splitlines() if ln.startswith("s5 ")]
+    assert len(rows) == 2 and "s5 x1" in rows[0] and "91.5" in rows[0] and "s5 x3" in rows[1] and "88.25" in rows[1]
