@@ -170,6 +170,26 @@ def _as_input(u, name: str = "u") -> np.ndarray:
     return arr
 
 
+def check_gp_params(est) -> None:
+    """The settings every GP-NARX estimator shares (``GPNARX``, ``mimo.MIMOGPNARX``), checked on ``est``: lags
+    (normalised in place), mode, selection, row cap, inducing points, sparse hyperparameters, restarts, constant cap.
+    ValueError naming the setting and its limit."""
+    est.ny, est.nu = check_lags(est.ny, est.nu)
+    if est.mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {est.mode!r}")
+    if est.selection not in SELECTIONS:
+        raise ValueError(f"selection must be one of {SELECTIONS}, got {est.selection!r}")
+    if est.max_train_points is not None and int(est.max_train_points) < 2:
+        raise ValueError(f"max_train_points must be at least 2, got {est.max_train_points}")
+    if est.mode == "sparse" and not 1 <= int(est.n_inducing) <= 4096:
+        raise ValueError(f"n_inducing must be between 1 and 4096, got {est.n_inducing}")
+    if est.hyper not in ("subset", "vfe"):
+        raise ValueError(f"hyper must be 'subset' or 'vfe', got {est.hyper!r}")
+    if int(est.n_restarts) < 0:
+        raise ValueError(f"n_restarts must be >= 0, got {est.n_restarts}")
+    check_constant_cap(est.constant_cap)
+
+
 class GPNARX(ParamsMixin):
     """GP-NARX model of eqs. (1)-(3) with the kernel of eq. (12) by default.
 
@@ -280,20 +300,7 @@ class GPNARX(ParamsMixin):
 
     # ------------------------------------------------------------------------------------------
     def _check_params(self) -> None:
-        self.ny, self.nu = check_lags(self.ny, self.nu)
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if self.selection not in SELECTIONS:
-            raise ValueError(f"selection must be one of {SELECTIONS}, got {self.selection!r}")
-        if self.max_train_points is not None and int(self.max_train_points) < 2:
-            raise ValueError(f"max_train_points must be at least 2, got {self.max_train_points}")
-        if self.mode == "sparse" and not 1 <= int(self.n_inducing) <= 4096:
-            raise ValueError(f"n_inducing must be between 1 and 4096, got {self.n_inducing}")
-        if self.hyper not in ("subset", "vfe"):
-            raise ValueError(f"hyper must be 'subset' or 'vfe', got {self.hyper!r}")
-        if int(self.n_restarts) < 0:
-            raise ValueError(f"n_restarts must be >= 0, got {self.n_restarts}")
-        check_constant_cap(self.constant_cap)
+        check_gp_params(self)
         self.fit_backend = check_backend(self.fit_backend, "fit_backend")
 
     def fit(self, records, theta: np.ndarray | None = None, heldout=None, progress=None) -> "GPNARX":
@@ -420,8 +427,8 @@ class GPNARX(ParamsMixin):
         present rows stay (``select_rows`` over them in their order: stride keeps every record's share, so an
         update does not forget the records it was trained on), those are refactored (``gp_update.keep_rows``,
         O(N^3 / 3), the one step that is not a rank update), then the new rows are appended. The training
-        envelope grows to cover the new records. The noise variance stays as it is (``recalibrate_noise`` redoes the held-out
-        calibration); so do the band's discrepancy term and the novelty threshold (the training layer's
+        envelope grows to cover the new records. The noise variance stays as it is (``recalibrate_noise`` redoes
+        the held-out calibration); so do the band's discrepancy term and the novelty threshold (the training layer's
         ``gpnarx update`` recalibrates them). What was done is in ``update_``. The sparse posterior cannot take
         rows (it keeps no N-row statistics): ``ValueError`` saying it needs a retrain.
         """

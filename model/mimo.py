@@ -26,19 +26,19 @@ from gpnarx.checks import is_int
 
 from .discrepancy import check_discrepancy
 from .envelope import DIVERGENCE_FACTOR
+from .estimator import check_gp_params
 from .freerun import RunSpec
 from .freerun.mimo import MIMOPredictor, check_inputs, run_mimo
 from .gp import ExactPosterior, SparsePosterior, choose_inducing
-from .kernels import DEFAULT_CONSTANT_CAP, Kernel, check_constant_cap, kernel_from_dict, make_kernel
+from .kernels import DEFAULT_CONSTANT_CAP, Kernel, kernel_from_dict, make_kernel
 from .linalg import two_cpus
 from .ml2 import default_warm_start_subset, fit_ml2
 from .params import ParamsMixin
 from .record import Channel, Record
-from .regressors import check_lags, first_index, stack_mimo_regressors
+from .regressors import first_index, stack_mimo_regressors
 from .scaling import Standardizer
-from .selection import SELECTIONS, select_rows
+from .selection import select_rows
 
-MODES = ("exact", "sparse")
 MAX_PATHS = 65536
 
 
@@ -124,22 +124,9 @@ class MIMOGPNARX(ParamsMixin):
         self.n_jobs = n_jobs
 
     def _check_params(self) -> None:
-        self.ny, self.nu = check_lags(self.ny, self.nu)
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if self.selection not in SELECTIONS:
-            raise ValueError(f"selection must be one of {SELECTIONS}, got {self.selection!r}")
-        if self.max_train_points is not None and int(self.max_train_points) < 2:
-            raise ValueError(f"max_train_points must be at least 2, got {self.max_train_points}")
-        if self.mode == "sparse" and not 1 <= int(self.n_inducing) <= 4096:
-            raise ValueError(f"n_inducing must be between 1 and 4096, got {self.n_inducing}")
-        if self.hyper not in ("subset", "vfe"):
-            raise ValueError(f"hyper must be 'subset' or 'vfe', got {self.hyper!r}")
-        if int(self.n_restarts) < 0:
-            raise ValueError(f"n_restarts must be >= 0, got {self.n_restarts}")
+        check_gp_params(self)
         if self.n_jobs is not None and not is_int(self.n_jobs, 1, 64):
             raise ValueError(f"n_jobs must be None or an integer between 1 and 64, got {self.n_jobs!r}")
-        check_constant_cap(self.constant_cap)
 
     # ------------------------------------------------------------------------------------------
     def fit(self, records, theta=None, progress=None, heldout=None) -> "MIMOGPNARX":

@@ -102,7 +102,8 @@ def main(argv=None) -> int:
             reference = {"bundle": f"{ref.name}:{ref.version}", "n_train": ref.model.n_train_,
                          "scores": score(ref.model, cfg, plan)}
     run = {
-        "study": "update", "config": "configs/bert-real.toml", "held_back": held, "variant": f"bert-real-no-{args.hold}",
+        "study": "update", "config": "configs/bert-real.toml", "held_back": held,
+        "variant": f"bert-real-no-{args.hold}",
         "propagation": plan, "train_seconds": train_s, "update_seconds": update_s,
         "parent": {"version": trained["version"], "n_train": parent.model.n_train_,
                    "noise_var": parent.model.noise_var_,

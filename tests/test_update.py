@@ -211,7 +211,8 @@ def test_a_novel_record_is_refused_and_accept_novel_says_so(monitored):
 
     reg, bundle = monitored
     bad = damaged()
-    with pytest.raises(NovelRecordError, match=r"damaged: the novelty monitor of toy:2 judges it novel .*--accept-novel"):
+    with pytest.raises(NovelRecordError,
+                       match=r"damaged: the novelty monitor of toy:2 judges it novel .*--accept-novel"):
         update(bundle, [bad], reg)
     assert sorted(p.name for p in (reg / "toy").iterdir() if not p.name.startswith(".")) == ["1", "2"]
     when = dt.datetime(2030, 1, 2, 3, 4, 5, tzinfo=dt.timezone.utc)
@@ -261,7 +262,8 @@ def test_the_service_picks_up_the_updated_version(monitored):
         update(bundle, [record(30, 400, name="good")], reg)
         asyncio.run(app.state.service.reload(poll=True))
         info = c.get("/v1/models/toy").json()
-        assert info["version"] == "3" and info["versions"] == ["1", "2", "3"] and info["n_train"] > bundle.model.n_train_
+        assert info["version"] == "3" and info["versions"] == ["1", "2", "3"]
+        assert info["n_train"] > bundle.model.n_train_
         body = {"u": record(31, 200).u.tolist(), "fs": FS, "mc_paths": 8, "seed": 0}
         assert c.post("/v1/models/toy/versions/3/predict", json=body).status_code == 200
 

@@ -10,7 +10,8 @@ factor by the rule below, scored by the free run the product makes.
 
 Rule: the free-run fit (eq. 14) of every 'lags' record, linearised, from its start rule (``meta.initial``),
 at ML-II's lengthscales (factor 1) and at factors exp(+-k ``STEP``) stepping away from 1 in each direction (at
-most ``MAX_STEPS`` each way: factors 0.37 to 2.7). A factor is admissible when no 'lags' record loses more than ``tolerance``
+most ``MAX_STEPS`` each way: factors 0.37 to 2.7). A factor is admissible when no 'lags' record loses more than
+``tolerance``
 points of fit against factor 1 (default ``DEFAULT_TOLERANCE``): the refinement may trade a little on one class
 for more on another, never a class for another. Among admissible factors the one with the best worst-record
 fit is kept (ties: the one nearer 1). A direction stops at its first inadmissible factor, or when the worst

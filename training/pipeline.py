@@ -36,7 +36,8 @@ from gpnarx.storage.jsonsafe import to_json_safe
 from gpnarx.training.baselines import fit_baselines, score_baselines
 from gpnarx.training.config import DatasetConfig, load_config
 from gpnarx.training.distributed import TaskRunner
-from gpnarx.training.hyper_refine import DEFAULT_TOLERANCE as REFINE_TOLERANCE, refine_lengthscales
+from gpnarx.training.hyper_refine import DEFAULT_TOLERANCE as REFINE_TOLERANCE
+from gpnarx.training.hyper_refine import refine_lengthscales
 from gpnarx.training.mimo_pipeline import train_mimo
 from gpnarx.training.prepare import model_from_config, shorten
 

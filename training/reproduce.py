@@ -33,9 +33,9 @@ from gpnarx.model.metrics import fit_percent
 from gpnarx.model.novelty import RMS_METHOD, calibrate_threshold, novelty_score, novelty_start
 from gpnarx.storage.bundle import load_bundle
 from gpnarx.storage.jsonsafe import to_json_safe
+from gpnarx.training import hyper_refine
 from gpnarx.training.checkout import load_study
 from gpnarx.training.config import bert_data_dir, load_config, simulate_record
-from gpnarx.training import hyper_refine
 from gpnarx.training.defaults import shipped_config
 from gpnarx.training.lags import edge_message, lag_surface, write_surface
 from gpnarx.training.pages.markdown import pct

@@ -49,8 +49,8 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
             "monitor's novelty stream (bench_streams.py --replicas, --operation novelty)", None),
            ("bench/estimator_blas.txt", "The Python API's free run with and without its own BLAS limit "
             "(bench_estimator_blas.py)", None),
-           ("bench/update.txt", "An update from one new record against a retrain: gpnarx update bert-real with one 16 s "
-            "record against gpnarx train bert-real, same run (bench_update.py)", None),
+           ("bench/update.txt", "An update from one new record against a retrain: gpnarx update bert-real with one "
+            "16 s record against gpnarx train bert-real, same run (bench_update.py)", None),
            ("accelerator/bench_gpu.txt", "GPU run, H100 (results: [results-accelerator.md](results-accelerator.md))",
             "bench/bench_gpu.py (commands: docs/runs/accelerator/run.json)"),
            ("accelerator/h200/bench_gpu.txt", "GPU run, H200",
