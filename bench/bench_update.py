@@ -101,8 +101,10 @@ def main():
             train_argv = [str(config), "--registry", str(reg), "--no-report"]
             update_argv = ["update", name, str(record), "--registry", str(reg), "--config", str(config)]
         else:
-            data = Path(os.environ.get("GPNARX_BERT_DATA") or C.ROOT.parent / "shared" / "data" / "bert-t5nm")
-            os.environ["GPNARX_BERT_DATA"] = str(data)
+            from gpnarx.training.datapaths import BERT_DATA_ENV, bert_data_dir
+
+            data = bert_data_dir()
+            os.environ[BERT_DATA_ENV] = str(data)
             record = Path(args.record) if args.record else data / "Sine" / "Sine_19Hz"
             name, window, model = "bert-real", args.window or "24:40", "bert-real"
             train_argv = [name, "--registry", str(reg)]
