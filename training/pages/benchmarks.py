@@ -45,6 +45,9 @@ SOURCES = (("bench/quick.txt", "Quick mode (the smoke test's settings)", None),
            ("bench/exact_2core_compiled.txt", "The exact bert-real with the compiled pass 1 against the code "
             "before it, on the shared 2-core machine (bench_realtime.py --baseline-ref, bench_mc_speed.py --whole "
             "--seconds 2)", None),
+           ("bench/exact_2core_quiet_compiled.txt", "The exact bert-real, whole gpnarx predict process, on the quiet "
+            "2-core machine with and without the compiled passes, against the code before them (bench_realtime.py "
+            "--baseline-ref)", None),
            ("bench/streams_replicas.txt", "Streams with two replicas behind one address, and the stand-in "
             "monitor's novelty stream (bench_streams.py --replicas, --operation novelty)", None),
            ("bench/estimator_blas.txt", "The Python API's free run with and without its own BLAS limit "
