@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from gpnarx.model.metrics import fit_percent
+from gpnarx.training.free_run_fits import free_run_fits
 
 RULES = ("none", "lags")
 STEP = 0.05  # factors exp(+/- k STEP)
@@ -58,14 +58,10 @@ def _with_factor(model, theta0: np.ndarray, idx: list[int], factor: float, rows:
 
 
 def _fits(model, records) -> dict:
-    """Free-run fit % (linearised mean) of each record from its start rule; -1000 when not finite."""
-    out = {}
-    for rec in records:
-        y0 = rec.y[: model.ny] if rec.meta.get("initial") == "measured" else None
-        with np.errstate(all="ignore"):
-            f = fit_percent(rec.y, model.simulate(rec.u, method="linear", y0=y0).mean)
-        out[rec.name] = float(f) if np.isfinite(f) else -1e3
-    return out
+    """``free_run_fits`` of the records against their measured y, a diverging candidate's warnings
+    silenced (it scores -1000)."""
+    with np.errstate(all="ignore"):
+        return free_run_fits(model, records)
 
 
 def refine_lengthscales(model, records, *, tolerance: float = DEFAULT_TOLERANCE, log=None) -> dict:

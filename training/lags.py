@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 from joblib import Parallel, delayed
 
-from gpnarx.model.metrics import fit_percent
 from gpnarx.storage.atomicio import write_atomic
 from gpnarx.training.config import load_config
+from gpnarx.training.free_run_fits import free_run_fits
 from gpnarx.training.lagchoice import DEFAULT_TOLERANCE, choose_lags, edge_message, grid_edge
 from gpnarx.training.mimo_pipeline import mimo_lag_cell
 from gpnarx.training.prepare import model_from_config, shorten
@@ -73,13 +73,7 @@ def lag_cell_data(data: tuple, ny: int, nu: int, settings: dict) -> dict:
     t0 = time.perf_counter()
     try:
         model = model_from_config(cfg, ny, nu, **settings).fit(train)
-        fits = {}
-        for rec in lag_recs:
-            y0 = rec.y[:ny] if rec.meta.get("initial") == "measured" else None  # steady-state records
-            run = model.simulate(rec.u, method="linear", y0=y0)
-            ref = rec.meta.get("clean_y", rec.y) if settings.get("score_clean") else rec.y
-            f = fit_percent(ref, run.mean)
-            fits[rec.name] = float(f) if np.isfinite(f) else -1e3
+        fits = free_run_fits(model, lag_recs, score_clean=bool(settings.get("score_clean")))
         fit = float(np.mean(list(fits.values())))
         err = None
     except (ValueError, np.linalg.LinAlgError) as exc:
